@@ -86,9 +86,10 @@ def test_multiplier_rises_while_cost_exceeds_limit_and_chunk_log_layout():
 
 def test_flatten_iterations_puts_rollouts_end_to_end():
     log = ChunkLog(*(jnp.arange(2 * 3 * 4).reshape(2, 3, 4) for _ in range(7)),
+                   ep_end_xy=jnp.arange(2 * 3 * 4 * 2.0).reshape(2, 3, 4, 2),
                    metrics={"m": jnp.arange(6.0).reshape(2, 3)}, nonfinite=jnp.array([False, True]))
     flat = flatten_iterations(log)
-    assert flat.done.shape == (6, 4) and flat.metrics["m"].shape == (6,)
+    assert flat.done.shape == (6, 4) and flat.metrics["m"].shape == (6,) and flat.ep_end_xy.shape == (6, 4, 2)
     np.testing.assert_array_equal(np.asarray(flat.done[3]), np.asarray(log.done[1, 0]))  # rollout 2, step 0
     np.testing.assert_array_equal(np.asarray(flat.metrics["m"]), np.arange(6.0))
 

@@ -124,3 +124,28 @@ def test_soft_update_is_exact_polyak():
     np.testing.assert_array_equal(np.asarray(soft_update(target, online, 1.0)["a"]), [3.0, 6.0])
     np.testing.assert_array_equal(np.asarray(soft_update(target, online, 0.0)["a"]), [1.0, 2.0])
 
+
+
+def test_actor_loss_through_a_safety_layer():
+    """With execute_fn the critic sees the executed action and the gradient flows through the layer;
+    the proposal penalty pulls the proposal toward what the layer lets through."""
+    obs = jnp.array([[1.0], [2.0]])
+    critic = jnp.array([0.0, 0.0])  # Q1 = a
+    # identity layer, no penalty: the plain loss
+    plain, _ = td3_actor_loss(0.3, critic, obs, actor_apply, critic_apply)
+    same, _ = td3_actor_loss(0.3, critic, obs, actor_apply, critic_apply, None, lambda s, u: u, 1.0)
+    assert float(plain) == pytest.approx(float(same))
+    # a layer that halves the action: Q1 = 0.5 p s, override = (0.5 p s)^2
+    halve = lambda s, u: 0.5 * u  # noqa: E731
+    loss, m = td3_actor_loss(0.3, critic, obs, actor_apply, critic_apply, None, halve, 2.0)
+    s = np.array([1.0, 2.0])
+    expected = np.mean(-0.5 * 0.3 * s + 2.0 * (0.5 * 0.3 * s) ** 2)
+    assert float(loss) == pytest.approx(expected, rel=1e-6)
+    assert float(m["values/actor_override"]) == pytest.approx(np.mean((0.15 * s) ** 2), rel=1e-6)
+    grad = jax.grad(lambda p: td3_actor_loss(p, critic, obs, actor_apply, critic_apply, None, halve, 2.0)[0])(0.2)
+    expected_grad = np.mean(-0.5 * s + 2.0 * 2 * 0.25 * 0.2 * s**2)
+    assert float(grad) == pytest.approx(expected_grad, rel=1e-5)
+    # a layer that ignores the proposal: only the penalty moves the actor, toward the executed action
+    block = lambda s, u: jnp.zeros_like(u)  # noqa: E731
+    g = jax.grad(lambda p: td3_actor_loss(p, critic, obs, actor_apply, critic_apply, None, block, 1.0)[0])(0.3)
+    assert float(g) > 0  # shrinking p moves pi(s) = p s toward 0

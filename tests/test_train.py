@@ -36,10 +36,13 @@ def test_outputs_and_summary(tmp_path):
     for name in ("config.json", "episodes.csv", "summary.json", "checkpoint.msgpack"):
         assert (run / name).is_file(), name
     table = rows(run / "episodes.csv")
-    assert table[0] == ["episode", "return", "cost", "collided", "completed", "completed_relaxed", "length"]
+    assert table[0] == ["episode", "return", "cost", "collided", "completed", "completed_relaxed", "length",
+                        "end_x", "end_y"]
     assert len(table) == 1 + 60
     assert [int(r[0]) for r in table[1:]] == list(range(60))
     collided = np.array([int(r[3]) for r in table[1:]])
+    end = np.array([[float(r[7]), float(r[8])] for r in table[1:]])
+    assert np.all((end >= 0.0) & (end <= 5.0)) and len(np.unique(end, axis=0)) > 1  # where each episode ended
     assert summary["safety_rate"] == pytest.approx(1.0 - collided[-50:].mean())
     assert summary["episodes"] == 60 and summary["window"] == 50
     assert 0.0 <= summary["eval"]["safety_rate"] <= 1.0

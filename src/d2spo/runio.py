@@ -24,7 +24,7 @@ from flax import serialization
 
 from d2spo.errors import RunDirError
 
-EPISODE_FIELDS = ("episode", "return", "cost", "collided", "completed", "completed_relaxed", "length")
+EPISODE_FIELDS = ("episode", "return", "cost", "collided", "completed", "completed_relaxed", "length", "end_x", "end_y")
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:
@@ -96,7 +96,8 @@ def read_episodes(path: Path) -> list[tuple]:
             raise RunDirError(f"{path}: unexpected header {header}")
         for row in r:
             out.append(
-                (int(row[0]), float(row[1]), float(row[2]), int(row[3]), int(row[4]), int(row[5]), int(row[6]))
+                (int(row[0]), float(row[1]), float(row[2]), int(row[3]), int(row[4]), int(row[5]), int(row[6]),
+                 float(row[7]), float(row[8]))
             )
     return out
 

@@ -49,11 +49,12 @@ def _rows_from_log(log: ChunkLog, first_episode: int, limit: int) -> list[tuple]
     steps, envs = steps[:limit], envs[:limit]
     cols = [np.asarray(a)[steps, envs] for a in (
         log.ep_return, log.ep_cost, log.ep_collided, log.ep_completed, log.ep_completed_relaxed, log.ep_length)]
+    end = np.asarray(log.ep_end_xy)[steps, envs]
     rows = []
     for i in range(len(steps)):
         rows.append((
             first_episode + i, round(float(cols[0][i]), 5), float(cols[1][i]), int(cols[2][i]),
-            int(cols[3][i]), int(cols[4][i]), int(cols[5][i]),
+            int(cols[3][i]), int(cols[4][i]), int(cols[5][i]), round(float(end[i, 0]), 3), round(float(end[i, 1]), 3),
         ))
     return rows
 

@@ -27,6 +27,8 @@ class ChunkLog(NamedTuple):
     """Completed under the true labelling (robot inside the area)."""
     ep_completed_relaxed: jax.Array
     """Completed under the annealed training labelling."""
+    ep_end_xy: jax.Array
+    """[chunk_steps, num_envs, 2]: where the robot was when the episode ended (before the reset)."""
     metrics: dict[str, jax.Array]
     """Scalars per step, [chunk_steps], namespaced (``losses/qf``, ``charts/lambda``); NaN = no value."""
     nonfinite: jax.Array
@@ -43,6 +45,7 @@ def episode_log(done: jax.Array, info: dict[str, jax.Array], metrics: dict[str, 
         ep_collided=info["ep_collided"],
         ep_completed=info["ep_completed"],
         ep_completed_relaxed=info["ep_completed_relaxed"],
+        ep_end_xy=info["next_pose"][..., :2],
         metrics=metrics,
         nonfinite=jnp.zeros((), bool),
     )

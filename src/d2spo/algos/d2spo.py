@@ -51,6 +51,13 @@ class D2SPOConfig:
     """Initialise f_n from the textbook unicycle with the nominal speed limits (then fit it to data)."""
     runtime_filter: bool = False
     """Correct π_Ω's action to the closest one satisfying the learned barrier condition (beyond the paper)."""
+    actor_through_safety: bool = True
+    """TD3's actor loss is -Q(z, π_Ω(x, π(z))) (+ proposal_weight ||π(z) - π_Ω(x, π(z))||²) instead of
+    -Q(z, π(z)). The buffer holds executed actions (Algorithm 1, line 9), so Q(z, π(z)) at a proposal
+    π_Ω overrides is an extrapolation; without this the actor drifted to saturated proposals (full
+    reverse into a wall) that π_Ω kept cancelling, and the robot stood still. Not in the paper."""
+    proposal_weight: float = 1.0
+    """Weight of ||π(z) - π_Ω(x, π(z))||² in the actor loss (with actor_through_safety)."""
     synthetic_box_half: tuple[float, float] = (0.15, 0.45)
     """Half-size range (m) of the random boxes of the synthetic pre-training data."""
 
@@ -92,6 +99,8 @@ class D2SPOLearner(TD3Learner):
         self.lidar = env.observation_slices["lidar"]
         self.arena_lo, self.arena_hi = params.geom.arena_lo, params.geom.arena_hi
         self.n_obstacles = int(params.geom.box_lo.shape[0])
+        self.pose_slice = env.observation_slices["pose"]
+        self.n_features = env.n_rays
 
     # -- the sensor model b(z, O_s) as the CBF sees it -----------------------------------
     def features(self, pose: jax.Array, ctx: Sensed) -> jax.Array:
@@ -129,7 +138,7 @@ class D2SPOLearner(TD3Learner):
     def init(self, key: jax.Array) -> D2SPOCarry:
         base = super().init(key)
         k_s, k_pre, k_data = jax.random.split(jax.random.fold_in(key, 7), 3)
-        safety = init_safety_state(k_s, self.safety_nets, self.cbf_cfg, self.env.n_rays, self.env.action_size)
+        safety = init_safety_state(k_s, self.safety_nets, self.cbf_cfg, self.n_features, self.env.action_size)
         if self.d2.pretrain:
             pre = sd.synthetic_pretrain_data(k_data, self.features, self.synthetic_sample,
                                              self.cbf_cfg.pretrain_samples, cfg=self.cbf_cfg)
@@ -143,7 +152,7 @@ class D2SPOLearner(TD3Learner):
             pose=jnp.zeros((3,)), next_pose=jnp.zeros((3,)), context=self.sensed(jnp.zeros((self.n_obstacles,), bool)),
             obs=jnp.zeros((self.env.observation_size,)), action=jnp.zeros((self.env.action_size,)),
             u_rl=jnp.zeros((self.env.action_size,)))
-        data = sd.init_safety_data(self.cbf_cfg, example, self.env.n_rays)
+        data = sd.init_safety_data(self.cbf_cfg, example, self.n_features)
         if self.d2.pretrain:
             data = sd.seed_unsafe(data, pre)  # X_L has the synthetic ring samples from the first update
         return D2SPOCarry(base.key, base.env_state, base.obs, base.agent, base.buffer, safety, data,
@@ -175,7 +184,12 @@ class D2SPOLearner(TD3Learner):
         tr = sd.Transition(pose=info["pose"], next_pose=info["next_pose"], context=self.sensed(info["sensed"]),
                            obs=c.obs, action=action, u_rl=u_rl)
         data, data_stats = sd.update_datasets(c.data, k_data, tr, features_fn=self.features, cfg=self.cbf_cfg)
-        agent, metrics = learn_from_buffer(self.nets, c.agent, buffer, k_upd, c.steps + 1, self.num_envs, self.cfg)
+        execute_fn = None
+        if self.d2.actor_through_safety:
+            def execute_fn(o, u):  # π_Ω with this step's safety parameters, differentiable in u
+                return safe_action(self.safety_nets, c.safety, self.x_of_obs(o), u)
+        agent, metrics = learn_from_buffer(self.nets, c.agent, buffer, k_upd, c.steps + 1, self.num_envs, self.cfg,
+                                           execute_fn, self.d2.proposal_weight)
 
         def u_rl_fn(o):  # the current RL proposal, with exploration noise, as π_Ω will see it
             u = self.nets.actor.apply(agent.actor, o)

@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from d2spo.envs import dynamics, geometry, layouts, sensors
+from d2spo.envs import dynamics, geodesic, geometry, layouts, sensors
 from d2spo.envs.dynamics import DynamicsParams
 from d2spo.envs.geometry import Geometry
 from d2spo.envs.layouts import Layout
@@ -122,6 +122,9 @@ class EnvConfig:
             raise ConfigError("label_radius", f"must be positive, got {self.label_radius}")
         if self.reward.mode not in ("progress", "sparse"):
             raise ConfigError("reward.mode", f"unknown mode {self.reward.mode!r}; choose 'progress' or 'sparse'")
+        if self.reward.shaping_metric not in ("geodesic", "euclidean"):
+            raise ConfigError("reward.shaping_metric", f"unknown metric {self.reward.shaping_metric!r}; "
+                              "choose 'geodesic' or 'euclidean'")
 
 
 @struct.dataclass
@@ -154,6 +157,9 @@ class EnvParams:
     """float32 []: sensing radius H."""
     max_steps: jnp.ndarray
     """int32 []: episode length limit."""
+    geodesic: jnp.ndarray
+    """float32 [N, ny, nx]: path length through free space from each grid node to each area's centre
+    (``envs.geodesic``; the shaping potential's distance)."""
     n_rays: int = struct.field(pytree_node=False, default=16)
     """Number of lidar rays K (static: it sets the observation size)."""
     event: bool = struct.field(pytree_node=False, default=True)
@@ -250,6 +256,13 @@ class Env:
 
     # ------------------------------------------------------------------------- observation
 
+    def _center_distance(self, xy: jnp.ndarray, params: EnvParams) -> jnp.ndarray:
+        """[N]: distance from xy to each area's centre, by the reward's shaping metric."""
+        if params.reward.shaping_metric == "geodesic":
+            return geodesic.lookup(params.geodesic, xy)
+        rel = params.area_center - xy
+        return jnp.sqrt(rel[:, 0] * rel[:, 0] + rel[:, 1] * rel[:, 1])
+
     def observe(self, state: EnvState, params: EnvParams) -> jnp.ndarray:
         """The observation of ``state`` (see the class docstring for the layout)."""
         geom = params.geom
@@ -337,8 +350,10 @@ class Env:
         reward = progress_reward(aut, state.q, q_next, params.reward, collided)
         if params.reward.mode == "progress" and params.reward.shaping != 0.0:
             diag = jnp.linalg.norm(params.geom.arena_hi - params.geom.arena_lo)
-            phi = potential(aut, params.advance, state.q, state.pose[:2], params.area_center, params.label_radius, diag)
-            phi_next = potential(aut, params.advance, q_next, pose[:2], params.area_center, params.label_radius, diag)
+            dist = self._center_distance(state.pose[:2], params)
+            dist_next = self._center_distance(pose[:2], params)
+            phi = potential(aut, params.advance, state.q, dist, params.label_radius, diag)
+            phi_next = potential(aut, params.advance, q_next, dist_next, params.label_radius, diag)
             reward = reward + shaping_term(phi, phi_next, params.reward)
 
         completed = aut.accepting[q_true_next]
@@ -467,6 +482,10 @@ def make_env(cfg: EnvConfig, task: Any = "phi1") -> tuple[Env, EnvParams]:
         robot_radius=f32(cfg.robot_radius),
         sensing_radius=f32(cfg.sensing_radius),
         max_steps=jnp.asarray(cfg.max_steps, jnp.int32),
+        geodesic=f32(geodesic.distance_fields(
+            layout.arena, [o.lo for o in layout.obstacles], [o.hi for o in layout.obstacles],
+            [a.center for a in layout.areas], area_radius, cfg.robot_radius)
+            if cfg.reward.shaping_metric == "geodesic" else np.zeros((n_areas, 1, 1), np.float32)),
         n_rays=cfg.n_rays,
         event=cfg.label_mode == "event",
         collision_terminates=cfg.collision_terminates,

@@ -29,6 +29,11 @@ class AnnealConfig:
     """With k2 = None: fraction of the training episodes after which the true radius applies."""
     d_bar: float | None = None
     """Threshold d_bar (m); None = each area's own radius."""
+    separate: bool = True
+    """Cap each relaxed disk at half the distance to the nearest other area's centre (never below the
+    true radius), so relaxed areas never overlap. Not in the paper: with k1 = 0.1 the paper layout's
+    initial disks (3.5 m) overlap, every area is 'reached' at once and ordered tasks such as phi1 are
+    rejected on the first step. False: the paper's rule as written."""
 
     def rate(self, total_episodes: int) -> float:
         """k2: explicit, or ln(1/k1) / (until * episodes) so that k1 e^(k2 I) reaches 1 at I = until * episodes."""
@@ -37,18 +42,32 @@ class AnnealConfig:
         return math.log(1.0 / self.k1) / max(1.0, self.until * total_episodes) if self.k1 < 1 else 0.0
 
 
-def label_radius(area_radius: jax.Array, episodes: jax.Array, cfg: AnnealConfig, k2: float) -> jax.Array:
+def separation_cap(area_center: jax.Array, area_radius: jax.Array) -> jax.Array:
+    """Per area: half the distance to the nearest other area's centre, at least its true radius (inf if alone)."""
+    rel = area_center[:, None, :] - area_center[None, :, :]
+    dist = jnp.sqrt(jnp.sum(rel * rel, axis=-1))
+    n = area_center.shape[0]
+    dist = jnp.where(jnp.eye(n, dtype=bool), jnp.inf, dist)
+    return jnp.maximum(area_radius, 0.5 * jnp.min(dist, axis=-1, initial=jnp.inf))
+
+
+def label_radius(area_radius: jax.Array, episodes: jax.Array, cfg: AnnealConfig, k2: float,
+                 cap: jax.Array | None = None) -> jax.Array:
     """Radius within which an area counts as reached after ``episodes`` episodes (never below the true one).
 
     Sec. IV-C: reached when k1 d_s e^(k2 I_ep) <= d_bar, i.e. d_s <= d_bar / (k1 e^(k2 I_ep)).
+    ``cap`` (per area) bounds the relaxed radius from above (see ``AnnealConfig.separate``).
     """
     if not cfg.enabled:
         return area_radius
     d_bar = area_radius if cfg.d_bar is None else jnp.full_like(area_radius, cfg.d_bar)
     relaxed = d_bar / (cfg.k1 * jnp.exp(k2 * episodes.astype(jnp.float32)))
+    if cap is not None:
+        relaxed = jnp.minimum(relaxed, cap)
     return jnp.maximum(area_radius, relaxed)
 
 
 def annealed_params(params, episodes: jax.Array, cfg: AnnealConfig, k2: float):
     """Env params whose labelling radius is the annealed one after ``episodes`` finished episodes."""
-    return params.replace(label_radius=label_radius(params.area_radius, episodes, cfg, k2))
+    cap = separation_cap(params.area_center, params.area_radius) if cfg.separate else None
+    return params.replace(label_radius=label_radius(params.area_radius, episodes, cfg, k2, cap))

@@ -129,16 +129,28 @@ def td3_actor_loss(
     actor_apply: ActorApply,
     critic_apply: CriticApply,
     penalty_fn: PenaltyFn | None = None,
+    execute_fn: Callable[[jax.Array, jax.Array], jax.Array] | None = None,
+    proposal_weight: float = 0.0,
 ) -> tuple[jax.Array, dict[str, jax.Array]]:
-    """Deterministic policy gradient: mean(-Q1(s, pi(s)) + penalty_fn(s, pi(s))).
+    """Deterministic policy gradient: mean(-Q1(s, a) + penalty_fn(s, a)), a = pi(s).
 
     ``penalty_fn(obs, action) -> [B]`` adds a differentiable per-sample term, e.g. for TD3-Lag
     ``lambda s, a: lam * qc_apply(qc_params, s, a)[0]`` with lam held constant.
+
+    ``execute_fn(obs, proposal) -> action``: the policy's output is a proposal that a safety layer
+    turns into the executed action (D²SPO's π_Ω). Q1 is then evaluated at the executed action
+    a = execute_fn(s, pi(s)) (what the critic was trained on), the gradient flows through the layer,
+    and ``proposal_weight * ||pi(s) - a||²`` asks for proposals the layer lets through.
     """
-    action = actor_apply(actor_params, obs)
+    proposal = actor_apply(actor_params, obs)
+    action = proposal if execute_fn is None else execute_fn(obs, proposal)
     q1 = critic_apply(critic_params, obs, action)[0]
     per_sample = -q1
     metrics = {"values/actor_q": jnp.mean(q1)}
+    if execute_fn is not None and proposal_weight > 0:
+        override = jnp.sum((proposal - action) ** 2, axis=-1)
+        per_sample = per_sample + proposal_weight * override
+        metrics["values/actor_override"] = jnp.mean(override)
     if penalty_fn is not None:
         penalty = penalty_fn(obs, action)
         per_sample = per_sample + penalty
