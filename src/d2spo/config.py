@@ -51,6 +51,9 @@ class TrainConfig:
     """Write a checkpoint every this many episodes."""
     window: int = 2_000
     """Trailing training episodes the safety and completion rates are computed on (the paper: 2000)."""
+    snapshots: tuple[int, ...] = ()
+    """Also save the policy when these many episodes have finished (DIR/policy-EPISODES.msgpack),
+    e.g. for the trajectories of Fig. 5."""
     eval_episodes: int = 100
     """Episodes of the final deterministic policy evaluated at the end."""
     env: Annotated[EnvConfig, tyro.conf.OmitArgPrefixes] = field(default_factory=EnvConfig)
@@ -92,6 +95,8 @@ class TrainConfig:
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or v < 1:
                 raise ConfigError(name, f"must be a positive integer, got {v!r}")
+        if any(n < 1 for n in self.snapshots):
+            raise ConfigError("snapshots", f"episode counts must be >= 1, got {list(self.snapshots)}")
         if self.eval_episodes < 0:
             raise ConfigError("eval_episodes", f"must be >= 0, got {self.eval_episodes}")
         return self

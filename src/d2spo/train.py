@@ -14,12 +14,15 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
+from flax import serialization
 
 from d2spo.algos.base import ChunkLog
 from d2spo.config import TrainConfig, config_from_dict, config_to_dict
 from d2spo.errors import NaNError, RunDirError
+
 from d2spo.runio import (
     EpisodeWriter,
+    atomic_write_bytes,
     atomic_write_json,
     load_checkpoint,
     read_json,
@@ -130,6 +133,9 @@ def train(
         if progress is not None:
             progress({"episodes": len(writer), "total": cfg.episodes, "env_steps": meta["env_steps"],
                       "wall_seconds": meta["wall_seconds"], **window_rates(writer.rows, 200)})
+        for n in cfg.snapshots:
+            if len(writer) >= n and not snapshot_path(out, n).exists():
+                save_snapshot(out, n, learner.policy(carry))
         if len(writer) >= next_ckpt or len(writer) >= cfg.episodes:
             save_checkpoint(out, carry, meta)
             next_ckpt = (len(writer) // cfg.checkpoint_every + 1) * cfg.checkpoint_every
@@ -152,6 +158,25 @@ def train(
                                    jax.random.PRNGKey(cfg.seed + 10_000))
     atomic_write_json(out / "summary.json", summary)
     return summary
+
+
+def snapshot_path(run_dir: Path, episodes: int) -> Path:
+    return Path(run_dir) / f"policy-{episodes}.msgpack"
+
+
+def save_snapshot(run_dir: Path, episodes: int, policy) -> None:
+    """The policy's parameters after ``episodes`` training episodes (``TrainConfig.snapshots``)."""
+    atomic_write_bytes(snapshot_path(run_dir, episodes), serialization.to_bytes(jax.device_get(policy)))
+
+
+def load_snapshot(run_dir: Path, episodes: int, learner, key: jax.Array | None = None):
+    """The policy saved by ``save_snapshot``; shapes come from the learner (nothing is trained)."""
+    path = snapshot_path(run_dir, episodes)
+    if not path.is_file():
+        raise RunDirError(f"{run_dir}: no policy snapshot after {episodes} episodes ({path.name})")
+    key = jax.random.PRNGKey(0) if key is None else key
+    template = jax.eval_shape(lambda k: learner.policy(learner.init(k)), key)
+    return serialization.from_bytes(template, path.read_bytes())
 
 
 def _tensorboard(path: Path):

@@ -100,12 +100,25 @@ class D2SPOLearner(TD3Learner):
         self.arena_lo, self.arena_hi = params.geom.arena_lo, params.geom.arena_hi
         self.n_obstacles = int(params.geom.box_lo.shape[0])
         self.pose_slice = env.observation_slices["pose"]
-        self.n_features = env.n_rays
+        self.n_features = env.n_rays + 1
 
     # -- the sensor model b(z, O_s) as the CBF sees it -----------------------------------
     def features(self, pose: jax.Array, ctx: Sensed) -> jax.Array:
+        """x = b(z, O_s): the K lidar ranges and the distance to the nearest sensed obstacle or wall.
+
+        The last entry is the paper's b (the distance from z to the closest obstacle in O_s); the
+        ranges tell h and π_Ω where the obstacles are. Both are clipped at H. min(x) is that
+        distance: a ray never hits closer than the nearest obstacle, while the nearest point of a
+        box corner can lie between two rays (16 rays overestimate it by up to 27%).
+        """
         geom = Geometry(ctx.box_lo, ctx.box_hi, self.arena_lo, self.arena_hi)
-        return sensors.lidar(pose, geom, ctx.mask, self.env.n_rays, self.H)
+        scan = sensors.lidar(pose, geom, ctx.mask, self.env.n_rays, self.H)
+        return jnp.concatenate([scan, self._nearest(pose[:2], geom, ctx.mask)[None]])
+
+    def _nearest(self, xy: jax.Array, geom: Geometry, mask: jax.Array) -> jax.Array:
+        boxes = jnp.where(mask, geometry.box_signed_distance(xy, geom), self.H)
+        walls = geometry.arena_signed_distance(xy, geom)
+        return jnp.clip(jnp.min(jnp.concatenate([boxes, walls[None]])), 0.0, self.H)
 
     def sensed(self, mask: jax.Array) -> Sensed:
         lead = mask.shape[:-1]
@@ -131,8 +144,16 @@ class D2SPOLearner(TD3Learner):
         return jnp.concatenate([pose_xy, theta[None]]), Sensed(box_lo, box_hi, mask)
 
     def x_of_obs(self, obs: jax.Array) -> jax.Array:
-        """x = b(z, O_s) from the observation's lidar part (ranges beyond H read H either way)."""
-        return obs[..., self.lidar] * self.H
+        """x = b(z, O_s) from an observation: its lidar part (ranges beyond H read H either way) and
+        the nearest-obstacle distance at the pose the observation reports (obstacles beyond H
+        count as H, as unsensed ones do)."""
+        scan = obs[..., self.lidar] * self.H
+        p = obs[..., self.pose_slice]
+        xy = (p[..., :2] + 1.0) * 0.5 * (self.arena_hi - self.arena_lo) + self.arena_lo
+        geom = self.params.geom
+        everything = jnp.ones((self.n_obstacles,), bool)
+        near = jnp.vectorize(lambda q: self._nearest(q, geom, everything), signature="(2)->()")(xy)
+        return jnp.concatenate([scan, near[..., None]], axis=-1)
 
     # -- init ----------------------------------------------------------------------------
     def init(self, key: jax.Array) -> D2SPOCarry:

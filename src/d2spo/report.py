@@ -1,0 +1,57 @@
+"""`d2spo report OUT`: one markdown page with every table and figure that `d2spo reproduce` wrote."""
+
+from __future__ import annotations
+
+import json
+import platform
+from datetime import date
+from pathlib import Path
+
+from d2spo.errors import RunDirError
+
+SECTIONS = (
+    ("table2", "md", "Table II: ϕ1"),
+    ("table3", "md", "Table III: relaxed ϕ1"),
+    ("fig2", "png", "Fig. 2: reward curves (mean and a band of ± 1 std over seeds)"),
+    ("fig3", "png", "Fig. 3: (a) RL vs TLGRL without obstacles, (b) SL vs D²SPO"),
+    ("fig4", "png", "Fig. 4: the learned CBF on the physical layouts (TurtleBot preset), heading 0"),
+    ("fig5", "png", "Fig. 5: trajectories of the executed policy during training"),
+)
+
+
+def machine() -> str:
+    import os
+
+    import jax
+
+    return (f"{platform.machine()}, {os.cpu_count()} CPU cores, jax {jax.__version__} on "
+            f"{jax.devices()[0].platform}, Python {platform.python_version()}")
+
+
+def build_report(out: Path) -> Path:
+    """Write OUT/report.md from what is in OUT; raises RunDirError if nothing is there."""
+    out = Path(out)
+    if not out.is_dir():
+        raise RunDirError(f"{out}: no such directory; run `d2spo reproduce ... --out {out}` first")
+    meta_path = out / "reproduce.json"
+    meta = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
+    parts = ["# d2spo: reproduction report", ""]
+    if meta:
+        parts += [f"Command: `d2spo reproduce {' '.join(meta.get('targets', []))} --seeds {meta.get('seeds')} "
+                  f"--episodes {meta.get('episodes')} --out {out}` (backend {meta.get('backend')}); "
+                  f"{len(meta.get('runs', []))} runs. Report written {date.today().isoformat()} on {machine()}.", ""]
+    found = 0
+    for name, kind, title in SECTIONS:
+        path = out / f"{name}.{kind}"
+        if not path.is_file():
+            continue
+        found += 1
+        if kind == "md":
+            parts += [path.read_text().rstrip(), ""]
+        else:
+            parts += [f"### {title}", "", f"![{name}]({path.name})", ""]
+    if not found:
+        raise RunDirError(f"{out}: holds no tables or figures; run `d2spo reproduce all --out {out}` first")
+    report = out / "report.md"
+    report.write_text("\n".join(parts))
+    return report

@@ -1,0 +1,426 @@
+"""`d2spo reproduce`: the paper's tables and figures, one command each.
+
+A *target* (table2, table3, fig2 … fig5) is a list of runs (``RunSpec``: learner, task, layout,
+preset, seed, episodes) plus a renderer that reads the finished run directories. Runs live in
+``OUT/runs/NAME`` with the ordinary run-directory layout (``d2spo.runio``), so a finished run is
+reused, an interrupted one resumes from its checkpoint, and any of them can be inspected with
+``d2spo eval``. The runs are executed by a backend:
+
+* ``local`` (default): one after another in this process;
+* ``ray``: one Ray task per run on a cluster (``--address``) or a local Ray instance; every task
+  writes the same run directory (the output directory must be shared by the workers).
+
+Renderers write ``OUT/table2.md`` / ``.csv`` etc. and ``OUT/figN.png``; ``d2spo report OUT``
+gathers them into one page.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterable
+
+import numpy as np
+
+from d2spo.errors import UserError
+
+TARGETS = ("table2", "table3", "fig2", "fig3", "fig4", "fig5")
+METHODS = ("cpo", "ppo-lag", "td3-lag", "sac-lag", "rcrl", "d2spo")
+"""The rows of Tables II and III, in the paper's order."""
+METHOD_NAMES = {"cpo": "CPO", "ppo-lag": "LPPO", "td3-lag": "LTD3", "sac-lag": "LSAC", "rcrl": "RCRL",
+                "d2spo": "D²SPO", "tlgrl": "TLGRL", "td3": "RL (sparse)", "sl": "SL"}
+PAPER = {
+    # Table II (ϕ1) and Table III (relaxed ϕ1): (safety %, completion %)
+    "table2": {"cpo": (90.71, 19.44), "ppo-lag": (96.84, 0.0), "td3-lag": (83.08, 0.0), "sac-lag": (77.76, 96.74),
+               "rcrl": (74.47, 77.52), "d2spo": (95.23, 99.31)},
+    "table3": {"cpo": (94.49, 98.02), "ppo-lag": (91.59, 63.50), "td3-lag": (95.10, 97.11),
+               "sac-lag": (93.94, 98.75), "rcrl": (94.19, 94.82), "d2spo": (97.94, 99.48)},
+}
+TABLE_SETTING = {"table2": ("phi1", "paper"), "table3": ("relaxed", "relaxed")}
+PHYSICAL = ("physical-1", "physical-2", "physical-3", "physical-4")
+FIG4_EPISODES = 2000
+"""Fig. 4 learns the CBF of a TurtleBot on each physical layout; the paper gives no episode count.
+The barrier is learnt from the first episodes on, so 2000 (a tenth of the protocol) by default."""
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """One training run of a target."""
+
+    algo: str
+    task: str
+    layout: str
+    seed: int
+    episodes: int
+    preset: str | None = None
+    snapshots: tuple[int, ...] = ()
+
+    @property
+    def name(self) -> str:
+        preset = f"-{self.preset}" if self.preset else ""
+        return f"{self.algo}-{self.task}-{self.layout}{preset}-s{self.seed}"
+
+    def config(self):
+        from d2spo.config import TrainConfig
+        from d2spo.envs import EnvConfig
+
+        env = EnvConfig(layout=self.layout, preset=self.preset or "default")
+        return TrainConfig(algo=self.algo, task=self.task, episodes=self.episodes, seed=self.seed, env=env,
+                           snapshots=self.snapshots).check()
+
+
+def scaled(episodes: int, full: int, n: int) -> int:
+    """``n`` of the paper's ``full``-episode protocol, scaled to a run of ``episodes`` (at least 1)."""
+    return max(1, round(n * episodes / full))
+
+
+def fig5_snapshots(episodes: int) -> tuple[int, ...]:
+    """The paper shows the robot after 2000, 10000 and 20000 of 20000 episodes."""
+    return tuple(sorted({scaled(episodes, 20_000, n) for n in (2_000, 10_000, 20_000)}))
+
+
+def runs_for(target: str, seeds: int, episodes: int, methods: Iterable[str] = METHODS) -> list[RunSpec]:
+    """The runs a target needs (fig2 reuses the runs of table2 and table3)."""
+    seeds_ = range(seeds)
+    if target in TABLE_SETTING:
+        task, layout = TABLE_SETTING[target]
+        return [RunSpec(m, task, layout, s, episodes) for m in methods for s in seeds_]
+    if target == "fig2":
+        return runs_for("table2", seeds, episodes, methods) + runs_for("table3", seeds, episodes, methods)
+    if target == "fig3":
+        a = [RunSpec(m, t, "open", s, episodes) for m in ("td3", "tlgrl") for t in ("phi1", "phi2") for s in seeds_]
+        b = [RunSpec(m, t, "paper", s, episodes) for m in ("sl", "d2spo") for t in ("phi1", "phi2") for s in seeds_]
+        return a + b
+    if target == "fig4":
+        n = scaled(episodes, 20_000, FIG4_EPISODES)
+        return [RunSpec("d2spo", "phi1", lay, 0, n, preset="turtlebot") for lay in PHYSICAL]
+    if target == "fig5":
+        return [RunSpec("d2spo", "phi1", "paper", 0, episodes, snapshots=fig5_snapshots(episodes))]
+    raise UserError(f"unknown target {target!r}; choose one of {', '.join(TARGETS)} or all")
+
+
+def expand(targets: Iterable[str]) -> list[str]:
+    out: list[str] = []
+    for t in targets:
+        for x in (TARGETS if t == "all" else (t,)):
+            if x not in TARGETS:
+                raise UserError(f"unknown target {x!r}; choose one of {', '.join(TARGETS)} or all")
+            if x not in out:
+                out.append(x)
+    return out
+
+
+# ------------------------------------------------------------------------------------ running
+def run_dir(out: Path, spec: RunSpec) -> Path:
+    return Path(out) / "runs" / spec.name
+
+
+def is_finished(out: Path, spec: RunSpec) -> bool:
+    return (run_dir(out, spec) / "summary.json").is_file()
+
+
+def train_one(spec: RunSpec, out: str, progress: bool = False) -> dict:
+    """Train (or resume, or reuse) one run; returns its summary. Also the body of a Ray task."""
+    from d2spo.progress import train_with_progress
+    from d2spo.runio import read_json
+
+    d = run_dir(Path(out), spec)
+    if not (d / "summary.json").is_file():
+        if (d / "config.json").is_file():
+            old = read_json(d / "config.json", "the run's config")
+            if old.get("episodes") != spec.episodes or old.get("algo") != spec.algo:
+                raise UserError(f"{d}: holds a different run (episodes {old.get('episodes')}); "
+                                f"use another --out or remove it")
+        resume = d if (d / "checkpoint.json").is_file() else None
+        if resume is None and d.exists():
+            import shutil
+
+            shutil.rmtree(d)  # started, but no checkpoint yet: start again
+        rc = train_with_progress(spec.config(), d, resume, progress)
+        if rc != 0:
+            raise UserError(f"{d}: training failed")
+    return read_json(d / "summary.json", "the run's summary")
+
+
+def run_local(specs: list[RunSpec], out: Path, progress: bool = True, log: Callable[[str], None] = print) -> None:
+    todo = [s for s in specs if not is_finished(out, s)]
+    log(f"{len(specs) - len(todo)} of {len(specs)} runs already finished in {out}; training {len(todo)}")
+    for i, spec in enumerate(todo, 1):
+        log(f"[{i}/{len(todo)}] {spec.name} ({spec.episodes} episodes)")
+        train_one(spec, str(out), progress)
+
+
+def run_ray(specs: list[RunSpec], out: Path, address: str | None = None, num_cpus: int | None = None,
+            log: Callable[[str], None] = print) -> None:
+    """One Ray task per unfinished run. ``address=None`` starts a local Ray instance."""
+    try:
+        import ray
+    except ImportError:
+        raise UserError("--backend ray needs Ray: pip install 'd2spo[cluster]'") from None
+    todo = [s for s in specs if not is_finished(out, s)]
+    log(f"{len(specs) - len(todo)} of {len(specs)} runs already finished in {out}; {len(todo)} Ray tasks")
+    if not todo:
+        return
+    started = not ray.is_initialized()
+    if started:
+        ray.init(address=address, num_cpus=num_cpus, include_dashboard=False, log_to_driver=False,
+                 ignore_reinit_error=True)
+    try:
+        task = ray.remote(num_cpus=1)(train_one)
+        refs = {task.remote(s, str(Path(out).resolve()), False): s for s in todo}
+        pending = list(refs)
+        while pending:
+            done, pending = ray.wait(pending, num_returns=1)
+            for ref in done:
+                summary = ray.get(ref)
+                log(f"finished {refs[ref].name}: safety {summary['safety_rate']:.4f}, "
+                    f"completion {summary['completion_rate']:.4f}")
+    finally:
+        if started:
+            ray.shutdown()
+
+
+# ------------------------------------------------------------------------------------ tables
+def summaries(out: Path, specs: list[RunSpec]) -> dict[str, list[dict]]:
+    """Finished summaries per algo (missing runs are skipped)."""
+    from d2spo.runio import read_json
+
+    by: dict[str, list[dict]] = {}
+    for s in specs:
+        if is_finished(out, s):
+            by.setdefault(s.algo, []).append(read_json(run_dir(out, s) / "summary.json", "summary"))
+    return by
+
+
+def _pm(values: list[float]) -> str:
+    a = 100 * np.asarray(values, float)
+    return f"{a.mean():.2f} ± {a.std():.2f}" if len(a) > 1 else f"{a.mean():.2f}"
+
+
+def write_table(target: str, out: Path, seeds: int, episodes: int, methods: Iterable[str] = METHODS) -> Path:
+    """OUT/TARGET.md and OUT/TARGET.csv: mean ± std over seeds beside the paper's numbers."""
+    out = Path(out)
+    methods = list(methods)
+    specs = runs_for(target, seeds, episodes, methods)
+    by = summaries(out, specs)
+    task, layout = TABLE_SETTING[target]
+    rows = []
+    for m in methods:
+        got = by.get(m, [])
+        paper = PAPER[target].get(m)
+        rows.append({
+            "method": METHOD_NAMES.get(m, m), "algo": m, "seeds": len(got),
+            "safety_mean": float(np.mean([g["safety_rate"] for g in got])) if got else float("nan"),
+            "safety_std": float(np.std([g["safety_rate"] for g in got])) if got else float("nan"),
+            "completion_mean": float(np.mean([g["completion_rate"] for g in got])) if got else float("nan"),
+            "completion_std": float(np.std([g["completion_rate"] for g in got])) if got else float("nan"),
+            "paper_safety": paper[0] / 100 if paper else float("nan"),
+            "paper_completion": paper[1] / 100 if paper else float("nan"),
+            "wall_seconds_mean": float(np.mean([g["wall_seconds"] for g in got])) if got else float("nan"),
+            "_safety": _pm([g["safety_rate"] for g in got]) if got else "not run",
+            "_completion": _pm([g["completion_rate"] for g in got]) if got else "not run",
+        })
+    with open(out / f"{target}.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=[k for k in rows[0] if not k.startswith("_")])
+        w.writeheader()
+        w.writerows([{k: v for k, v in r.items() if not k.startswith("_")} for r in rows])
+    window = next((g["window"] for gs in by.values() for g in gs), 2000)
+    title = {"table2": "Table II: ϕ1 on `paper`", "table3": "Table III: relaxed ϕ1 on `relaxed`"}[target]
+    lines = [f"### {title}", "",
+             f"Safety and completion rate (%) over the last {window} of {episodes} training episodes, mean ± std "
+             f"over seeds; task `{task}`, layout `{layout}`; the paper's figure in brackets.", "",
+             "| method | seeds | safety | completion | paper safety | paper completion | wall time / run |",
+             "|---|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        wall = f"{r['wall_seconds_mean']:.0f} s" if r["seeds"] else "–"
+        ps = f"{100 * r['paper_safety']:.2f}" if np.isfinite(r["paper_safety"]) else "–"
+        pc = f"{100 * r['paper_completion']:.2f}" if np.isfinite(r["paper_completion"]) else "–"
+        lines.append(f"| {r['method']} | {r['seeds']} | {r['_safety']} | {r['_completion']} | {ps} | {pc} | {wall} |")
+    path = out / f"{target}.md"
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+# ----------------------------------------------------------------------------------- figures
+def reward_curves(out: Path, specs: list[RunSpec], smooth: int = 200):
+    """Per algo: (episode index, mean return over seeds, std) of the moving-average return."""
+    from d2spo.runio import read_episodes
+
+    curves: dict[str, list[np.ndarray]] = {}
+    for s in specs:
+        p = run_dir(out, s) / "episodes.csv"
+        if not p.is_file():
+            continue
+        ret = np.array([r[1] for r in read_episodes(p)], float)
+        if len(ret) == 0:
+            continue
+        k = max(1, min(smooth, len(ret)))
+        ma = np.convolve(ret, np.ones(k) / k, mode="valid")
+        curves.setdefault(s.algo, []).append(ma)
+    result = {}
+    for algo, cs in curves.items():
+        n = min(len(c) for c in cs)
+        a = np.stack([c[:n] for c in cs])
+        result[algo] = (np.arange(n) + smooth, a.mean(0), a.std(0))
+    return result
+
+
+def _figure(ncols: int, nrows: int = 1, size: float = 4.5):
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(size * ncols, size * nrows))
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _curve_axes(ax, curves, title: str) -> None:
+    for algo, (x, mean, std) in curves.items():
+        line = ax.plot(x, mean, label=METHOD_NAMES.get(algo, algo))[0]
+        ax.fill_between(x, mean - std, mean + std, color=line.get_color(), alpha=0.2)
+    ax.set_xlabel("episode")
+    ax.set_ylabel("return (moving average)")
+    ax.set_title(title)
+    if curves:
+        ax.legend(fontsize=8)
+
+
+def fig2(out: Path, seeds: int, episodes: int, methods: Iterable[str] = METHODS) -> Path:
+    fig = _figure(2)
+    for i, target in enumerate(("table2", "table3")):
+        curves = reward_curves(out, runs_for(target, seeds, episodes, methods))
+        _curve_axes(fig.add_subplot(1, 2, i + 1), curves, "(a) ϕ1" if i == 0 else "(b) relaxed ϕ1")
+    fig.tight_layout()
+    path = Path(out) / "fig2.png"
+    fig.savefig(str(path), dpi=110)
+    return path
+
+
+def fig3(out: Path, seeds: int, episodes: int) -> Path:
+    specs = runs_for("fig3", seeds, episodes)
+    fig = _figure(2)
+    for i, (algos, title) in enumerate(((("td3", "tlgrl"), "(a) RL vs TLGRL, `open`"),
+                                        (("sl", "d2spo"), "(b) SL vs D²SPO, `paper`"))):
+        ax = fig.add_subplot(1, 2, i + 1)
+        for task in ("phi1", "phi2"):
+            curves = reward_curves(out, [s for s in specs if s.algo in algos and s.task == task])
+            _curve_axes(ax, {f"{METHOD_NAMES[a]}-{task}": v for a, v in curves.items()}, title)
+    fig.tight_layout()
+    path = Path(out) / "fig3.png"
+    fig.savefig(str(path), dpi=110)
+    return path
+
+
+def fig4(out: Path, seeds: int, episodes: int, heading: float = 0.0) -> Path:
+    """Surface and level-set plots of the learned h on the four physical layouts (fixed heading)."""
+    from d2spo.envs.render import draw_layout
+    from d2spo.evaluate import load_policy
+    from d2spo.plots import cbf_grid
+
+    specs = runs_for("fig4", seeds, episodes)
+    fig = _figure(4, 2, size=4.0)
+    for i, spec in enumerate(specs):
+        d = run_dir(out, spec)
+        ax3 = fig.add_subplot(2, 4, i + 1, projection="3d")
+        ax2 = fig.add_subplot(2, 4, i + 5)
+        ax3.set_title(f"({'abcd'[i]}) {spec.layout}")
+        ax2.set_title(f"({'efgh'[i]}) level sets")
+        if not (d / "checkpoint.json").is_file():
+            ax2.text(0.5, 0.5, "not run", ha="center", transform=ax2.transAxes)
+            continue
+        _, learner, policy, _ = load_policy(d)
+        xs, ys, h, _ = cbf_grid(learner, policy[1], heading, resolution=60)
+        gx, gy = np.meshgrid(xs, ys)
+        ax3.plot_surface(gx, gy, h, cmap="RdYlGn", linewidth=0, antialiased=False)
+        ax3.set_xlabel("x (m)")
+        ax3.set_ylabel("y (m)")
+        ax3.set_zlabel("h")
+        lim = float(np.nanmax(np.abs(h))) or 1.0
+        ax2.contourf(xs, ys, h, levels=15, cmap="RdYlGn", vmin=-lim, vmax=lim)
+        ax2.contour(xs, ys, h, levels=[0.0], colors="black", linewidths=1.2)
+        draw_layout(learner.env.layout, ax2, show_sensing=False)
+    fig.tight_layout()
+    path = Path(out) / "fig4.png"
+    fig.savefig(str(path), dpi=100)
+    return path
+
+
+def fig5(out: Path, seeds: int, episodes: int, trajectories: int = 8) -> Path:
+    """The layout and the executed policy's trajectories after 10%, 50% and 100% of training."""
+    from d2spo.envs.render import draw_layout, draw_trajectory
+    from d2spo.evaluate import load_policy
+    from d2spo.plots import policy_trajectories
+    from d2spo.train import load_snapshot
+
+    spec = runs_for("fig5", seeds, episodes)[0]
+    d = run_dir(out, spec)
+    fig = _figure(1 + len(spec.snapshots), size=4.0)
+    if not (d / "checkpoint.json").is_file():
+        raise UserError(f"{d}: fig5's run has not been trained")
+    _, learner, _, _ = load_policy(d)
+    env, params = learner.env, learner.params
+    ax = fig.add_subplot(1, 1 + len(spec.snapshots), 1)
+    draw_layout(env.layout, ax, sensing_radius=float(params.sensing_radius))
+    ax.set_title("(a) layout")
+    for i, n in enumerate(spec.snapshots):
+        policy = load_snapshot(d, n, learner)
+        poses, collided, completed = policy_trajectories(learner, policy, env, params, trajectories, seed=i)
+        ax = fig.add_subplot(1, 1 + len(spec.snapshots), i + 2)
+        draw_layout(env.layout, ax, show_sensing=False)
+        for k in range(poses.shape[0]):
+            xy = poses[k, :, :2]
+            xy = xy[np.all(np.isfinite(xy), axis=-1)]
+            draw_trajectory(ax, xy, color="tab:red" if collided[k] else ("tab:purple" if completed[k] else "tab:orange"))
+        ax.set_title(f"({'bcd'[i]}) after {n} episodes: {completed.mean():.0%} done, {1 - collided.mean():.0%} safe")
+    fig.tight_layout()
+    path = Path(out) / "fig5.png"
+    fig.savefig(str(path), dpi=100)
+    return path
+
+
+def render(target: str, out: Path, seeds: int, episodes: int, methods: Iterable[str] = METHODS) -> Path:
+    if target in TABLE_SETTING:
+        return write_table(target, out, seeds, episodes, methods)
+    if target == "fig2":
+        return fig2(out, seeds, episodes, methods)
+    return {"fig3": fig3, "fig4": fig4, "fig5": fig5}[target](out, seeds, episodes)
+
+
+def reproduce(targets: Iterable[str], out: Path, seeds: int = 3, episodes: int = 20_000, backend: str = "local",
+              address: str | None = None, methods: Iterable[str] = METHODS, progress: bool = True,
+              log: Callable[[str], None] = print) -> list[Path]:
+    """Train what is missing for ``targets`` and render them. Returns the written files."""
+    if seeds < 1:
+        raise UserError(f"--seeds must be >= 1, got {seeds}")
+    if episodes < 1:
+        raise UserError(f"--episodes must be >= 1, got {episodes}")
+    methods = list(methods)
+    for m in methods:
+        if m not in METHODS:
+            raise UserError(f"unknown method {m!r}; choose from {', '.join(METHODS)}")
+    targets = expand(targets)
+    if not targets:
+        raise UserError(f"name at least one target: {', '.join(TARGETS)} or all")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    specs: list[RunSpec] = []
+    for t in targets:
+        for s in runs_for(t, seeds, episodes, methods):
+            if s not in specs:
+                specs.append(s)
+    if backend == "local":
+        run_local(specs, out, progress, log)
+    elif backend == "ray":
+        run_ray(specs, out, address, log=log)
+    else:
+        raise UserError(f"unknown backend {backend!r}; choose local or ray")
+    written = [render(t, out, seeds, episodes, methods) for t in targets]
+    meta = {"targets": targets, "seeds": seeds, "episodes": episodes, "methods": methods, "backend": backend,
+            "runs": [dataclasses.asdict(s) for s in specs]}
+    (out / "reproduce.json").write_text(json.dumps(meta, indent=2) + "\n")
+    for p in written:
+        log(f"wrote {p}")
+    return written

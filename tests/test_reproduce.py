@@ -1,0 +1,127 @@
+"""`d2spo reproduce` and `d2spo report`: which runs each target needs, reuse of finished runs,
+tables against the paper, snapshots for Fig. 5, and the Ray backend on a local Ray instance."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+
+import jax
+import numpy as np
+import pytest
+
+from d2spo import reproduce as rp
+from d2spo.cli import main
+from d2spo.errors import UserError
+
+TINY_EPISODES = 24
+
+
+def test_targets_need_the_paper_runs():
+    t2 = rp.runs_for("table2", seeds=3, episodes=20_000)
+    assert len(t2) == 18 and {s.algo for s in t2} == set(rp.METHODS)
+    assert {(s.task, s.layout) for s in t2} == {("phi1", "paper")}
+    t3 = rp.runs_for("table3", seeds=2, episodes=100)
+    assert {(s.task, s.layout, s.episodes) for s in t3} == {("relaxed", "relaxed", 100)}
+    assert rp.runs_for("fig2", 1, 100) == rp.runs_for("table2", 1, 100) + rp.runs_for("table3", 1, 100)
+    f3 = rp.runs_for("fig3", 1, 100)
+    assert {(s.algo, s.layout) for s in f3} == {("td3", "open"), ("tlgrl", "open"), ("sl", "paper"), ("d2spo", "paper")}
+    assert {s.task for s in f3} == {"phi1", "phi2"}
+    f4 = rp.runs_for("fig4", 3, 20_000)
+    assert [s.layout for s in f4] == list(rp.PHYSICAL) and {s.preset for s in f4} == {"turtlebot"}
+    assert {s.episodes for s in f4} == {rp.FIG4_EPISODES}
+    (f5,) = rp.runs_for("fig5", 3, 20_000)
+    assert f5.snapshots == (2_000, 10_000, 20_000)
+    assert rp.fig5_snapshots(200) == (20, 100, 200)
+    assert rp.expand(["all"]) == list(rp.TARGETS) and rp.expand(["fig2", "table2", "fig2"]) == ["fig2", "table2"]
+    with pytest.raises(UserError, match="unknown target"):
+        rp.expand(["table4"])
+    names = [s.name for s in rp.runs_for("fig4", 1, 100)]
+    assert len(set(names)) == len(names) and names[0] == "d2spo-phi1-physical-1-turtlebot-s0"
+
+
+def test_cli_input_errors_exit_2(tmp_path, capsys):
+    assert main(["reproduce", "table4", "--out", str(tmp_path)]) == 2
+    assert main(["reproduce", "table2", "--seeds", "0", "--out", str(tmp_path)]) == 2
+    assert main(["reproduce", "table2", "--backend", "slurm", "--methods", "cpo", "--seeds", "1",
+                 "--episodes", "1", "--out", str(tmp_path / "x")]) == 2
+    assert main(["report", str(tmp_path / "missing")]) == 2
+    assert main(["report", str(tmp_path)]) == 2  # exists but holds nothing
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 5 and all(line.startswith("d2spo: error:") for line in err)
+
+
+def test_table3_trains_once_reuses_and_reports(tmp_path):
+    out = tmp_path / "results"
+    paths = rp.reproduce(["table3"], out, seeds=2, episodes=TINY_EPISODES, methods=["ppo-lag"], progress=False,
+                         log=lambda s: None)
+    assert paths == [out / "table3.md"]
+    runs = sorted(p.name for p in (out / "runs").iterdir())
+    assert runs == ["ppo-lag-relaxed-relaxed-s0", "ppo-lag-relaxed-relaxed-s1"]
+    summaries = [json.loads((out / "runs" / r / "summary.json").read_text()) for r in runs]
+    with open(out / "table3.csv") as f:
+        (row,) = list(csv.DictReader(f))
+    assert row["algo"] == "ppo-lag" and int(row["seeds"]) == 2
+    assert float(row["safety_mean"]) == pytest.approx(np.mean([s["safety_rate"] for s in summaries]))
+    assert float(row["completion_std"]) == pytest.approx(np.std([s["completion_rate"] for s in summaries]))
+    assert float(row["paper_safety"]) == pytest.approx(0.9159)
+    md = (out / "table3.md").read_text()
+    assert "| LPPO | 2 |" in md and "91.59" in md and "63.50" in md
+    # a second call trains nothing: the summaries are not rewritten
+    stamp = [(out / "runs" / r / "summary.json").stat().st_mtime_ns for r in runs]
+    logs = []
+    rp.reproduce(["table3"], out, seeds=2, episodes=TINY_EPISODES, methods=["ppo-lag"], progress=False,
+                 log=logs.append)
+    assert [(out / "runs" / r / "summary.json").stat().st_mtime_ns for r in runs] == stamp
+    assert logs[0].startswith("2 of 2 runs already finished")
+    # report
+    assert main(["report", str(out)]) == 0
+    report = (out / "report.md").read_text()
+    assert "Table III" in report and "| LPPO | 2 |" in report and "--seeds 2" in report
+
+
+def test_fig2_plots_reward_bands(tmp_path):
+    out = tmp_path / "r"
+    rp.reproduce(["fig2"], out, seeds=1, episodes=TINY_EPISODES, methods=["ppo-lag"], progress=False,
+                 log=lambda s: None)
+    assert (out / "fig2.png").stat().st_size > 10_000
+    curves = rp.reward_curves(out, rp.runs_for("table3", 1, TINY_EPISODES, ["ppo-lag"]), smooth=5)
+    x, mean, std = curves["ppo-lag"]
+    assert len(x) == len(mean) == TINY_EPISODES - 4 and np.all(std == 0)  # one seed: no spread
+
+
+def test_snapshots_are_saved_and_loaded(tmp_path):
+    from d2spo.config import TrainConfig
+    from d2spo.envs import EnvConfig
+    from d2spo.algos.td3 import TD3Config
+    from d2spo.train import build, load_snapshot, snapshot_path, train
+
+    cfg = TrainConfig(algo="tlgrl", task="relaxed", env=EnvConfig(layout="relaxed"), episodes=40, num_envs=8,
+                      chunk_steps=50, eval_episodes=0, snapshots=(5, 40),
+                      td3=TD3Config(hidden=(16,), batch_size=32, learning_starts=200)).check()
+    train(cfg, tmp_path / "run")
+    assert snapshot_path(tmp_path / "run", 5).is_file() and snapshot_path(tmp_path / "run", 40).is_file()
+    _, _, learner = build(cfg)
+    early = load_snapshot(tmp_path / "run", 5, learner)
+    late = load_snapshot(tmp_path / "run", 40, learner)
+    leaves = zip(jax.tree_util.tree_leaves(early), jax.tree_util.tree_leaves(late))
+    assert any(not np.allclose(a, b) for a, b in leaves)  # the actor moved between the two
+    with pytest.raises(Exception, match="no policy snapshot"):
+        load_snapshot(tmp_path / "run", 7, learner)
+
+
+def test_ray_backend_on_a_local_instance(tmp_path):
+    ray = pytest.importorskip("ray")
+    out = tmp_path / "results"
+    spec = rp.RunSpec("ppo-lag", "relaxed", "relaxed", 0, TINY_EPISODES)
+    logs = []
+    rp.run_ray([spec, dataclasses.replace(spec, seed=1)], out, num_cpus=2, log=logs.append)
+    assert not ray.is_initialized()  # the instance it started is shut down
+    for seed in (0, 1):
+        summary = json.loads((rp.run_dir(out, dataclasses.replace(spec, seed=seed)) / "summary.json").read_text())
+        assert summary["episodes"] == TINY_EPISODES and summary["seed"] == seed
+    assert sum(line.startswith("finished ppo-lag-relaxed-relaxed-s") for line in logs) == 2
+    # same directory layout as the local backend: the table reads it
+    rp.write_table("table3", out, seeds=2, episodes=TINY_EPISODES, methods=["ppo-lag"])
+    assert "| LPPO | 2 |" in (out / "table3.md").read_text()
