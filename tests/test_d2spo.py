@@ -26,3 +26,28 @@ def test_cautious_start_makes_random_exploration_safe():
     u_rl = jnp.array([[0.5, -0.3]])
     u = learner.execute(carry.safety, obs, u_rl, jnp.zeros((1, 3)))
     assert float(jnp.linalg.norm(u - u_rl)) < 0.2
+
+
+def test_short_run_on_relaxed_learns_to_reach_a1_safely(tmp_path):
+    """500 episodes of D²SPO on the `relaxed` layout, task F A1 (its first leg; the two-area task
+    needs thousands of episodes). The final policy must reach A1 far more often than the untrained
+    one and never collide; training itself stays mostly collision-free."""
+    import dataclasses
+
+    from d2spo.algos.td3 import TD3Config
+    from d2spo.train import evaluate, train
+
+    cfg = TrainConfig(algo="d2spo", task="F A1", env=EnvConfig(layout="relaxed"), episodes=500, seed=0,
+                      eval_episodes=32, td3=dataclasses.replace(TD3Config(), updates_per_step=2)).check()
+    summary = train(cfg, tmp_path / "run")
+    env, params, learner = build(cfg)
+    untrained = evaluate(learner, learner.policy(jax.jit(learner.init)(jax.random.PRNGKey(0))), env, params, 32,
+                         jax.random.PRNGKey(10_000))
+    assert untrained["completion_rate"] <= 0.1
+    assert summary["eval"]["completion_rate"] >= 0.8
+    assert summary["eval"]["safety_rate"] == 1.0
+    import csv
+
+    with open(tmp_path / "run" / "episodes.csv") as f:
+        collided = [int(r["collided"]) for r in csv.DictReader(f)]
+    assert len(collided) == 500 and sum(collided) / 500 <= 0.1

@@ -143,6 +143,8 @@ class EvalCmd:
     """Seed of the evaluation episodes."""
     layout_seeds: int = 1
     """With --layout random: average over this many random layouts (seeds seed..seed+n-1)."""
+    runtime_filter: bool | None = None
+    """D²SPO only: switch the runtime safety filter on (or off) for this evaluation; default: as trained."""
 
     def run(self) -> int:
         from d2spo.evaluate import eval_command

@@ -54,10 +54,14 @@ def learner_on(cfg: TrainConfig, layout: str | None, preset: str | None):
 
 
 def evaluate_run(run_dir: Path, episodes: int = 100, layout: str | None = None, preset: str | None = None,
-                 seed: int = 0, layout_seeds: int = 1) -> dict:
+                 seed: int = 0, layout_seeds: int = 1, runtime_filter: bool | None = None) -> dict:
     from d2spo.train import evaluate
 
     cfg, learner, policy, _ = load_policy(run_dir)
+    if runtime_filter is not None:
+        if cfg.algo not in ("d2spo", "sl"):
+            raise ConfigError("runtime_filter", f"only D²SPO has a runtime filter; this run is {cfg.algo!r}")
+        cfg = dataclasses.replace(cfg, d2spo=dataclasses.replace(cfg.d2spo, runtime_filter=runtime_filter))
     layouts = [layout]
     if layout is not None and layout.startswith("random") and layout_seeds > 1:
         base = int(layout.split(":")[1]) if ":" in layout else 0
@@ -73,6 +77,8 @@ def evaluate_run(run_dir: Path, episodes: int = 100, layout: str | None = None, 
     out = {
         "run": str(run_dir), "episodes": episodes * len(layouts), "layout": layout or cfg.layout,
         "layouts": [lay or cfg.layout for lay in layouts], "dynamics": preset or cfg.env.preset, "seed": seed,
+        "runtime_filter": bool(getattr(cfg, "d2spo").runtime_filter) if cfg.algo in ("d2spo", "sl") else None,
+        "per_layout": [{"layout": lay or cfg.layout, **r} for lay, r in zip(layouts, results)],
         "safety_rate": float(np.mean([r["safety_rate"] for r in results])),
         "completion_rate": float(np.mean([r["completion_rate"] for r in results])),
         "mean_return": float(np.mean([r["mean_return"] for r in results])),
@@ -112,8 +118,9 @@ def eval_command(cmd) -> int:
     from rich.console import Console
     from rich.table import Table
 
-    res = evaluate_run(cmd.run_dir, cmd.episodes, cmd.layout, cmd.dynamics, cmd.seed, cmd.layout_seeds)
-    tag = f"{Path(res['layout']).stem.replace(':', '')}-{res['dynamics']}"
+    res = evaluate_run(cmd.run_dir, cmd.episodes, cmd.layout, cmd.dynamics, cmd.seed, cmd.layout_seeds,
+                       cmd.runtime_filter)
+    tag = f"{Path(res['layout']).stem.replace(':', '')}-{res['dynamics']}" + ("-filter" if res["runtime_filter"] else "")
     path = Path(cmd.run_dir) / f"eval-{tag}.json"
     atomic_write_json(path, res)
     t = Table(title=f"{cmd.run_dir} on {res['layout']} / {res['dynamics']} ({res['episodes']} episodes)")
