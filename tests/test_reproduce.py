@@ -75,10 +75,14 @@ def test_table3_trains_once_reuses_and_reports(tmp_path):
                  log=logs.append)
     assert [(out / "runs" / r / "summary.json").stat().st_mtime_ns for r in runs] == stamp
     assert logs[0].startswith("2 of 2 runs already finished")
+    # --no-train with more seeds renders what has finished and trains nothing
+    rp.reproduce(["table3"], out, seeds=3, episodes=TINY_EPISODES, methods=["ppo-lag"], progress=False,
+                 log=lambda s: None, train=False)
+    assert len(list((out / "runs").iterdir())) == 2 and "| LPPO | 2 |" in (out / "table3.md").read_text()
     # report
     assert main(["report", str(out)]) == 0
     report = (out / "report.md").read_text()
-    assert "Table III" in report and "| LPPO | 2 |" in report and "--seeds 2" in report
+    assert "Table III" in report and "| LPPO | 2 |" in report and "--seeds 3" in report and "2 of 3 runs" in report
 
 
 def test_fig2_plots_reward_bands(tmp_path):

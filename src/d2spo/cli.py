@@ -208,12 +208,14 @@ class ReproduceCmd:
     """Rows of Tables II-III and curves of Fig. 2."""
     progress: bool = True
     """Show a progress bar per run (local backend)."""
+    train: bool = True
+    """Train the missing runs; --no-train only renders what has finished (seed counts are shown)."""
 
     def run(self) -> int:
         from d2spo.reproduce import reproduce
 
         reproduce(self.targets, self.out, self.seeds, self.episodes, self.backend, self.address, self.methods,
-                  self.progress)
+                  self.progress, train=self.train)
         return 0
 
 
@@ -251,12 +253,14 @@ class ReproduceCmd:
     """Rows of Tables II-III and curves of Fig. 2."""
     progress: bool = True
     """Show a progress bar per run (local backend)."""
+    train: bool = True
+    """Train the missing runs; --no-train only renders what has finished (seed counts are shown)."""
 
     def run(self) -> int:
         from d2spo.reproduce import reproduce
 
         reproduce(self.targets, self.out, self.seeds, self.episodes, self.backend, self.address, self.methods,
-                  self.progress)
+                  self.progress, train=self.train)
         return 0
 
 

@@ -39,7 +39,7 @@ def build_report(out: Path) -> Path:
     if meta:
         parts += [f"Command: `d2spo reproduce {' '.join(meta.get('targets', []))} --seeds {meta.get('seeds')} "
                   f"--episodes {meta.get('episodes')} --out {out}` (backend {meta.get('backend')}); "
-                  f"{len(meta.get('runs', []))} runs. Report written {date.today().isoformat()} on {machine()}.", ""]
+                  f"{meta.get('finished', '?')} of {len(meta.get('runs', []))} runs finished. Report written {date.today().isoformat()} on {machine()}.", ""]
     found = 0
     for name, kind, title in SECTIONS:
         path = out / f"{name}.{kind}"

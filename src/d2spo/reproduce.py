@@ -391,8 +391,11 @@ def render(target: str, out: Path, seeds: int, episodes: int, methods: Iterable[
 
 def reproduce(targets: Iterable[str], out: Path, seeds: int = 3, episodes: int = 20_000, backend: str = "local",
               address: str | None = None, methods: Iterable[str] = METHODS, progress: bool = True,
-              log: Callable[[str], None] = print) -> list[Path]:
-    """Train what is missing for ``targets`` and render them. Returns the written files."""
+              log: Callable[[str], None] = print, train: bool = True) -> list[Path]:
+    """Train what is missing for ``targets`` (unless ``train`` is False) and render them.
+
+    Returns the written files. Tables count the seeds that have finished, so ``train=False``
+    renders whatever is there."""
     if seeds < 1:
         raise UserError(f"--seeds must be >= 1, got {seeds}")
     if episodes < 1:
@@ -411,14 +414,16 @@ def reproduce(targets: Iterable[str], out: Path, seeds: int = 3, episodes: int =
         for s in runs_for(t, seeds, episodes, methods):
             if s not in specs:
                 specs.append(s)
-    if backend == "local":
-        run_local(specs, out, progress, log)
-    elif backend == "ray":
-        run_ray(specs, out, address, log=log)
-    else:
+    if backend not in ("local", "ray"):
         raise UserError(f"unknown backend {backend!r}; choose local or ray")
+    if not train:
+        log(f"{sum(is_finished(out, s) for s in specs)} of {len(specs)} runs finished in {out}; rendering only")
+    elif backend == "local":
+        run_local(specs, out, progress, log)
+    else:
+        run_ray(specs, out, address, log=log)
     written = [render(t, out, seeds, episodes, methods) for t in targets]
-    meta = {"targets": targets, "seeds": seeds, "episodes": episodes, "methods": methods, "backend": backend,
+    meta = {"targets": targets, "seeds": seeds, "finished": sum(is_finished(out, s) for s in specs), "episodes": episodes, "methods": methods, "backend": backend,
             "runs": [dataclasses.asdict(s) for s in specs]}
     (out / "reproduce.json").write_text(json.dumps(meta, indent=2) + "\n")
     for p in written:
