@@ -99,7 +99,7 @@ class DemoCmd:
     """Directory for the demo's outputs."""
     seed: int = 0
     """Random seed."""
-    episodes: int = 600
+    episodes: int = 500
     """Training episodes of the short D²SPO run."""
 
     def run(self) -> int:

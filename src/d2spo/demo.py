@@ -1,7 +1,10 @@
-"""`make demo`: what d2spo can do so far, in under a minute.
+"""`make demo`: the paper's tasks as automata, then a short D²SPO training that ends with a
+summary table and a picture (trajectories of the trained policy and its learned barrier).
 
-It translates the paper's tasks to automata, prints them as a table, and draws the paper layout
-with a short random rollout.
+The short run is D²SPO on the `relaxed` layout with the task F A1 ("eventually reach A1"), 500
+episodes and two TD3 updates per vectorised step: about a minute on 2 CPU cores, and the policy
+reaches A1 without a collision. The full tasks (relaxed ϕ1, ϕ1) need the paper's 20000 episodes:
+`d2spo reproduce table2 table3`.
 """
 
 from __future__ import annotations
@@ -41,9 +44,15 @@ def random_rollout(layout: str, steps: int, seed: int, task: str | None = None) 
     return np.concatenate([start, poses[alive, :2]], axis=0)
 
 
-def run_demo(out: Path, seed: int = 0, episodes: int = 600) -> int:
-    """The paper's tasks as automata, then a short D²SPO training on the relaxed task, a summary
-    table and a picture of the trained policy with its learned barrier function."""
+DEMO_TASK = "F A1"
+
+
+def run_demo(out: Path, seed: int = 0, episodes: int = 500) -> int:
+    """The paper's tasks as automata, then a short D²SPO training (see the module docstring), a
+    summary table and a picture of the trained policy with its learned barrier function."""
+    import dataclasses
+
+    from d2spo.algos.td3 import TD3Config
     from rich.console import Console
     from rich.table import Table
 
@@ -73,10 +82,14 @@ def run_demo(out: Path, seed: int = 0, episodes: int = 600) -> int:
         import shutil
 
         shutil.rmtree(run)
-    cfg = TrainConfig(algo="d2spo", task="relaxed", episodes=episodes, seed=seed, window=min(200, episodes),
-                      eval_episodes=50, env=EnvConfig(layout="relaxed"))
-    console.print(f"[bold]Training D²SPO on 'relaxed' for {episodes} episodes[/bold] (the paper trains 20000)")
-    train_with_progress(cfg, run, None, show=True)
+    cfg = TrainConfig(algo="d2spo", task=DEMO_TASK, episodes=episodes, seed=seed, window=min(200, episodes),
+                      eval_episodes=50, env=EnvConfig(layout="relaxed"),
+                      td3=dataclasses.replace(TD3Config(), updates_per_step=2))
+    console.print(f"[bold]Training D²SPO on layout 'relaxed', task {DEMO_TASK!r}, for {episodes} episodes[/bold] "
+                  "(the paper's protocol is 20000 episodes; `d2spo reproduce table3` runs it)")
+    rc = train_with_progress(cfg, run, None, show=True)
+    if rc != 0:
+        return rc
     cfg, learner, policy, _ = load_policy(run)
     env, params, _ = build(cfg)
     picture = out / "d2spo_relaxed.png"
