@@ -13,7 +13,12 @@ import numpy as np
 import pytest
 from jax.flatten_util import ravel_pytree
 
-from d2spo.algos.common.networks import GaussianPolicy, gaussian_kl, gaussian_log_prob, gaussian_sample
+from d2spo.algos.common.networks import (
+    GaussianPolicy,
+    gaussian_kl,
+    gaussian_log_prob,
+    gaussian_sample,
+)
 from d2spo.algos.cpo import (
     INFEASIBLE,
     MIXED_STEP,
@@ -122,8 +127,8 @@ def paper_dual_step(g, b, c, h, delta):
         la, lb = (0.0, bound), (max(bound, 0.0), np.inf)
     else:
         la, lb = (max(bound, 0.0), np.inf), (0.0, max(bound, 0.0))
-    f_a = lambda lam: -0.5 * (a / lam + bb * lam) + r * c / s  # noqa: E731
-    f_b = lambda lam: -0.5 * (q / lam + 2 * delta * lam)  # noqa: E731
+    f_a = lambda lam: -0.5 * (a / lam + bb * lam) + r * c / s
+    f_b = lambda lam: -0.5 * (q / lam + 2 * delta * lam)
     cands = []
     if la[1] > la[0] and bb > 0:
         lam = float(np.clip(math.sqrt(a / bb), *la))

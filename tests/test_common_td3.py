@@ -107,7 +107,7 @@ def test_td3_actor_loss_and_penalty_hook():
     loss, metrics = td3_actor_loss(0.5, critic, obs, actor_apply, critic_apply)
     assert float(loss) == pytest.approx(-2.25)
     # TD3-Lag style penalty 2 * a: mean = 1.5 -> loss = -0.75
-    penalty = lambda s, a: 2.0 * a[:, 0]  # noqa: E731
+    penalty = lambda s, a: 2.0 * a[:, 0]
     loss, metrics = td3_actor_loss(0.5, critic, obs, actor_apply, critic_apply, penalty_fn=penalty)
     assert float(loss) == pytest.approx(-0.75) and float(metrics["values/actor_penalty"]) == pytest.approx(1.5)
     # d/dp mean(-(s + p s) + 2 p s) = mean(s) = 1.5: the gradient flows through pi into Q1 only.
@@ -136,7 +136,7 @@ def test_actor_loss_through_a_safety_layer():
     same, _ = td3_actor_loss(0.3, critic, obs, actor_apply, critic_apply, None, lambda s, u: u, 1.0)
     assert float(plain) == pytest.approx(float(same))
     # a layer that halves the action: Q1 = 0.5 p s, override = (0.5 p s)^2
-    halve = lambda s, u: 0.5 * u  # noqa: E731
+    halve = lambda s, u: 0.5 * u
     loss, m = td3_actor_loss(0.3, critic, obs, actor_apply, critic_apply, None, halve, 2.0)
     s = np.array([1.0, 2.0])
     expected = np.mean(-0.5 * 0.3 * s + 2.0 * (0.5 * 0.3 * s) ** 2)
@@ -146,6 +146,6 @@ def test_actor_loss_through_a_safety_layer():
     expected_grad = np.mean(-0.5 * s + 2.0 * 2 * 0.25 * 0.2 * s**2)
     assert float(grad) == pytest.approx(expected_grad, rel=1e-5)
     # a layer that ignores the proposal: only the penalty moves the actor, toward the executed action
-    block = lambda s, u: jnp.zeros_like(u)  # noqa: E731
+    block = lambda s, u: jnp.zeros_like(u)
     g = jax.grad(lambda p: td3_actor_loss(p, critic, obs, actor_apply, critic_apply, None, block, 1.0)[0])(0.3)
     assert float(g) > 0  # shrinking p moves pi(s) = p s toward 0

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from functools import lru_cache, partial
+from functools import cache, partial
 
 import jax
 import jax.numpy as jnp
@@ -18,7 +18,7 @@ from d2spo.ltl.reward import RewardConfig
 NO_SHAPING = RewardConfig(shaping=0.0)
 
 
-@lru_cache(maxsize=None)
+@cache
 def build(task="phi1", **cfg):
     """(env, params, jitted step, jitted step_batch) for a config, built once per test session."""
     env, params = make_env(EnvConfig(**cfg), task)
@@ -207,7 +207,7 @@ def test_relaxed_radius_drives_q_and_true_radius_drives_completed():
     assert np.allclose(params.label_radius, 0.6) and np.allclose(params.area_radius, 0.35)
     state, _ = jax.jit(env.reset)(jax.random.key(0), params)
     (a1, a2) = (env.layout.areas[0].center, env.layout.areas[1].center)
-    near = lambda c: (c[0] - 0.5, c[1])  # noqa: E731  inside the relaxed disk, outside the true one
+    near = lambda c: (c[0] - 0.5, c[1])
     state, _, _, _, done, info = step(jax.random.key(0), teleport(state, near(a1)), STOP, params)
     assert int(info["q_next"]) != int(info["q"]) and int(info["q_true_next"]) == int(info["q_true"])
     state, _, _, _, done, info = step(jax.random.key(0), teleport(state, near(a2)), STOP, params)

@@ -16,7 +16,7 @@ sharing no code with ``d2spo.ltl.translate``, check that claim:
 from __future__ import annotations
 
 import itertools
-from functools import lru_cache
+from functools import cache
 
 import numpy as np
 import pytest
@@ -127,7 +127,7 @@ def lasso_holds(f: Formula, aps: tuple[str, ...], words: np.ndarray, loop_start:
     return value[f][:, 0]
 
 
-@lru_cache(maxsize=None)
+@cache
 def _lasso_continuations(n_letters: int, max_prefix: int) -> list[np.ndarray]:
     """All v·w with |v| <= max_prefix and |w| = 1, grouped by |v| (arrays [count, |v| + 1])."""
     return [np.array(list(itertools.product(range(n_letters), repeat=k + 1))) for k in range(max_prefix + 1)]

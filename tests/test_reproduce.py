@@ -96,9 +96,9 @@ def test_fig2_plots_reward_bands(tmp_path):
 
 
 def test_snapshots_are_saved_and_loaded(tmp_path):
+    from d2spo.algos.td3 import TD3Config
     from d2spo.config import TrainConfig
     from d2spo.envs import EnvConfig
-    from d2spo.algos.td3 import TD3Config
     from d2spo.train import build, load_snapshot, snapshot_path, train
 
     cfg = TrainConfig(algo="tlgrl", task="relaxed", env=EnvConfig(layout="relaxed"), episodes=40, num_envs=8,

@@ -8,8 +8,19 @@ import numpy as np
 import optax
 
 from d2spo.safety.cbf import CBFConfig, TeBatch, barrier_terms, t_s, t_u
-from d2spo.safety.datasets import Transition, init_safety_data, synthetic_pretrain_data, update_datasets
-from d2spo.safety.joint_policy import cautious_start, init_safety_state, make_nets, safe_action, update
+from d2spo.safety.datasets import (
+    Transition,
+    init_safety_data,
+    synthetic_pretrain_data,
+    update_datasets,
+)
+from d2spo.safety.joint_policy import (
+    cautious_start,
+    init_safety_state,
+    make_nets,
+    safe_action,
+    update,
+)
 from d2spo.safety.nominal import unicycle_prior, wrap_angle
 
 K, H, R_ROBOT, DT, M = 16, 1.0, 0.15, 0.1, 2

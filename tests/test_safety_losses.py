@@ -8,7 +8,16 @@ import numpy as np
 import pytest
 
 from d2spo.errors import ConfigError
-from d2spo.safety.cbf import CBFConfig, check_geometry, class_k, sq_norm, t_e, t_g, t_s, t_u
+from d2spo.safety.cbf import (
+    CBFConfig,
+    check_geometry,
+    class_k,
+    sq_norm,
+    t_e,
+    t_g,
+    t_s,
+    t_u,
+)
 
 LIN = class_k("linear", 2.0)
 

@@ -98,3 +98,34 @@ def test_config_round_trip_and_errors():
     bad["td3"]["no_such_field"] = 1
     with pytest.raises(ConfigError, match="td3.no_such_field"):
         config_from_dict(bad)
+
+
+def test_seeds_vmapped_together_write_ordinary_runs_and_resume_exactly(tmp_path):
+    from d2spo.train import train_seeds
+
+    cfgs = [tiny(seed=s) for s in (0, 1, 2)]
+    outs = [tmp_path / "a" / f"s{s}" for s in (0, 1, 2)]
+    summaries = train_seeds(cfgs, outs)
+    assert [s["seed"] for s in summaries] == [0, 1, 2] and all(s["episodes"] == 60 for s in summaries)
+    for out in outs:
+        for name in ("config.json", "episodes.csv", "summary.json", "checkpoint.msgpack"):
+            assert (out / name).is_file(), name
+        assert len(rows(out / "episodes.csv")) == 61
+    assert not list((tmp_path / "a").glob(".group-*")), "the group checkpoint is removed at the end"
+    tables = [rows(o / "episodes.csv") for o in outs]
+    assert tables[0] != tables[1] != tables[2]  # different seeds, different runs
+    # interrupted after two chunks, then resumed by calling again: identical to the uninterrupted group
+    outs_b = [tmp_path / "b" / f"s{s}" for s in (0, 1, 2)]
+    assert train_seeds(cfgs, outs_b, stop_after_chunks=2) is None
+    assert 1 < len(rows(outs_b[0] / "episodes.csv")) < 61
+    again = train_seeds(cfgs, outs_b)
+    for a, b, sa, sb in zip(outs, outs_b, summaries, again):
+        assert rows(a / "episodes.csv") == rows(b / "episodes.csv")
+        for k in ("safety_rate", "completion_rate", "mean_return", "eval", "env_steps"):
+            assert sa[k] == sb[k], k
+    # a seed trained in a group is a run like any other: eval reads it
+    from d2spo.evaluate import evaluate_run
+
+    assert 0.0 <= evaluate_run(outs[1], episodes=4)["safety_rate"] <= 1.0
+    with pytest.raises(ConfigError, match="only in their seed"):
+        train_seeds([tiny(seed=0), tiny(seed=1, num_envs=4)], [tmp_path / "c0", tmp_path / "c1"])

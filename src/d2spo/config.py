@@ -15,10 +15,10 @@ from typing import Annotated, Any
 import tyro
 
 from d2spo.algos.cpo import CPOConfig
+from d2spo.algos.d2spo import D2SPOConfig
 from d2spo.algos.ppo_lag import PPOLagConfig
 from d2spo.algos.rcrl import RCRLConfig
 from d2spo.algos.sac_lag import SACLagConfig
-from d2spo.algos.d2spo import D2SPOConfig
 from d2spo.algos.td3 import TD3Config
 from d2spo.algos.td3_lag import TD3LagConfig
 from d2spo.envs import EnvConfig
@@ -86,7 +86,7 @@ class TrainConfig:
         mode = "sparse" if self.algo in ("td3", "sl") else "progress"
         return dataclasses.replace(self.env, reward=dataclasses.replace(self.env.reward, mode=mode))
 
-    def check(self) -> "TrainConfig":
+    def check(self) -> TrainConfig:
         from d2spo.algos import known_algos
 
         if self.algo not in known_algos():

@@ -52,17 +52,17 @@ def run_demo(out: Path, seed: int = 0, episodes: int = 500) -> int:
     summary table and a picture of the trained policy with its learned barrier function."""
     import dataclasses
 
-    from d2spo.algos.td3 import TD3Config
     from rich.console import Console
     from rich.table import Table
 
+    from d2spo.algos.td3 import TD3Config
     from d2spo.config import TrainConfig
     from d2spo.envs import EnvConfig, layouts
+    from d2spo.evaluate import load_policy
     from d2spo.ltl import TASKS, translate
     from d2spo.plots import policy_figure
     from d2spo.progress import train_with_progress
     from d2spo.train import build
-    from d2spo.evaluate import load_policy
 
     console = Console()
     out = Path(out)

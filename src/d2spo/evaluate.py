@@ -77,7 +77,7 @@ def evaluate_run(run_dir: Path, episodes: int = 100, layout: str | None = None, 
     out = {
         "run": str(run_dir), "episodes": episodes * len(layouts), "layout": layout or cfg.layout,
         "layouts": [lay or cfg.layout for lay in layouts], "dynamics": preset or cfg.env.preset, "seed": seed,
-        "runtime_filter": bool(getattr(cfg, "d2spo").runtime_filter) if cfg.algo in ("d2spo", "sl") else None,
+        "runtime_filter": bool(cfg.d2spo.runtime_filter) if cfg.algo in ("d2spo", "sl") else None,
         "per_layout": [{"layout": lay or cfg.layout, **r} for lay, r in zip(layouts, results)],
         "safety_rate": float(np.mean([r["safety_rate"] for r in results])),
         "completion_rate": float(np.mean([r["completion_rate"] for r in results])),

@@ -19,7 +19,7 @@ def summary_table(summary: dict, title: str):
     t = Table(title=title)
     t.add_column("metric")
     t.add_column("value", justify="right")
-    pct = lambda v: f"{100 * v:.2f}%"  # noqa: E731
+    pct = lambda v: f"{100 * v:.2f}%"
     t.add_row("episodes", str(summary["episodes"]))
     t.add_row("env steps", f"{summary['env_steps']:,}")
     t.add_row("wall time", f"{summary['wall_seconds']:.0f} s ({summary['env_steps_per_second']:,.0f} steps/s)")
@@ -35,7 +35,6 @@ def summary_table(summary: dict, title: str):
 
 def train_with_progress(cfg: TrainConfig, out: Path | None, resume: Path | None, show: bool) -> int:
     from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
     from d2spo.train import load_run_config, train
 
@@ -45,19 +44,54 @@ def train_with_progress(cfg: TrainConfig, out: Path | None, resume: Path | None,
         out = resume
     cfg = cfg.check()
     out = Path(out) if out is not None else default_out(cfg)
+    with _progress(console, show) as bar:
+        on_chunk = _bar_task(bar, f"{cfg.algo} {cfg.task}", cfg.episodes)
+        summary = train(cfg, out, resume=resume is not None, progress=on_chunk)
+    Console().print(summary_table(summary, f"{cfg.algo} on {cfg.task} / {cfg.layout} (seed {cfg.seed}) → {out}"))
+    return 0
+
+
+def _progress(console, show: bool):
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
     columns = [
         TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TextColumn("episodes"),
         TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn(), TextColumn("{task.fields[stats]}"),
     ]
-    with Progress(*columns, console=console, disable=not show, transient=False) as bar:
-        task = bar.add_task(f"{cfg.algo} {cfg.task}", total=cfg.episodes, stats="compiling…")
+    return Progress(*columns, console=console, disable=not show, transient=False)
 
-        def on_chunk(d: dict) -> None:
-            eps_per_s = d["episodes"] / max(d["wall_seconds"], 1e-9)
-            stats = (f"{eps_per_s:.1f} ep/s  safe {100 * d['safety_rate']:.1f}%  "
-                     f"done {100 * d['completion_rate']:.1f}% (relaxed {100 * d['completion_rate_relaxed']:.1f}%)")
-            bar.update(task, completed=d["episodes"], stats=stats)
 
-        summary = train(cfg, out, resume=resume is not None, progress=on_chunk)
-    Console().print(summary_table(summary, f"{cfg.algo} on {cfg.task} / {cfg.layout} (seed {cfg.seed}) → {out}"))
-    return 0
+def _bar_task(bar, description: str, total: int):
+    """A progress row and the callback that ``train`` calls after each chunk."""
+    task = bar.add_task(description, total=total, stats="compiling…")
+
+    def on_chunk(d: dict) -> None:
+        eps_per_s = d["episodes"] / max(d["wall_seconds"], 1e-9)
+        stats = (f"{eps_per_s:.1f} ep/s  safe {100 * d['safety_rate']:.1f}%  "
+                 f"done {100 * d['completion_rate']:.1f}% (relaxed {100 * d['completion_rate_relaxed']:.1f}%)")
+        bar.update(task, completed=d["episodes"], stats=stats)
+
+    return on_chunk
+
+
+def train_seeds_with_progress(cfgs: list[TrainConfig], outs: list[Path], show: bool) -> list[dict]:
+    """``d2spo.train.train_seeds`` (seeds vmapped together) with one progress row per seed."""
+    from rich.console import Console
+
+    from d2spo.train import train_seeds
+
+    console = Console(stderr=True)
+    cfgs = [c.check() for c in cfgs]
+    with _progress(console, show) as bar:
+        callbacks = [_bar_task(bar, f"{c.algo} {c.task} s{c.seed}", c.episodes) for c in cfgs]
+        summaries = train_seeds(cfgs, outs, progress=callbacks)
+    for cfg, out, summary in zip(cfgs, outs, summaries):
+        Console().print(summary_table(summary, f"{cfg.algo} on {cfg.task} / {cfg.layout} (seed {cfg.seed}) → {out}"))
+    return summaries

@@ -6,7 +6,8 @@ preset, seed, episodes) plus a renderer that reads the finished run directories.
 reused, an interrupted one resumes from its checkpoint, and any of them can be inspected with
 ``d2spo eval``. The runs are executed by a backend:
 
-* ``local`` (default): one after another in this process;
+* ``local`` (default): in this process; the seeds of one setting run together as one program,
+  ``jax.vmap`` over seeds (``d2spo.train.train_seeds``), unless ``--no-vmap-seeds``;
 * ``ray``: one Ray task per run on a cluster (``--address``) or a local Ray instance; every task
   writes the same run directory (the output directory must be shared by the workers).
 
@@ -19,9 +20,9 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterable
 
 import numpy as np
 
@@ -145,12 +146,51 @@ def train_one(spec: RunSpec, out: str, progress: bool = False) -> dict:
     return read_json(d / "summary.json", "the run's summary")
 
 
-def run_local(specs: list[RunSpec], out: Path, progress: bool = True, log: Callable[[str], None] = print) -> None:
+def _fresh_or_resumable(out: Path, spec: RunSpec) -> bool:
+    """True unless the run has its own checkpoint (it was started alone: it resumes alone)."""
+    return not (run_dir(out, spec) / "checkpoint.json").is_file()
+
+
+def train_group(specs: list[RunSpec], out: Path, progress: bool = False) -> list[dict]:
+    """Seeds of one (algo, task, layout, …) trained together, ``jax.vmap`` over seeds."""
+    import shutil
+
+    from d2spo.progress import train_seeds_with_progress
+    from d2spo.train import train_seeds
+
+    outs = [run_dir(out, s) for s in specs]
+    group = outs[0].parent / (".group-" + "+".join(o.name for o in outs))
+    if not (group / "checkpoint.json").is_file():
+        for o in outs:  # started before without a checkpoint: start again
+            if o.exists():
+                shutil.rmtree(o)
+    cfgs = [s.config() for s in specs]
+    if progress:
+        return train_seeds_with_progress(cfgs, outs, True)
+    return train_seeds(cfgs, outs)
+
+
+def run_local(specs: list[RunSpec], out: Path, progress: bool = True, log: Callable[[str], None] = print,
+              vmap_seeds: bool = True) -> None:
+    """Train the unfinished runs in this process. With ``vmap_seeds`` the seeds of one setting run
+    together as one program (``d2spo.train.train_seeds``); a run that already has a checkpoint of
+    its own resumes alone."""
     todo = [s for s in specs if not is_finished(out, s)]
     log(f"{len(specs) - len(todo)} of {len(specs)} runs already finished in {out}; training {len(todo)}")
-    for i, spec in enumerate(todo, 1):
-        log(f"[{i}/{len(todo)}] {spec.name} ({spec.episodes} episodes)")
-        train_one(spec, str(out), progress)
+    groups: dict[RunSpec, list[RunSpec]] = {}
+    for s in todo:
+        together = vmap_seeds and _fresh_or_resumable(out, s)
+        key = dataclasses.replace(s, seed=-1) if together else s
+        groups.setdefault(key, []).append(s)
+    for i, members in enumerate(groups.values(), 1):
+        m = members[0]
+        seeds = ", ".join(str(x.seed) for x in members)
+        log(f"[{i}/{len(groups)}] {m.algo} {m.task} {m.layout}{f' ({m.preset})' if m.preset else ''}, "
+            f"seed{'s' if len(members) > 1 else ''} {seeds} ({m.episodes} episodes)")
+        if len(members) == 1:
+            train_one(m, str(out), progress)
+        else:
+            train_group(members, out, progress)
 
 
 def run_ray(specs: list[RunSpec], out: Path, address: str | None = None, num_cpus: int | None = None,
@@ -391,7 +431,7 @@ def render(target: str, out: Path, seeds: int, episodes: int, methods: Iterable[
 
 def reproduce(targets: Iterable[str], out: Path, seeds: int = 3, episodes: int = 20_000, backend: str = "local",
               address: str | None = None, methods: Iterable[str] = METHODS, progress: bool = True,
-              log: Callable[[str], None] = print, train: bool = True) -> list[Path]:
+              log: Callable[[str], None] = print, train: bool = True, vmap_seeds: bool = True) -> list[Path]:
     """Train what is missing for ``targets`` (unless ``train`` is False) and render them.
 
     Returns the written files. Tables count the seeds that have finished, so ``train=False``
@@ -419,7 +459,7 @@ def reproduce(targets: Iterable[str], out: Path, seeds: int = 3, episodes: int =
     if not train:
         log(f"{sum(is_finished(out, s) for s in specs)} of {len(specs)} runs finished in {out}; rendering only")
     elif backend == "local":
-        run_local(specs, out, progress, log)
+        run_local(specs, out, progress, log, vmap_seeds)
     else:
         run_ray(specs, out, address, log=log)
     written = [render(t, out, seeds, episodes, methods) for t in targets]

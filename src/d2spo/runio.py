@@ -114,7 +114,7 @@ def window_rates(rows: list[tuple], window: int) -> dict[str, float]:
         "completion_rate": float(a[:, 4].mean()),
         "completion_rate_relaxed": float(a[:, 5].mean()),
         "mean_return": float(a[:, 1].mean()),
-        "window_episodes": int(len(a)),
+        "window_episodes": len(a),
     }
 
 

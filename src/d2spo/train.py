@@ -8,8 +8,8 @@ finished episodes and scalar metrics.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import jax
 import jax.numpy as jnp
@@ -18,8 +18,7 @@ from flax import serialization
 
 from d2spo.algos.base import ChunkLog
 from d2spo.config import TrainConfig, config_from_dict, config_to_dict
-from d2spo.errors import NaNError, RunDirError
-
+from d2spo.errors import ConfigError, NaNError, RunDirError
 from d2spo.runio import (
     EpisodeWriter,
     atomic_write_bytes,
@@ -76,6 +75,86 @@ def load_run_config(run_dir: Path) -> TrainConfig:
     return config_from_dict(read_json(Path(run_dir) / "config.json", "the run's config"))
 
 
+class _Run:
+    """The host-side bookkeeping of one run directory: episodes.csv, TensorBoard, counters,
+    snapshots, checkpoints and the summary. ``train`` has one; ``train_seeds`` one per seed."""
+
+    def __init__(self, cfg: TrainConfig, out: Path, meta: dict | None = None):
+        self.cfg, self.out = cfg, Path(out)
+        self.meta = meta or {"episodes": 0, "env_steps": 0, "chunks": 0, "wall_seconds": 0.0}
+        self.writer = EpisodeWriter(self.out / "episodes.csv", keep_rows=self.meta["episodes"])
+        self.tb = _tensorboard(self.out / "tb")
+        every = cfg.checkpoint_every
+        self.next_ckpt = (self.meta["episodes"] // every + 1) * every
+        self.t_start = time.perf_counter() - self.meta["wall_seconds"]
+
+    @property
+    def done(self) -> bool:
+        return len(self.writer) >= self.cfg.episodes
+
+    def record(self, log: ChunkLog, progress: ProgressFn | None) -> None:
+        """Take in one chunk's log (NaN check, episodes, counters, TensorBoard, progress)."""
+        cfg, writer, meta = self.cfg, self.writer, self.meta
+        if bool(log.nonfinite):
+            bad = [k for k, v in log.metrics.items() if np.any(np.isinf(np.asarray(v)))]
+            raise NaNError(
+                f"non-finite parameters during training (episode ~{len(writer)}; inf metrics: {bad}); "
+                f"last good checkpoint is in {self.out}"
+            )
+        rows = _rows_from_log(log, len(writer), cfg.episodes - len(writer))
+        writer.append(rows)
+        meta["chunks"] += 1
+        meta["env_steps"] += cfg.chunk_steps * cfg.num_envs
+        meta["episodes"] = len(writer)
+        meta["wall_seconds"] = time.perf_counter() - self.t_start
+        if self.tb is not None:
+            for k, v in log.metrics.items():
+                v = np.asarray(v, dtype=np.float64)
+                if np.any(np.isfinite(v)):
+                    self.tb.add_scalar(k, float(np.nanmean(v)), meta["env_steps"])
+            if rows:
+                rates = window_rates(writer.rows, 100)
+                self.tb.add_scalar("charts/safety_rate_100", rates["safety_rate"], meta["env_steps"])
+                self.tb.add_scalar("charts/completion_rate_100", rates["completion_rate"], meta["env_steps"])
+                self.tb.add_scalar("charts/completion_rate_relaxed_100", rates["completion_rate_relaxed"],
+                                   meta["env_steps"])
+        if progress is not None:
+            progress({"episodes": len(writer), "total": cfg.episodes, "env_steps": meta["env_steps"],
+                      "wall_seconds": meta["wall_seconds"], **window_rates(writer.rows, 200)})
+
+    def save(self, learner, carry, force: bool = False) -> bool:
+        """Snapshots that are due, and the checkpoint every ``checkpoint_every`` episodes (or now).
+        Returns whether a checkpoint was written."""
+        n_done = len(self.writer)
+        for n in self.cfg.snapshots:
+            if n_done >= n and not snapshot_path(self.out, n).exists():
+                save_snapshot(self.out, n, learner.policy(carry))
+        if force or n_done >= self.next_ckpt or self.done:
+            save_checkpoint(self.out, carry, self.meta)
+            every = self.cfg.checkpoint_every
+            self.next_ckpt = (n_done // every + 1) * every
+            return True
+        return False
+
+    def finish(self, learner, carry, env, params) -> dict:
+        cfg = self.cfg
+        wall = time.perf_counter() - self.t_start
+        if self.tb is not None:
+            self.tb.close()
+        summary = {
+            "algo": cfg.algo, "task": cfg.task, "layout": cfg.layout, "seed": cfg.seed,
+            "episodes": len(self.writer), "env_steps": self.meta["env_steps"], "wall_seconds": round(wall, 2),
+            "env_steps_per_second": round(self.meta["env_steps"] / max(wall, 1e-9), 1),
+            "window": cfg.window, **window_rates(self.writer.rows, cfg.window),
+            "device": jax.devices()[0].platform,
+        }
+        if cfg.eval_episodes > 0:
+            summary["eval"] = evaluate(learner, learner.policy(carry), env, params, cfg.eval_episodes,
+                                       jax.random.PRNGKey(cfg.seed + 10_000))
+        atomic_write_json(self.out / "summary.json", summary)
+        return summary
+
+
 def train(
     cfg: TrainConfig, out: Path, resume: bool = False, progress: ProgressFn | None = None,
     stop_after_chunks: int | None = None,
@@ -88,76 +167,95 @@ def train(
     _prepare_dir(out, cfg, resume)
     env, params, learner = build(cfg)
     key = jax.random.PRNGKey(cfg.seed)
-    init = jax.jit(learner.init)
     chunk = jax.jit(learner.chunk, donate_argnums=0)
-    meta = {"episodes": 0, "env_steps": 0, "chunks": 0, "wall_seconds": 0.0}
+    meta = None
     if resume:
         if not (out / "checkpoint.json").exists():
             raise RunDirError(f"{out}: no checkpoint to resume from")
         carry, meta = load_checkpoint(out, jax.eval_shape(learner.init, key))
         carry = jax.tree_util.tree_map(jnp.asarray, carry)
     else:
-        carry = init(key)
-    writer = EpisodeWriter(out / "episodes.csv", keep_rows=meta["episodes"])
-    tb = _tensorboard(out / "tb")
-    steps_per_chunk = cfg.chunk_steps * cfg.num_envs
-    next_ckpt = (meta["episodes"] // cfg.checkpoint_every + 1) * cfg.checkpoint_every
-    t_start = time.perf_counter() - meta["wall_seconds"]
+        carry = jax.jit(learner.init)(key)
+    run = _Run(cfg, out, meta)
     chunks_this_call = 0
-
-    while len(writer) < cfg.episodes:
+    while not run.done:
         carry, log = chunk(carry)
-        if bool(log.nonfinite):
-            bad = [k for k, v in log.metrics.items() if np.any(np.isinf(np.asarray(v)))]
-            raise NaNError(
-                f"non-finite parameters during training (episode ~{len(writer)}; inf metrics: {bad}); "
-                f"last good checkpoint is in {out}"
-            )
-        rows = _rows_from_log(log, len(writer), cfg.episodes - len(writer))
-        writer.append(rows)
-        meta["chunks"] += 1
-        meta["env_steps"] += steps_per_chunk
-        meta["episodes"] = len(writer)
-        meta["wall_seconds"] = time.perf_counter() - t_start
+        run.record(log, progress)
+        run.save(learner, carry)
         chunks_this_call += 1
-        if tb is not None:
-            for k, v in log.metrics.items():
-                v = np.asarray(v, dtype=np.float64)
-                if np.any(np.isfinite(v)):
-                    tb.add_scalar(k, float(np.nanmean(v)), meta["env_steps"])
-            if rows:
-                rates = window_rates(writer.rows, 100)
-                tb.add_scalar("charts/safety_rate_100", rates["safety_rate"], meta["env_steps"])
-                tb.add_scalar("charts/completion_rate_100", rates["completion_rate"], meta["env_steps"])
-                tb.add_scalar("charts/completion_rate_relaxed_100", rates["completion_rate_relaxed"], meta["env_steps"])
-        if progress is not None:
-            progress({"episodes": len(writer), "total": cfg.episodes, "env_steps": meta["env_steps"],
-                      "wall_seconds": meta["wall_seconds"], **window_rates(writer.rows, 200)})
-        for n in cfg.snapshots:
-            if len(writer) >= n and not snapshot_path(out, n).exists():
-                save_snapshot(out, n, learner.policy(carry))
-        if len(writer) >= next_ckpt or len(writer) >= cfg.episodes:
-            save_checkpoint(out, carry, meta)
-            next_ckpt = (len(writer) // cfg.checkpoint_every + 1) * cfg.checkpoint_every
         if stop_after_chunks is not None and chunks_this_call >= stop_after_chunks:
-            save_checkpoint(out, carry, meta)
+            run.save(learner, carry, force=True)
             return None
+    return run.finish(learner, carry, env, params)
 
-    wall = time.perf_counter() - t_start
-    if tb is not None:
-        tb.close()
-    summary = {
-        "algo": cfg.algo, "task": cfg.task, "layout": cfg.layout, "seed": cfg.seed,
-        "episodes": len(writer), "env_steps": meta["env_steps"], "wall_seconds": round(wall, 2),
-        "env_steps_per_second": round(meta["env_steps"] / max(wall, 1e-9), 1),
-        "window": cfg.window, **window_rates(writer.rows, cfg.window),
-        "device": jax.devices()[0].platform,
-    }
-    if cfg.eval_episodes > 0:
-        summary["eval"] = evaluate(learner, learner.policy(carry), env, params, cfg.eval_episodes,
-                                   jax.random.PRNGKey(cfg.seed + 10_000))
-    atomic_write_json(out / "summary.json", summary)
-    return summary
+
+def _seed_slice(tree, i: int):
+    return jax.tree_util.tree_map(lambda x: x[i], tree)
+
+
+def train_seeds(
+    cfgs: list[TrainConfig], outs: list[Path], progress: list[ProgressFn | None] | None = None,
+    stop_after_chunks: int | None = None,
+) -> list[dict] | None:
+    """Train several seeds of one configuration together: one program, ``jax.vmap`` over seeds.
+
+    ``cfgs`` may differ only in ``seed``; each seed writes its own ordinary run directory in
+    ``outs``. A seed that reaches its episode count gets its final checkpoint, evaluation and
+    summary then; it keeps being stepped (and is ignored) until the slowest seed is done. The
+    group's state is checkpointed in ``OUT[0]/../.group-<names>/`` so an interrupted group resumes
+    exactly; calling again with the same arguments resumes. A seed in a group is deterministic,
+    but not bit-identical to the same seed trained alone (batched arithmetic rounds differently).
+    ``stop_after_chunks`` simulates an interruption (for the tests).
+    """
+    if not cfgs or len(cfgs) != len(outs):
+        raise ValueError("train_seeds: one output directory per config")
+    base = dict(config_to_dict(cfgs[0]), seed=None)
+    for c in cfgs[1:]:
+        if dict(config_to_dict(c), seed=None) != base:
+            raise ConfigError("seed", "train_seeds: the configs may differ only in their seed")
+    outs = [Path(o) for o in outs]
+    group = outs[0].parent / (".group-" + "+".join(o.name for o in outs))
+    resume = (group / "checkpoint.json").is_file()
+    for cfg, out in zip(cfgs, outs):
+        _prepare_dir(out, cfg, resume)
+    env, params, learner = build(cfgs[0])
+    keys = jnp.stack([jax.random.PRNGKey(c.seed) for c in cfgs])
+    chunk = jax.jit(jax.vmap(learner.chunk), donate_argnums=0)
+    if resume:
+        carry, gmeta = load_checkpoint(group, jax.eval_shape(jax.vmap(learner.init), keys))
+        carry = jax.tree_util.tree_map(jnp.asarray, carry)
+        metas = gmeta["runs"]
+    else:
+        group.mkdir(parents=True, exist_ok=True)
+        carry = jax.jit(jax.vmap(learner.init))(keys)
+        metas = [None] * len(cfgs)
+    summaries: list[dict | None] = [read_json(o / "summary.json", "summary") if (o / "summary.json").is_file()
+                                    else None for o in outs]
+    runs = [None if s_ is not None else _Run(c, o, m) for c, o, m, s_ in zip(cfgs, outs, metas, summaries)]
+    progress = progress or [None] * len(cfgs)
+    chunks_this_call = 0
+    while any(s_ is None for s_ in summaries):
+        carry, log = chunk(carry)
+        saved = False
+        for i, run in enumerate(runs):
+            if summaries[i] is not None:
+                continue
+            run.record(_seed_slice(log, i), progress[i])
+            mine = _seed_slice(carry, i)
+            saved |= run.save(learner, mine)
+            if run.done:
+                summaries[i] = run.finish(learner, mine, env, params)
+        chunks_this_call += 1
+        interrupted = stop_after_chunks is not None and chunks_this_call >= stop_after_chunks
+        if saved or interrupted:
+            metas = [r.meta if r is not None else m for r, m in zip(runs, metas)]
+            save_checkpoint(group, carry, {"runs": metas})
+        if interrupted and any(s_ is None for s_ in summaries):
+            return None
+    import shutil
+
+    shutil.rmtree(group, ignore_errors=True)
+    return summaries
 
 
 def snapshot_path(run_dir: Path, episodes: int) -> Path:

@@ -8,7 +8,8 @@ inside one ``lax.scan`` (acting, stepping the env, storing, updating); the run l
 
 from __future__ import annotations
 
-from typing import Any, Callable, NamedTuple, Protocol
+from collections.abc import Callable
+from typing import Any, NamedTuple, Protocol
 
 import jax
 import jax.numpy as jnp

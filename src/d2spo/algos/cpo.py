@@ -18,8 +18,9 @@ it is in the per-step units of the surrogate (safety-starter-agents' rescale, Ra
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -270,7 +271,7 @@ def cpo_policy_update(apply: Callable, policy: Any, data: PolicyData, c: jax.Arr
     accepted = jnp.any(ok)
     j = jnp.argmax(ok)
     theta = jnp.where(accepted, theta0 + fractions[j] * x, theta0)
-    taken = lambda v: jnp.where(accepted, v, 0.0)  # noqa: E731
+    taken = lambda v: jnp.where(accepted, v, 0.0)
     metrics = {
         "cpo/case": case.astype(jnp.float32), "cpo/lambda": lam, "cpo/nu": nu, "cpo/c": c,
         "cpo/accepted": accepted.astype(jnp.float32), "cpo/backtracks": jnp.where(accepted, j, -1).astype(jnp.float32),

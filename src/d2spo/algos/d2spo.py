@@ -28,14 +28,28 @@ from flax import struct
 from d2spo.algos.base import ChunkLog, episode_log
 from d2spo.algos.common import replay
 from d2spo.algos.common.replay import ReplayBuffer, Transition
-from d2spo.algos.td3 import TD3Agent, TD3Config, TD3Learner, explore, learn_from_buffer, params_finite
+from d2spo.algos.td3 import (
+    TD3Agent,
+    TD3Config,
+    TD3Learner,
+    explore,
+    learn_from_buffer,
+    params_finite,
+)
 from d2spo.envs import geometry, sensors
 from d2spo.envs.geometry import Geometry
 from d2spo.ltl.anneal import AnnealConfig
 from d2spo.safety import datasets as sd
 from d2spo.safety.cbf import CBFConfig, check_geometry
 from d2spo.safety.filter import safety_filter
-from d2spo.safety.joint_policy import SafetyState, cautious_start, init_safety_state, make_nets, safe_action, update
+from d2spo.safety.joint_policy import (
+    SafetyState,
+    cautious_start,
+    init_safety_state,
+    make_nets,
+    safe_action,
+    update,
+)
 from d2spo.safety.nominal import unicycle_prior
 
 
@@ -193,7 +207,8 @@ class D2SPOLearner(TD3Learner):
         return u
 
     # -- one vectorised step -------------------------------------------------------------
-    def _iteration(self, c: D2SPOCarry):
+    def _iteration(self, c: D2SPOCarry, i: jax.Array | None = None):
+        """One vectorised step. ``i`` is the step's index within the chunk (see ``chunk``)."""
         key, k_act, k_env, k_upd, k_data, k_safe = jax.random.split(c.key, 6)
         random_phase = c.steps * self.num_envs < self.cfg.learning_starts
         u_rl = explore(self.nets, c.agent, c.obs, k_act, random_phase, self.cfg.exploration_noise)
@@ -221,12 +236,26 @@ class D2SPOLearner(TD3Learner):
             return update(k_safe, s, data, nets=self.safety_nets, cfg=self.cbf_cfg, features_fn=self.features,
                           dt=self.dt, u_rl_fn=u_rl_fn)
 
-        due = ((c.steps + 1) % self.d2.update_every == 0) & (data.p_exp.size >= self.cbf_cfg.batch_size)
         template = jax.eval_shape(safety_update, c.safety)[1]
-        safety, s_metrics = jax.lax.cond(
-            due, safety_update,
-            lambda s: (s, jax.tree_util.tree_map(lambda t: jnp.full(t.shape, jnp.nan, t.dtype), template)),
-            c.safety)
+
+        def skip(s):
+            return s, jax.tree_util.tree_map(lambda t: jnp.full(t.shape, jnp.nan, t.dtype), template)
+
+        enough = data.p_exp.size >= self.cbf_cfg.batch_size
+        if i is None:
+            due = ((c.steps + 1) % self.d2.update_every == 0) & enough
+            safety, s_metrics = jax.lax.cond(due, safety_update, skip, c.safety)
+        else:
+            # The schedule read from the scan index, which is the same for every seed: under
+            # jax.vmap over seeds this cond stays a branch (a predicate that depends on the carry
+            # would turn into a select that runs UPDATE(Ω, Θ) on every step).
+            def maybe(s):
+                new, m = safety_update(s)
+                keep = lambda a, b: jnp.where(enough, a, b)
+                return jax.tree_util.tree_map(keep, new, s), jax.tree_util.tree_map(
+                    lambda v: jnp.where(enough, v, jnp.nan), m)
+
+            safety, s_metrics = jax.lax.cond((i + 1) % self.d2.update_every == 0, maybe, skip, c.safety)
         metrics.update(s_metrics)
         metrics["safety/override"] = jnp.mean(jnp.linalg.norm(action - u_rl, axis=-1))
         metrics["charts/label_radius"] = jnp.mean(params.label_radius)
@@ -235,7 +264,10 @@ class D2SPOLearner(TD3Learner):
         return c, episode_log(done, info, metrics)
 
     def chunk(self, carry: D2SPOCarry) -> tuple[D2SPOCarry, ChunkLog]:
-        carry, log = jax.lax.scan(lambda c, _: self._iteration(c), carry, None, length=self.chunk_steps)
+        if self.chunk_steps % self.d2.update_every == 0:  # every chunk starts in phase: use the index
+            carry, log = jax.lax.scan(lambda c, i: self._iteration(c, i), carry, jnp.arange(self.chunk_steps))
+        else:
+            carry, log = jax.lax.scan(lambda c, _: self._iteration(c), carry, None, length=self.chunk_steps)
         finite = params_finite(carry.agent) & params_finite((carry.safety.cbf, carry.safety.policy, carry.safety.nominal))
         return carry, log._replace(nonfinite=jnp.any(log.nonfinite) | ~finite)
 

@@ -29,7 +29,13 @@ from flax import struct
 from d2spo.algos.base import ChunkLog, episode_log
 from d2spo.algos.common import gae as gae_lib
 from d2spo.algos.common import normalize
-from d2spo.algos.common.networks import GaussianPolicy, ValueNetwork, gaussian_log_prob, gaussian_sample, init_params
+from d2spo.algos.common.networks import (
+    GaussianPolicy,
+    ValueNetwork,
+    gaussian_log_prob,
+    gaussian_sample,
+    init_params,
+)
 from d2spo.algos.common.normalize import RunningMeanStd
 from d2spo.algos.common.rollout import flatten_time_env, minibatches
 from d2spo.errors import ConfigError
@@ -158,7 +164,7 @@ class Rollouts:
 
         s, (batch, log) = jax.lax.scan(step, s, None, length=self.rollout_steps)
         n = jnp.sum(log.done)
-        mean_of = lambda x: jnp.sum(jnp.where(log.done, x, 0.0)) / jnp.maximum(n, 1)  # noqa: E731
+        mean_of = lambda x: jnp.sum(jnp.where(log.done, x, 0.0)) / jnp.maximum(n, 1)
         s = s.replace(ep_cost=jnp.where(n > 0, mean_of(log.ep_cost), s.ep_cost),
                       ep_length=jnp.where(n > 0, mean_of(log.ep_length.astype(jnp.float32)), s.ep_length))
         return s, batch, log

@@ -115,7 +115,7 @@ class DynamicsParams:
     @classmethod
     def create(cls, *, dt, v_max, omega_max, actuator_tau, v_gain, omega_gain, slip, noise_xy, noise_theta):
         alpha = 1.0 if actuator_tau == 0 else 1.0 - math.exp(-dt / actuator_tau)
-        f = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731
+        f = lambda v: jnp.asarray(v, jnp.float32)
         return cls(
             dt=f(dt), v_max=f(v_max), omega_max=f(omega_max), lag_alpha=f(alpha), v_gain=f(v_gain),
             omega_gain=f(omega_gain), slip=f(slip), noise_xy=f(noise_xy), noise_theta=f(noise_theta),

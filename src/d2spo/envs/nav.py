@@ -36,7 +36,13 @@ from d2spo.envs.layouts import Layout
 from d2spo.errors import ConfigError
 from d2spo.ltl.automaton import UNREACHABLE, AutomatonArrays
 from d2spo.ltl.labelling import LABEL_MODES, next_state
-from d2spo.ltl.reward import RewardConfig, potential, progress_areas, progress_reward, shaping_term
+from d2spo.ltl.reward import (
+    RewardConfig,
+    potential,
+    progress_areas,
+    progress_reward,
+    shaping_term,
+)
 
 
 @dataclass(frozen=True)
@@ -457,7 +463,7 @@ def make_env(cfg: EnvConfig, task: Any = "phi1") -> tuple[Env, EnvParams]:
                           f"layout {layout.name!r}{hint}")
 
     n_areas = len(layout.areas)
-    f32 = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731
+    f32 = lambda v: jnp.asarray(v, jnp.float32)
     area_radius = np.array([a.radius for a in layout.areas], np.float32).reshape(n_areas)
     label_radius = area_radius if cfg.label_radius is None else np.full(n_areas, cfg.label_radius, np.float32)
     params = EnvParams(

@@ -28,9 +28,21 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from d2spo.safety.cbf import CBFConfig, CBFNet, TeBatch, p_exp_threshold, scaled_features, total_loss
+from d2spo.safety.cbf import (
+    CBFConfig,
+    CBFNet,
+    TeBatch,
+    p_exp_threshold,
+    scaled_features,
+    total_loss,
+)
 from d2spo.safety.datasets import PretrainData, SafetyData, ring_sample, te_batch
-from d2spo.safety.nominal import NominalBatch, NominalNet, fit_nominal_prior, nominal_update
+from d2spo.safety.nominal import (
+    NominalBatch,
+    NominalNet,
+    fit_nominal_prior,
+    nominal_update,
+)
 
 
 class SafetyPolicy(nn.Module):

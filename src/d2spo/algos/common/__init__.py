@@ -4,7 +4,16 @@ Modules with colliding function names (``lagrange.update``, ``normalize.update``
 through the module: ``from d2spo.algos.common import lagrange``.
 """
 
-from d2spo.algos.common import gae, lagrange, networks, normalize, replay, rollout, sac_losses, td3_losses
+from d2spo.algos.common import (
+    gae,
+    lagrange,
+    networks,
+    normalize,
+    replay,
+    rollout,
+    sac_losses,
+    td3_losses,
+)
 from d2spo.algos.common.gae import discounted_cumsum
 from d2spo.algos.common.lagrange import LagrangeConfig, LagrangeState
 from d2spo.algos.common.networks import (
@@ -26,7 +35,12 @@ from d2spo.algos.common.networks import (
 from d2spo.algos.common.normalize import RunningMeanStd
 from d2spo.algos.common.replay import ReplayBuffer, Transition
 from d2spo.algos.common.rollout import flatten_time_env, minibatches
-from d2spo.algos.common.td3_losses import cost_critic_loss, soft_update, td3_actor_loss, td3_critic_loss
+from d2spo.algos.common.td3_losses import (
+    cost_critic_loss,
+    soft_update,
+    td3_actor_loss,
+    td3_critic_loss,
+)
 
 __all__ = [
     "MLP",

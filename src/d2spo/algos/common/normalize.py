@@ -11,7 +11,7 @@ Welford's algorithm), so the result equals the mean and population variance of a
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
@@ -29,7 +29,7 @@ class RunningMeanStd:
     """float32 []: number of samples merged so far."""
 
     @classmethod
-    def create(cls, shape: Sequence[int]) -> "RunningMeanStd":
+    def create(cls, shape: Sequence[int]) -> RunningMeanStd:
         """No data yet: mean 0, var 1, count 0 (``normalize`` is then the identity, up to clipping)."""
         shape = tuple(shape)
         return cls(mean=jnp.zeros(shape, jnp.float32), var=jnp.ones(shape, jnp.float32), count=jnp.float32(0.0))

@@ -54,7 +54,7 @@ class ReplayBuffer:
     capacity: int = struct.field(pytree_node=False)
 
     @classmethod
-    def create(cls, capacity: int, example_transition: Any) -> "ReplayBuffer":
+    def create(cls, capacity: int, example_transition: Any) -> ReplayBuffer:
         """Empty buffer for transitions shaped like ``example_transition`` (arrays, scalars or
         ``jax.ShapeDtypeStruct`` leaves, without a batch axis)."""
         if not isinstance(capacity, int) or capacity <= 0:

@@ -13,13 +13,19 @@ as a constant; it is learned through ``alpha_loss`` on log alpha (automatic entr
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 
 from d2spo.algos.common.networks import tanh_gaussian_sample
-from d2spo.algos.common.td3_losses import CriticApply, PenaltyFn, reduce_critics, td_target
+from d2spo.algos.common.td3_losses import (
+    CriticApply,
+    PenaltyFn,
+    reduce_critics,
+    td_target,
+)
 
 GaussianApply = Callable[[Any, jax.Array], tuple[jax.Array, jax.Array]]
 

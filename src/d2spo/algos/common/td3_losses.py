@@ -12,7 +12,8 @@ so it can be used with ``jax.value_and_grad(..., has_aux=True)``.
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import jax
 import jax.numpy as jnp
