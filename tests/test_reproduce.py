@@ -66,6 +66,11 @@ def test_table3_trains_once_reuses_and_reports(tmp_path):
     assert float(row["safety_mean"]) == pytest.approx(np.mean([s["safety_rate"] for s in summaries]))
     assert float(row["completion_std"]) == pytest.approx(np.std([s["completion_rate"] for s in summaries]))
     assert float(row["paper_safety"]) == pytest.approx(0.9159)
+    collided = []
+    for r in runs:
+        with open(out / "runs" / r / "episodes.csv") as f:
+            collided.append(np.mean([int(e["collided"]) for e in csv.DictReader(f)]))
+    assert float(row["collision_rate_all_mean"]) == pytest.approx(np.mean(collided))
     md = (out / "table3.md").read_text()
     assert "| LPPO | 2 |" in md and "91.59" in md and "63.50" in md
     # a second call trains nothing: the summaries are not rewritten
