@@ -32,7 +32,7 @@ def test_targets_need_the_paper_runs():
     assert [s.layout for s in f4] == list(rp.PHYSICAL) and {s.preset for s in f4} == {"turtlebot"}
     assert {s.episodes for s in f4} == {rp.FIG4_EPISODES}
     (f5,) = rp.runs_for("fig5", 3, 20_000)
-    assert f5.snapshots == (2_000, 10_000, 20_000)
+    assert f5.snapshots == (2_000, 10_000, 20_000) and f5.name == "d2spo-phi1-paper-snapshots-s0"
     assert rp.fig5_snapshots(200) == (20, 100, 200)
     assert rp.expand(["all"]) == list(rp.TARGETS) and rp.expand(["fig2", "table2", "fig2"]) == ["fig2", "table2"]
     with pytest.raises(UserError, match="unknown target"):
@@ -134,3 +134,19 @@ def test_ray_backend_on_a_local_instance(tmp_path):
     # same directory layout as the local backend: the table reads it
     rp.write_table("table3", out, seeds=2, episodes=TINY_EPISODES, methods=["ppo-lag"])
     assert "| LPPO | 2 |" in (out / "table3.md").read_text()
+
+
+def test_fig4_and_fig5_render_from_short_d2spo_runs(tmp_path):
+    """Fig. 5 from a run with policy snapshots; Fig. 4 with one of its four layouts trained (the
+    others are drawn as 'not run')."""
+    out = tmp_path / "r"
+    (f5,) = rp.runs_for("fig5", 1, 32)
+    assert f5.snapshots == (3, 16, 32)
+    rp.train_one(f5, str(out))
+    for n in f5.snapshots:
+        assert (rp.run_dir(out, f5) / f"policy-{n}.msgpack").is_file()
+    assert rp.fig5(out, 1, 32).stat().st_size > 20_000
+    f4 = rp.runs_for("fig4", 1, 200)[0]
+    assert f4.episodes == 20 and f4.layout == "physical-1"
+    rp.train_one(f4, str(out))
+    assert rp.fig4(out, 1, 200).stat().st_size > 20_000

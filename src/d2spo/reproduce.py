@@ -62,7 +62,8 @@ class RunSpec:
     @property
     def name(self) -> str:
         preset = f"-{self.preset}" if self.preset else ""
-        return f"{self.algo}-{self.task}-{self.layout}{preset}-s{self.seed}"
+        snaps = "-snapshots" if self.snapshots else ""  # not interchangeable with the same run without them
+        return f"{self.algo}-{self.task}-{self.layout}{preset}{snaps}-s{self.seed}"
 
     def config(self):
         from d2spo.config import TrainConfig
