@@ -38,7 +38,8 @@ def build_report(out: Path) -> Path:
     parts = ["# d2spo: reproduction report", ""]
     if meta:
         parts += [f"Command: `d2spo reproduce {' '.join(meta.get('targets', []))} --seeds {meta.get('seeds')} "
-                  f"--episodes {meta.get('episodes')} --out {out}` (backend {meta.get('backend')}); "
+                  f"--episodes {meta.get('episodes')} --out {out}{'' if meta.get('train', True) else ' --no-train'}` "
+                  f"(backend {meta.get('backend')}); "
                   f"{meta.get('finished', '?')} of {len(meta.get('runs', []))} runs finished. Report written {date.today().isoformat()} on {machine()}.", ""]
     found = 0
     for name, kind, title in SECTIONS:

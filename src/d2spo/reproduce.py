@@ -472,7 +472,7 @@ def reproduce(targets: Iterable[str], out: Path, seeds: int = 3, episodes: int =
     else:
         run_ray(specs, out, address, log=log)
     written = [render(t, out, seeds, episodes, methods) for t in targets]
-    meta = {"targets": targets, "seeds": seeds, "finished": sum(is_finished(out, s) for s in specs), "episodes": episodes, "methods": methods, "backend": backend,
+    meta = {"targets": targets, "seeds": seeds, "finished": sum(is_finished(out, s) for s in specs), "train": train, "episodes": episodes, "methods": methods, "backend": backend,
             "runs": [dataclasses.asdict(s) for s in specs]}
     (out / "reproduce.json").write_text(json.dumps(meta, indent=2) + "\n")
     for p in written:
