@@ -190,6 +190,14 @@ def train(
 
 
 def _seed_slice(tree, i: int):
+    """Seed ``i``'s part of a host (numpy) pytree."""
+    return jax.tree_util.tree_map(lambda x: x[i], tree)
+
+
+@jax.jit
+def _take_seed(tree, i: jax.Array):
+    """Seed ``i``'s part of a device pytree: one compiled program for every index (slicing leaf by
+    leaf in eager mode compiles a program per leaf, and was seen to hang on a fresh 2-core machine)."""
     return jax.tree_util.tree_map(lambda x: x[i], tree)
 
 
@@ -236,12 +244,14 @@ def train_seeds(
     chunks_this_call = 0
     while any(s_ is None for s_ in summaries):
         carry, log = chunk(carry)
+        carry = jax.block_until_ready(carry)
+        log = jax.device_get(log)
         saved = False
         for i, run in enumerate(runs):
             if summaries[i] is not None:
                 continue
             run.record(_seed_slice(log, i), progress[i])
-            mine = _seed_slice(carry, i)
+            mine = _take_seed(carry, jnp.int32(i))
             saved |= run.save(learner, mine)
             if run.done:
                 summaries[i] = run.finish(learner, mine, env, params)
