@@ -122,7 +122,7 @@ def test_snapshots_are_saved_and_loaded(tmp_path):
 
 def test_ray_backend_on_a_local_instance(tmp_path):
     """`--backend ray` on a local Ray instance that the command starts and stops. It runs in a
-    child process: Ray forks, and a forked JAX process (this test worker) can deadlock later."""
+    child process, so Ray's processes and JAX's fork warning stay out of the test worker."""
     pytest.importorskip("ray")
     import subprocess
     import sys
