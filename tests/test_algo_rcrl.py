@@ -3,13 +3,12 @@ and a short training on `relaxed` that must not diverge and must raise the retur
 
 from __future__ import annotations
 
-import csv
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
+from _learning import assert_trains_without_nans_and_improves
 
 from d2spo.algos.rcrl import (
     RCRLConfig,
@@ -23,7 +22,7 @@ from d2spo.algos.sac_lag import SACConfig
 from d2spo.config import TrainConfig
 from d2spo.envs import EnvConfig
 from d2spo.errors import ConfigError
-from d2spo.train import build, evaluate, train
+from d2spo.train import build
 
 TINY = SACConfig(hidden=(32, 32), batch_size=64, learning_starts=500, buffer_size=50_000, updates_per_step=4)
 
@@ -106,15 +105,6 @@ def test_config_errors():
 def test_rcrl_trains_on_relaxed_without_nans_and_improves(tmp_path):
     cfg = TrainConfig(algo="rcrl", task="relaxed", episodes=300, num_envs=16, chunk_steps=50, eval_episodes=32,
                       window=100, env=EnvConfig(layout="relaxed"), rcrl=RCRLConfig(sac=TINY)).check()
-    env, params, learner = build(cfg)
-    untrained = evaluate(learner, learner.policy(jax.jit(learner.init)(jax.random.PRNGKey(cfg.seed))), env, params,
-                         32, jax.random.PRNGKey(cfg.seed + 10_000))  # the same episodes train() evaluates on
-    summary = train(cfg, tmp_path / "run")  # raises NaNError on non-finite parameters
-    with open(tmp_path / "run" / "episodes.csv") as f:
-        rows = np.array([[float(r[1]), float(r[3])] for r in list(csv.reader(f))[1:]])
-    assert len(rows) == 300
-    collided_first, collided_last = rows[:75, 1].mean(), rows[-75:, 1].mean()
-    assert collided_last < collided_first - 0.2, (collided_first, collided_last)  # it learns to be safe
-    assert summary["eval"]["mean_return"] > untrained["mean_return"] + 1.0, (untrained, summary["eval"])
+    assert_trains_without_nans_and_improves(cfg, tmp_path / "run")
 
 

@@ -138,14 +138,20 @@ def train_one(spec: RunSpec, out: str, progress: bool = False) -> dict:
                 raise UserError(f"{d}: holds a different run (episodes {old.get('episodes')}); "
                                 f"use another --out or remove it")
         resume = d if (d / "checkpoint.json").is_file() else None
-        if resume is None and d.exists():
-            import shutil
-
-            shutil.rmtree(d)  # started, but no checkpoint yet: start again
+        if resume is None:
+            _discard_unstarted(d)
         rc = train_with_progress(spec.config(), d, resume, progress)
         if rc != 0:
             raise UserError(f"{d}: training failed")
     return read_json(d / "summary.json", "the run's summary")
+
+
+def _discard_unstarted(d: Path) -> None:
+    """A run directory without a checkpoint to resume from is started again from scratch."""
+    if d.exists():
+        import shutil
+
+        shutil.rmtree(d)
 
 
 def _fresh_or_resumable(out: Path, spec: RunSpec) -> bool:
@@ -155,17 +161,14 @@ def _fresh_or_resumable(out: Path, spec: RunSpec) -> bool:
 
 def train_group(specs: list[RunSpec], out: Path, progress: bool = False) -> list[dict]:
     """Seeds of one (algo, task, layout, …) trained together, ``jax.vmap`` over seeds."""
-    import shutil
-
     from d2spo.progress import train_seeds_with_progress
     from d2spo.train import train_seeds
 
     outs = [run_dir(out, s) for s in specs]
     group = outs[0].parent / (".group-" + "+".join(o.name for o in outs))
     if not (group / "checkpoint.json").is_file():
-        for o in outs:  # started before without a checkpoint: start again
-            if o.exists():
-                shutil.rmtree(o)
+        for o in outs:
+            _discard_unstarted(o)
     cfgs = [s.config() for s in specs]
     if progress:
         return train_seeds_with_progress(cfgs, outs, True)
