@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import d2spo  # noqa: F401, I001  (sets the XLA flags d2spo needs before JAX starts: d2spo/_xla.py)
 import jax
 
 _CACHE = Path(os.environ.get("D2SPO_TEST_JAX_CACHE", Path(__file__).resolve().parent.parent / ".pytest_cache" / "jax"))

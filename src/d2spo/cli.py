@@ -210,9 +210,9 @@ class ReproduceCmd:
     """Show a progress bar per run (local backend)."""
     train: bool = True
     """Train the missing runs; --no-train only renders what has finished (seed counts are shown)."""
-    vmap_seeds: bool = False
-    """Local backend: train the seeds of one setting together, vmapped in one program (experimental:
-    the vmapped PPO-Lagrangian chunk hung on a fresh 2-core machine; see docs/reproduce.md)."""
+    vmap_seeds: bool = True
+    """Local backend: train the seeds of one setting together, vmapped in one program
+    (--no-vmap-seeds: one seed after another)."""
 
     def run(self) -> int:
         from d2spo.reproduce import reproduce

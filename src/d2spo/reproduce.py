@@ -6,9 +6,9 @@ preset, seed, episodes) plus a renderer that reads the finished run directories.
 reused, an interrupted one resumes from its checkpoint, and any of them can be inspected with
 ``d2spo eval``. The runs are executed by a backend:
 
-* ``local`` (default): in this process, one run after another; with ``--vmap-seeds`` the seeds of
-  one setting run together as one program, ``jax.vmap`` over seeds (``d2spo.train.train_seeds``;
-  experimental: see docs/reproduce.md);
+* ``local`` (default): in this process; the seeds of one setting run together as one program,
+  ``jax.vmap`` over seeds (``d2spo.train.train_seeds``), or one after another with
+  ``--no-vmap-seeds``;
 * ``ray``: one Ray task per run on a cluster (``--address``) or a local Ray instance; every task
   writes the same run directory (the output directory must be shared by the workers).
 
@@ -176,7 +176,7 @@ def train_group(specs: list[RunSpec], out: Path, progress: bool = False) -> list
 
 
 def run_local(specs: list[RunSpec], out: Path, progress: bool = True, log: Callable[[str], None] = print,
-              vmap_seeds: bool = False) -> None:
+              vmap_seeds: bool = True) -> None:
     """Train the unfinished runs in this process. With ``vmap_seeds`` the seeds of one setting run
     together as one program (``d2spo.train.train_seeds``); a run that already has a checkpoint of
     its own resumes alone."""
@@ -444,7 +444,7 @@ def render(target: str, out: Path, seeds: int, episodes: int, methods: Iterable[
 
 def reproduce(targets: Iterable[str], out: Path, seeds: int = 3, episodes: int = 20_000, backend: str = "local",
               address: str | None = None, methods: Iterable[str] = METHODS, progress: bool = True,
-              log: Callable[[str], None] = print, train: bool = True, vmap_seeds: bool = False) -> list[Path]:
+              log: Callable[[str], None] = print, train: bool = True, vmap_seeds: bool = True) -> list[Path]:
     """Train what is missing for ``targets`` (unless ``train`` is False) and render them.
 
     Returns the written files. Tables count the seeds that have finished, so ``train=False``

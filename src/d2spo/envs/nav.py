@@ -131,6 +131,9 @@ class EnvConfig:
         if self.reward.shaping_metric not in ("geodesic", "euclidean"):
             raise ConfigError("reward.shaping_metric", f"unknown metric {self.reward.shaping_metric!r}; "
                               "choose 'geodesic' or 'euclidean'")
+        c = self.reward.shaping_clearance
+        if c is not None and not (math.isfinite(c) and c >= 0):
+            raise ConfigError("reward.shaping_clearance", f"must be >= 0, got {c}")
 
 
 @struct.dataclass
@@ -490,7 +493,8 @@ def make_env(cfg: EnvConfig, task: Any = "phi1") -> tuple[Env, EnvParams]:
         max_steps=jnp.asarray(cfg.max_steps, jnp.int32),
         geodesic=f32(geodesic.distance_fields(
             layout.arena, [o.lo for o in layout.obstacles], [o.hi for o in layout.obstacles],
-            [a.center for a in layout.areas], area_radius, cfg.robot_radius)
+            [a.center for a in layout.areas], area_radius,
+            cfg.robot_radius if cfg.reward.shaping_clearance is None else cfg.reward.shaping_clearance)
             if cfg.reward.shaping_metric == "geodesic" else np.zeros((n_areas, 1, 1), np.float32)),
         n_rays=cfg.n_rays,
         event=cfg.label_mode == "event",
