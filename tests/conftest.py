@@ -5,8 +5,9 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-import d2spo  # noqa: F401, I001  (sets the XLA flags d2spo needs before JAX starts: d2spo/_xla.py)
 import jax
+
+import d2spo  # noqa: F401  (sets XLA flags before the first computation starts the backend: d2spo/_xla.py)
 
 _CACHE = Path(os.environ.get("D2SPO_TEST_JAX_CACHE", Path(__file__).resolve().parent.parent / ".pytest_cache" / "jax"))
 jax.config.update("jax_compilation_cache_dir", str(_CACHE))
