@@ -417,7 +417,7 @@ def fig5(out: Path, seeds: int, episodes: int, trajectories: int = 8) -> Path:
     env, params = learner.env, learner.params
     ax = fig.add_subplot(1, 1 + len(spec.snapshots), 1)
     draw_layout(env.layout, ax, sensing_radius=float(params.sensing_radius))
-    ax.set_title("(a) layout")
+    ax.set_title("(a) layout, start and sensing radius")
     for i, n in enumerate(spec.snapshots):
         policy = load_snapshot(d, n, learner)
         poses, collided, completed = policy_trajectories(learner, policy, env, params, trajectories, seed=i)
@@ -427,8 +427,9 @@ def fig5(out: Path, seeds: int, episodes: int, trajectories: int = 8) -> Path:
             xy = poses[k, :, :2]
             xy = xy[np.all(np.isfinite(xy), axis=-1)]
             draw_trajectory(ax, xy, color="tab:red" if collided[k] else ("tab:purple" if completed[k] else "tab:orange"))
-        ax.set_title(f"({'bcd'[i]}) after {n} episodes: {completed.mean():.0%} done, {1 - collided.mean():.0%} safe")
-    fig.tight_layout()
+        ax.set_title(f"({'bcd'[i]}) after {n} episodes\n{completed.mean():.0%} complete, {1 - collided.mean():.0%} safe "
+                     f"({poses.shape[0]} runs)")
+    fig.set_layout_engine("constrained")  # tight_layout clips two-line titles over equal-aspect axes
     path = Path(out) / "fig5.png"
     fig.savefig(str(path), dpi=100)
     return path
