@@ -90,6 +90,24 @@ def test_table3_trains_once_reuses_and_reports(tmp_path):
     assert "Table III" in report and "| LPPO | 2 |" in report and "--seeds 3" in report and "2 of 3 runs" in report
 
 
+def test_report_says_per_section_how_it_was_rendered(tmp_path):
+    """Tables and figures rendered by different invocations (different seeds) each keep their own
+    provenance line in the report; the last invocation does not overwrite the earlier ones."""
+    from d2spo.report import build_report
+
+    (tmp_path / "fig3.png").write_bytes(b"png")
+    (tmp_path / "table2.md").write_text("### Table II\n")
+    rp.reproduce(["fig3"], tmp_path, seeds=1, episodes=20_000, progress=False, log=lambda s: None, train=False)
+    rp.reproduce(["table2"], tmp_path, seeds=3, episodes=20_000, methods=["cpo"], progress=False,
+                 log=lambda s: None, train=False)
+    rendered = json.loads((tmp_path / "reproduce.json").read_text())["rendered"]
+    assert rendered["fig3"]["seeds"] == 1 and rendered["fig3"]["runs"] == 8 and rendered["fig3"]["finished"] == 0
+    assert rendered["table2"]["seeds"] == 3 and rendered["table2"]["runs"] == 3 and rendered["table2"]["methods"] == ["cpo"]
+    report = build_report(tmp_path).read_text()
+    assert "`d2spo reproduce fig3 --seeds 1 --episodes 20000`: 0 of 8 runs finished" in report
+    assert "`d2spo reproduce table2 --seeds 3 --episodes 20000 --methods cpo`: 0 of 3 runs finished" in report
+
+
 def test_fig2_plots_reward_bands(tmp_path):
     out = tmp_path / "r"
     rp.reproduce(["fig2"], out, seeds=1, episodes=TINY_EPISODES, methods=["ppo-lag"], progress=False,

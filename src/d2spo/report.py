@@ -28,6 +28,14 @@ def machine() -> str:
             f"{jax.devices()[0].platform}, Python {platform.python_version()}")
 
 
+def provenance(name: str, how: dict) -> str:
+    """One line saying how a section was rendered: the command, seeds and runs finished."""
+    methods = f" --methods {' '.join(how['methods'])}" if how.get("methods") else ""
+    return (f"*Rendered {how.get('date', '?')} by `d2spo reproduce {name} --seeds {how.get('seeds')} "
+            f"--episodes {how.get('episodes')}{methods}`: {how.get('finished', '?')} of {how.get('runs', '?')} "
+            f"runs finished.*")
+
+
 def build_report(out: Path) -> Path:
     """Write OUT/report.md from what is in OUT; raises RunDirError if nothing is there."""
     out = Path(out)
@@ -37,7 +45,7 @@ def build_report(out: Path) -> Path:
     meta = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
     parts = ["# d2spo: reproduction report", ""]
     if meta:
-        parts += [f"Command: `d2spo reproduce {' '.join(meta.get('targets', []))} --seeds {meta.get('seeds')} "
+        parts += [f"Last command: `d2spo reproduce {' '.join(meta.get('targets', []))} --seeds {meta.get('seeds')} "
                   f"--episodes {meta.get('episodes')} --out {out}{'' if meta.get('train', True) else ' --no-train'}` "
                   f"(backend {meta.get('backend')}); "
                   f"{meta.get('finished', '?')} of {len(meta.get('runs', []))} runs finished. Report written {date.today().isoformat()} on {machine()}.", ""]
@@ -51,6 +59,9 @@ def build_report(out: Path) -> Path:
             parts += [path.read_text().rstrip(), ""]
         else:
             parts += [f"### {title}", "", f"![{name}]({path.name})", ""]
+        how = meta.get("rendered", {}).get(name)
+        if how:
+            parts += [provenance(name, how), ""]
     if not found:
         raise RunDirError(f"{out}: holds no tables or figures; run `d2spo reproduce all --out {out}` first")
     report = out / "report.md"

@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from d2spo.errors import UserError
+from d2spo.runio import atomic_write_json
 
 TARGETS = ("table2", "table3", "fig2", "fig3", "fig4", "fig5")
 METHODS = ("cpo", "ppo-lag", "td3-lag", "sac-lag", "rcrl", "d2spo")
@@ -144,6 +145,27 @@ def train_one(spec: RunSpec, out: str, progress: bool = False) -> dict:
         if rc != 0:
             raise UserError(f"{d}: training failed")
     return read_json(d / "summary.json", "the run's summary")
+
+
+def _rendered_history(out: Path, targets: list[str], seeds: int, episodes: int, methods: list[str]) -> dict:
+    """How each table or figure in OUT was last rendered (seeds, episodes, runs finished, date), kept
+    across invocations so `d2spo report` can say it per section; earlier entries survive."""
+    from datetime import date
+
+    old: dict = {}
+    path = out / "reproduce.json"
+    if path.is_file():
+        try:
+            old = dict(json.loads(path.read_text()).get("rendered", {}))
+        except (ValueError, AttributeError):
+            old = {}
+    for t in targets:
+        specs = runs_for(t, seeds, episodes, methods)
+        some = t in ("table2", "table3", "fig2") and list(methods) != list(METHODS)
+        old[t] = {"seeds": seeds, "episodes": episodes, "methods": list(methods) if some else None,
+                  "finished": sum(is_finished(out, s) for s in specs), "runs": len(specs),
+                  "date": date.today().isoformat()}
+    return old
 
 
 def _discard_unstarted(d: Path) -> None:
@@ -355,8 +377,8 @@ def fig2(out: Path, seeds: int, episodes: int, methods: Iterable[str] = METHODS)
 def fig3(out: Path, seeds: int, episodes: int) -> Path:
     specs = runs_for("fig3", seeds, episodes)
     fig = _figure(2)
-    for i, (algos, title) in enumerate(((("td3", "tlgrl"), "(a) RL vs TLGRL, `open`"),
-                                        (("sl", "d2spo"), "(b) SL vs D²SPO, `paper`"))):
+    for i, (algos, title) in enumerate(((("td3", "tlgrl"), "(a) RL vs TLGRL, open layout"),
+                                        (("sl", "d2spo"), "(b) SL vs D²SPO, paper layout"))):
         ax = fig.add_subplot(1, 2, i + 1)
         for task in ("phi1", "phi2"):
             curves = reward_curves(out, [s for s in specs if s.algo in algos and s.task == task])
@@ -380,7 +402,7 @@ def fig4(out: Path, seeds: int, episodes: int, heading: float = 0.0) -> Path:
         ax3 = fig.add_subplot(2, 4, i + 1, projection="3d")
         ax2 = fig.add_subplot(2, 4, i + 5)
         ax3.set_title(f"({'abcd'[i]}) {spec.layout}")
-        ax2.set_title(f"({'efgh'[i]}) level sets")
+        ax2.set_title(f"({'efgh'[i]}) level sets")  # set again after draw_layout, which titles the axes
         if not (d / "checkpoint.json").is_file():
             ax2.text(0.5, 0.5, "not run", ha="center", transform=ax2.transAxes)
             continue
@@ -395,6 +417,7 @@ def fig4(out: Path, seeds: int, episodes: int, heading: float = 0.0) -> Path:
         ax2.contourf(xs, ys, h, levels=15, cmap="RdYlGn", vmin=-lim, vmax=lim)
         ax2.contour(xs, ys, h, levels=[0.0], colors="black", linewidths=1.2)
         draw_layout(learner.env.layout, ax2, show_sensing=False)
+        ax2.set_title(f"({'efgh'[i]}) {spec.layout}: level sets, h = 0 in black")
     fig.tight_layout()
     path = Path(out) / "fig4.png"
     fig.savefig(str(path), dpi=100)
@@ -479,7 +502,8 @@ def reproduce(targets: Iterable[str], out: Path, seeds: int = 3, episodes: int =
     written = [render(t, out, seeds, episodes, methods) for t in targets]
     meta = {"targets": targets, "seeds": seeds, "finished": sum(is_finished(out, s) for s in specs), "train": train, "episodes": episodes, "methods": methods, "backend": backend,
             "runs": [dataclasses.asdict(s) for s in specs]}
-    (out / "reproduce.json").write_text(json.dumps(meta, indent=2) + "\n")
+    meta["rendered"] = _rendered_history(out, targets, seeds, episodes, methods)
+    atomic_write_json(out / "reproduce.json", meta)
     for p in written:
         log(f"wrote {p}")
     return written
