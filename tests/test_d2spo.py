@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import pytest
 
 from d2spo.config import TrainConfig
 from d2spo.envs import EnvConfig
@@ -51,3 +52,12 @@ def test_short_run_on_relaxed_learns_to_reach_a1_safely(tmp_path):
     with open(tmp_path / "run" / "episodes.csv") as f:
         collided = [int(r["collided"]) for r in csv.DictReader(f)]
     assert len(collided) == 500 and sum(collided) / 500 <= 0.1
+    # `d2spo eval --runtime-filter True --filter-alpha A --filter-iters N` on the same run
+    from d2spo.errors import ConfigError
+    from d2spo.evaluate import evaluate_run
+
+    res = evaluate_run(tmp_path / "run", episodes=16, runtime_filter=True, filter_alpha=1.5, filter_iters=5)
+    assert res["runtime_filter"] is True and res["filter_alpha"] == 1.5 and res["filter_iters"] == 5
+    assert res["safety_rate"] == 1.0
+    with pytest.raises(ConfigError):
+        evaluate_run(tmp_path / "run", episodes=4, runtime_filter=True, filter_alpha=0.0)

@@ -80,6 +80,22 @@ def test_filter_slows_down_to_the_boundary_of_the_condition():
     assert float(jnp.linalg.norm(res.action - u0)) < float(jnp.linalg.norm(u0))  # closer than stopping
 
 
+def test_filter_alpha_coef_makes_the_filter_brake_earlier():
+    """With α(h) = a·h and h = 0.05, the condition is c = a·0.05 − v: a = 1.5 allows half the speed."""
+    import dataclasses
+
+    import pytest
+
+    from d2spo.errors import ConfigError
+
+    pose = jnp.array([-0.6, 0.0, 0.0])
+    cfg = dataclasses.replace(CFG, filter_alpha_coef=1.5)
+    res = safety_filter(NETS, {}, {}, pose, ORIGIN, jnp.array([1.0, 0.0]), cfg=cfg, features_fn=disk_clearance, dt=DT)
+    np.testing.assert_allclose(res.action, [0.075, 0.0], atol=2e-3)
+    with pytest.raises(ConfigError):
+        CBFConfig(filter_alpha_coef=-1.0)
+
+
 def test_filter_handles_a_nonlinear_condition():
     checked = 0
     for y, th in itertools.product([0.15, 0.3], [0.0, 0.4]):

@@ -145,6 +145,10 @@ class EvalCmd:
     """With --layout random: average over this many random layouts (seeds seed..seed+n-1)."""
     runtime_filter: bool | None = None
     """D²SPO only: switch the runtime safety filter on (or off) for this evaluation; default: as trained."""
+    filter_iters: int | None = None
+    """D²SPO only: linearise-and-project iterations of the runtime filter; default: as trained."""
+    filter_alpha: float | None = None
+    """D²SPO only: coefficient of α in the runtime filter's condition (smaller brakes earlier); default: as trained."""
 
     def run(self) -> int:
         from d2spo.evaluate import eval_command

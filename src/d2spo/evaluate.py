@@ -54,14 +54,22 @@ def learner_on(cfg: TrainConfig, layout: str | None, preset: str | None):
 
 
 def evaluate_run(run_dir: Path, episodes: int = 100, layout: str | None = None, preset: str | None = None,
-                 seed: int = 0, layout_seeds: int = 1, runtime_filter: bool | None = None) -> dict:
+                 seed: int = 0, layout_seeds: int = 1, runtime_filter: bool | None = None,
+                 filter_iters: int | None = None, filter_alpha: float | None = None) -> dict:
     from d2spo.train import evaluate
 
     cfg, learner, policy, _ = load_policy(run_dir)
+    asked = {"runtime_filter": runtime_filter, "filter_iters": filter_iters, "filter_alpha": filter_alpha}
+    for name, value in asked.items():
+        if value is not None and cfg.algo not in ("d2spo", "sl"):
+            raise ConfigError(name, f"only D²SPO has a runtime filter; this run is {cfg.algo!r}")
     if runtime_filter is not None:
-        if cfg.algo not in ("d2spo", "sl"):
-            raise ConfigError("runtime_filter", f"only D²SPO has a runtime filter; this run is {cfg.algo!r}")
         cfg = dataclasses.replace(cfg, d2spo=dataclasses.replace(cfg.d2spo, runtime_filter=runtime_filter))
+    if filter_iters is not None or filter_alpha is not None:
+        cbf = cfg.cbf
+        cbf = dataclasses.replace(cbf, filter_iters=cbf.filter_iters if filter_iters is None else filter_iters,
+                                  filter_alpha_coef=cbf.filter_alpha_coef if filter_alpha is None else filter_alpha)
+        cfg = dataclasses.replace(cfg, cbf=cbf)
     layouts = [layout]
     if layout is not None and layout.startswith("random") and layout_seeds > 1:
         base = int(layout.split(":")[1]) if ":" in layout else 0
@@ -78,6 +86,9 @@ def evaluate_run(run_dir: Path, episodes: int = 100, layout: str | None = None, 
         "run": str(run_dir), "episodes": episodes * len(layouts), "layout": layout or cfg.layout,
         "layouts": [lay or cfg.layout for lay in layouts], "dynamics": preset or cfg.env.preset, "seed": seed,
         "runtime_filter": bool(cfg.d2spo.runtime_filter) if cfg.algo in ("d2spo", "sl") else None,
+        "filter_iters": cfg.cbf.filter_iters if cfg.algo in ("d2spo", "sl") else None,
+        "filter_alpha": ((cfg.cbf.alpha_coef if cfg.cbf.filter_alpha_coef is None else cfg.cbf.filter_alpha_coef)
+                         if cfg.algo in ("d2spo", "sl") else None),
         "per_layout": [{"layout": lay or cfg.layout, **r} for lay, r in zip(layouts, results)],
         "safety_rate": float(np.mean([r["safety_rate"] for r in results])),
         "completion_rate": float(np.mean([r["completion_rate"] for r in results])),
@@ -119,8 +130,10 @@ def eval_command(cmd) -> int:
     from rich.table import Table
 
     res = evaluate_run(cmd.run_dir, cmd.episodes, cmd.layout, cmd.dynamics, cmd.seed, cmd.layout_seeds,
-                       cmd.runtime_filter)
-    tag = f"{Path(res['layout']).stem.replace(':', '')}-{res['dynamics']}" + ("-filter" if res["runtime_filter"] else "")
+                       cmd.runtime_filter, cmd.filter_iters, cmd.filter_alpha)
+    tag = f"{Path(res['layout']).stem.replace(':', '')}-{res['dynamics']}"
+    if res["runtime_filter"]:
+        tag += f"-filter-a{res['filter_alpha']:g}-i{res['filter_iters']}"
     path = Path(cmd.run_dir) / f"eval-{tag}.json"
     atomic_write_json(path, res)
     t = Table(title=f"{cmd.run_dir} on {res['layout']} / {res['dynamics']} ({res['episodes']} episodes)")

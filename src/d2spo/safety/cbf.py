@@ -107,6 +107,9 @@ class CBFConfig:
     u = u_taken). False: Eq. (6) as printed, whose value is the stale outcome of the stored action."""
     filter_iters: int = 3
     """Linearise-and-project iterations of the optional runtime safety filter."""
+    filter_alpha_coef: float | None = None
+    """Coefficient a of α in the runtime filter's condition (None: alpha_coef). A smaller a lets h
+    shrink by less per step, so the filter brakes earlier than the condition π_Ω was trained on."""
 
     def __post_init__(self):
         if self.alpha not in ALPHAS:
@@ -122,6 +125,8 @@ class CBFConfig:
                      "ring_newton_iters", "pretrain_samples", "updates_per_iter", "pretrain_steps"):
             if getattr(self, name) < 1:
                 raise ConfigError(name, f"must be ≥ 1, got {getattr(self, name)}")
+        if self.filter_alpha_coef is not None and not self.filter_alpha_coef > 0:
+            raise ConfigError("filter_alpha_coef", f"must be > 0, got {self.filter_alpha_coef}")
         for name in ("nominal_updates_per_iter", "prior_steps", "filter_iters"):
             if getattr(self, name) < 0:
                 raise ConfigError(name, f"must be ≥ 0, got {getattr(self, name)}")
