@@ -36,12 +36,16 @@ def measure(algo: str, task: str, layout: str, chunks: int, num_envs: int, hidde
     carry, log = chunk(carry)
     jax.block_until_ready(log.done)
     warm = time.perf_counter() - t0
+    return chunks * cfg.chunk_steps * cfg.num_envs / time_chunks(chunk, carry, chunks), warm
+
+
+def time_chunks(chunk, carry, chunks: int) -> float:
+    """Seconds for ``chunks`` further calls of a compiled, warmed-up ``chunk`` (also used by vmap_seeds.py)."""
     t0 = time.perf_counter()
     for _ in range(chunks):
         carry, log = chunk(carry)
     jax.block_until_ready(log.done)
-    dt = time.perf_counter() - t0
-    return chunks * cfg.chunk_steps * cfg.num_envs / dt, warm
+    return time.perf_counter() - t0
 
 
 def main() -> None:

@@ -12,10 +12,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import time
 
 import jax
 import jax.numpy as jnp
+
+# bench/ is on sys.path when a bench script runs
+from train_throughput import time_chunks
 
 from d2spo.config import TrainConfig
 from d2spo.envs import EnvConfig
@@ -30,11 +32,7 @@ def measure(algo: str, task: str, layout: str, n_seeds: int, chunks: int) -> flo
     chunk = jax.jit(jax.vmap(learner.chunk), donate_argnums=0)
     carry, log = chunk(carry)
     jax.block_until_ready(log.done)
-    t0 = time.perf_counter()
-    for _ in range(chunks):
-        carry, log = chunk(carry)
-    jax.block_until_ready(log.done)
-    return n_seeds * chunks * cfg.chunk_steps * cfg.num_envs / (time.perf_counter() - t0)
+    return n_seeds * chunks * cfg.chunk_steps * cfg.num_envs / time_chunks(chunk, carry, chunks)
 
 
 def main() -> None:

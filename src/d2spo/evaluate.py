@@ -59,17 +59,16 @@ def evaluate_run(run_dir: Path, episodes: int = 100, layout: str | None = None, 
     from d2spo.train import evaluate
 
     cfg, learner, policy, _ = load_policy(run_dir)
+    has_filter = cfg.algo in ("d2spo", "sl")
     asked = {"runtime_filter": runtime_filter, "filter_iters": filter_iters, "filter_alpha": filter_alpha}
     for name, value in asked.items():
-        if value is not None and cfg.algo not in ("d2spo", "sl"):
+        if value is not None and not has_filter:
             raise ConfigError(name, f"only D²SPO has a runtime filter; this run is {cfg.algo!r}")
     if runtime_filter is not None:
         cfg = dataclasses.replace(cfg, d2spo=dataclasses.replace(cfg.d2spo, runtime_filter=runtime_filter))
-    if filter_iters is not None or filter_alpha is not None:
-        cbf = cfg.cbf
-        cbf = dataclasses.replace(cbf, filter_iters=cbf.filter_iters if filter_iters is None else filter_iters,
-                                  filter_alpha_coef=cbf.filter_alpha_coef if filter_alpha is None else filter_alpha)
-        cfg = dataclasses.replace(cfg, cbf=cbf)
+    cbf_changes = {k: v for k, v in (("filter_iters", filter_iters), ("filter_alpha_coef", filter_alpha)) if v is not None}
+    if cbf_changes:
+        cfg = dataclasses.replace(cfg, cbf=dataclasses.replace(cfg.cbf, **cbf_changes))
     layouts = [layout]
     if layout is not None and layout.startswith("random") and layout_seeds > 1:
         base = int(layout.split(":")[1]) if ":" in layout else 0
@@ -85,10 +84,9 @@ def evaluate_run(run_dir: Path, episodes: int = 100, layout: str | None = None, 
     out = {
         "run": str(run_dir), "episodes": episodes * len(layouts), "layout": layout or cfg.layout,
         "layouts": [lay or cfg.layout for lay in layouts], "dynamics": preset or cfg.env.preset, "seed": seed,
-        "runtime_filter": bool(cfg.d2spo.runtime_filter) if cfg.algo in ("d2spo", "sl") else None,
-        "filter_iters": cfg.cbf.filter_iters if cfg.algo in ("d2spo", "sl") else None,
-        "filter_alpha": ((cfg.cbf.alpha_coef if cfg.cbf.filter_alpha_coef is None else cfg.cbf.filter_alpha_coef)
-                         if cfg.algo in ("d2spo", "sl") else None),
+        "runtime_filter": bool(cfg.d2spo.runtime_filter) if has_filter else None,
+        "filter_iters": cfg.cbf.filter_iters if has_filter else None,
+        "filter_alpha": cfg.cbf.filter_alpha if has_filter else None,
         "per_layout": [{"layout": lay or cfg.layout, **r} for lay, r in zip(layouts, results)],
         "safety_rate": float(np.mean([r["safety_rate"] for r in results])),
         "completion_rate": float(np.mean([r["completion_rate"] for r in results])),

@@ -402,8 +402,9 @@ def fig4(out: Path, seeds: int, episodes: int, heading: float = 0.0) -> Path:
         ax3 = fig.add_subplot(2, 4, i + 1, projection="3d")
         ax2 = fig.add_subplot(2, 4, i + 5)
         ax3.set_title(f"({'abcd'[i]}) {spec.layout}")
-        ax2.set_title(f"({'efgh'[i]}) level sets")  # set again after draw_layout, which titles the axes
+        level_title = f"({'efgh'[i]}) {spec.layout}: level sets, h = 0 in black"
         if not (d / "checkpoint.json").is_file():
+            ax2.set_title(level_title)
             ax2.text(0.5, 0.5, "not run", ha="center", transform=ax2.transAxes)
             continue
         _, learner, policy, _ = load_policy(d)
@@ -417,7 +418,7 @@ def fig4(out: Path, seeds: int, episodes: int, heading: float = 0.0) -> Path:
         ax2.contourf(xs, ys, h, levels=15, cmap="RdYlGn", vmin=-lim, vmax=lim)
         ax2.contour(xs, ys, h, levels=[0.0], colors="black", linewidths=1.2)
         draw_layout(learner.env.layout, ax2, show_sensing=False)
-        ax2.set_title(f"({'efgh'[i]}) {spec.layout}: level sets, h = 0 in black")
+        ax2.set_title(level_title)  # after draw_layout, which titles the axes with the layout's name
     fig.tight_layout()
     path = Path(out) / "fig4.png"
     fig.savefig(str(path), dpi=100)

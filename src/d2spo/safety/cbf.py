@@ -111,6 +111,11 @@ class CBFConfig:
     """Coefficient a of α in the runtime filter's condition (None: alpha_coef). A smaller a lets h
     shrink by less per step, so the filter brakes earlier than the condition π_Ω was trained on."""
 
+    @property
+    def filter_alpha(self) -> float:
+        """The coefficient of α the runtime filter uses: filter_alpha_coef, or alpha_coef if unset."""
+        return self.alpha_coef if self.filter_alpha_coef is None else self.filter_alpha_coef
+
     def __post_init__(self):
         if self.alpha not in ALPHAS:
             raise ConfigError("alpha", f"unknown class-K function {self.alpha!r}; choose one of {ALPHAS}")

@@ -59,8 +59,7 @@ def project_halfspace_box(u0: jnp.ndarray, a: jnp.ndarray, b: jnp.ndarray, n_bis
 
 def cbf_condition(nets, cbf_params, nominal_params, pose, context, u, *, cfg, features_fn: Callable, dt: float):
     """c(u) of the module docstring for one pose (unbatched)."""
-    coef = cfg.alpha_coef if cfg.filter_alpha_coef is None else cfg.filter_alpha_coef
-    alpha = class_k(cfg.alpha, coef)
+    alpha = class_k(cfg.alpha, cfg.filter_alpha)
     h = nets.cbf.apply(cbf_params, features_fn(pose, context))
     h_next = nets.cbf.apply(cbf_params, features_fn(nominal_next(nets.nominal, nominal_params, pose, u, dt), context))
     return (h_next - h) / dt + alpha(h)
