@@ -108,6 +108,32 @@ def test_report_says_per_section_how_it_was_rendered(tmp_path):
     assert "`d2spo reproduce table2 --seeds 3 --episodes 20000 --methods cpo`: 0 of 3 runs finished" in report
 
 
+def test_runs_trained_with_other_settings_are_refused_unless_allowed(tmp_path, capsys):
+    """A run in OUT whose config differs from what reproduce would train today (here: the old
+    shaping clearance) must not slip into a table silently: exit 2 naming the setting, or, with
+    --allow-stale, a warning and a count in the report."""
+    from d2spo.config import config_to_dict
+    from d2spo.report import build_report
+
+    (spec,) = rp.runs_for("table2", 1, TINY_EPISODES, ["cpo"])
+    d = rp.run_dir(tmp_path, spec)
+    d.mkdir(parents=True)
+    old = config_to_dict(spec.config())
+    old["env"]["reward"]["shaping_clearance"] = None
+    (d / "config.json").write_text(json.dumps(old))
+    args = ["reproduce", "table2", "--methods", "cpo", "--seeds", "1", "--episodes", str(TINY_EPISODES),
+            "--no-train", "--out", str(tmp_path)]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "env.reward.shaping_clearance: None -> 0.3" in err[0] and "--allow-stale" in err[0]
+    assert main(args + ["--allow-stale"]) == 0
+    assert json.loads((tmp_path / "reproduce.json").read_text())["rendered"]["table2"]["stale"] == 1
+    assert "1 of them trained with other settings" in build_report(tmp_path).read_text()
+    # the same config as today's is not stale
+    (d / "config.json").write_text(json.dumps(config_to_dict(spec.config())))
+    assert rp.stale_runs(tmp_path, [spec]) == {} and main(args) == 0
+
+
 def test_fig2_plots_reward_bands(tmp_path):
     out = tmp_path / "r"
     rp.reproduce(["fig2"], out, seeds=1, episodes=TINY_EPISODES, methods=["ppo-lag"], progress=False,

@@ -73,8 +73,8 @@ def test_bad_shaping_metric_is_a_config_error():
 
 def test_shaping_clearance_makes_the_band_near_an_obstacle_costly():
     """With a clearance of 0.3 m, a point 0.2 m from `relaxed`'s obstacle lies in the penalised
-    band (outside it with the default, the robot radius 0.15 m): leaving the band costs extra, and
-    a point well clear of every obstacle keeps (nearly) the same distance."""
+    band (outside it with None, the robot radius 0.15 m): leaving the band costs extra, and a point
+    well clear of every obstacle keeps (nearly) the same distance. 0.3 is the default."""
     lay = layouts.load("relaxed")
     a2 = [a.name for a in lay.areas].index("A2")
     near, clear = jnp.array([3.5, 2.5]), jnp.array([2.0, 2.5])  # obstacle face at x = 3.7
@@ -84,8 +84,9 @@ def test_shaping_clearance_makes_the_band_near_an_obstacle_costly():
         by_clearance[c] = (float(geodesic.lookup(f, near)[a2]), float(geodesic.lookup(f, clear)[a2]))
     assert by_clearance[0.3][0] > by_clearance[0.15][0] + 0.5
     assert by_clearance[0.3][1] == pytest.approx(by_clearance[0.15][1], abs=0.15)
-    env, params = make_env(EnvConfig(layout="relaxed", reward=RewardConfig(shaping_clearance=0.3)), task="relaxed")
-    assert float(env._center_distance(near, params)[a2]) == pytest.approx(by_clearance[0.3][0], rel=1e-5)
+    for reward, c in ((RewardConfig(), 0.3), (RewardConfig(shaping_clearance=None), 0.15)):
+        env, params = make_env(EnvConfig(layout="relaxed", reward=reward), task="relaxed")
+        assert float(env._center_distance(near, params)[a2]) == pytest.approx(by_clearance[c][0], rel=1e-5)
 
 
 def test_negative_shaping_clearance_is_a_config_error():

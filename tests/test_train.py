@@ -100,6 +100,34 @@ def test_config_round_trip_and_errors():
         config_from_dict(bad)
 
 
+def test_old_config_keeps_the_default_it_was_trained_with():
+    """A config.json written before shaping_clearance existed was trained with None (the robot
+    radius), not with today's default 0.3: reading it back (e.g. to resume) must say so. A missing
+    key whose default never changed takes today's default."""
+    old = config_to_dict(TrainConfig())
+    del old["env"]["reward"]["shaping_clearance"]
+    del old["cbf"]["filter_alpha_coef"]
+    cfg = config_from_dict(old)
+    assert cfg.env.reward.shaping_clearance is None and TrainConfig().env.reward.shaping_clearance == 0.3
+    assert cfg.cbf.filter_alpha_coef == TrainConfig().cbf.filter_alpha_coef
+
+
+def test_effective_differences_ignore_what_the_learner_does_not_read():
+    from d2spo.config import config_differences
+    from d2spo.ltl.reward import RewardConfig
+
+    base = TrainConfig()
+    other_reward = dataclasses.replace(base, env=dataclasses.replace(base.env, reward=RewardConfig(shaping_clearance=None)))
+    assert config_differences(other_reward, base) == ["env.reward.shaping_clearance: None -> 0.3"]
+    # the sparse-reward learners never use the shaping, nor D²SPO a baseline's section
+    for algo in ("td3", "sl"):
+        assert config_differences(dataclasses.replace(other_reward, algo=algo), dataclasses.replace(base, algo=algo)) == []
+    cpo_changed = dataclasses.replace(base, cpo=dataclasses.replace(base.cpo, target_kl=0.02))
+    assert config_differences(cpo_changed, base) == []
+    assert len(config_differences(dataclasses.replace(cpo_changed, algo="cpo"), dataclasses.replace(base, algo="cpo"))) == 1
+    assert config_differences(dataclasses.replace(base, seed=1), base) == ["seed: 1 -> 0"]
+
+
 def test_seeds_vmapped_together_write_ordinary_runs_and_resume_exactly(tmp_path):
     from d2spo.train import train_seeds
 

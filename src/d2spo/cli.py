@@ -217,12 +217,15 @@ class ReproduceCmd:
     vmap_seeds: bool = True
     """Local backend: train the seeds of one setting together, vmapped in one program
     (--no-vmap-seeds: one seed after another)."""
+    allow_stale: bool = False
+    """Use runs in OUT/runs that were trained with other settings than today's defaults (e.g. by
+    an older d2spo) instead of stopping; the report counts them."""
 
     def run(self) -> int:
         from d2spo.reproduce import reproduce
 
         reproduce(self.targets, self.out, self.seeds, self.episodes, self.backend, self.address, self.methods,
-                  self.progress, train=self.train, vmap_seeds=self.vmap_seeds)
+                  self.progress, train=self.train, vmap_seeds=self.vmap_seeds, allow_stale=self.allow_stale)
         return 0
 
 

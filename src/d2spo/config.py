@@ -1,7 +1,8 @@
 """The one resolved configuration of a run: a frozen dataclass the CLI is built from.
 
 ``config.json`` in a run directory is ``config_to_dict(cfg)``; ``config_from_dict`` reads it
-back (unknown keys are an error, missing keys take today's defaults).
+back (unknown keys are an error; missing keys take today's defaults, or, for a setting whose
+default changed, the old one: ``FORMER_DEFAULTS``).
 """
 
 from __future__ import annotations
@@ -135,5 +136,67 @@ def _build(cls: type, data: dict, where: str) -> Any:
     return cls(**kwargs)
 
 
+FORMER_DEFAULTS: dict[tuple[str, ...], Any] = {
+    ("env", "reward", "shaping_clearance"): None,  # the default became 0.3 after the field was added
+}
+"""Settings whose default has changed, with the value a config.json that does not mention them was
+trained with (the field did not exist yet, and its old behaviour is this value)."""
+
+
+def _with_former_defaults(data: dict) -> dict:
+    data = dict(data)
+    for path, value in FORMER_DEFAULTS.items():
+        node = data
+        for k in path[:-1]:
+            if not isinstance(node.get(k), dict):
+                break
+            node[k] = node = dict(node[k])
+        else:
+            node.setdefault(path[-1], value)
+    return data
+
+
 def config_from_dict(data: dict) -> TrainConfig:
-    return _build(TrainConfig, data, "")
+    """The config a config.json describes: missing keys take today's defaults, except settings whose
+    default changed since (``FORMER_DEFAULTS``), which take the value the run was trained with."""
+    return _build(TrainConfig, _with_former_defaults(data), "")
+
+
+LEARNER_SECTIONS = {
+    "d2spo": ("td3", "anneal", "cbf", "d2spo"), "sl": ("td3", "cbf", "d2spo"),
+    "tlgrl": ("td3", "anneal"), "td3": ("td3",),
+    "td3-lag": ("td3_lag", "anneal"), "sac-lag": ("sac_lag", "anneal"), "rcrl": ("rcrl", "anneal"),
+    "ppo-lag": ("ppo_lag", "anneal"), "cpo": ("cpo", "anneal"),
+}
+"""The learner-specific config sections each ``--algo`` reads (``algos.make_learner``); the annealed
+radius only applies with the progress reward, so td3 and sl ignore it."""
+_LEARNER_FIELDS = {s for v in LEARNER_SECTIONS.values() for s in v}
+_SHAPING_FIELDS = ("shaping", "shaping_metric", "shaping_clearance", "shaping_gamma")
+
+
+def effective_config(cfg: TrainConfig) -> dict:
+    """``config_to_dict(cfg)`` without what cannot change this learner's run: the sections of other
+    learners, and, under the sparse reward (td3, sl), the shaping fields. Two runs with equal
+    effective configs train identically."""
+    d = config_to_dict(cfg)
+    for name in _LEARNER_FIELDS - set(LEARNER_SECTIONS.get(cfg.algo, _LEARNER_FIELDS)):
+        d.pop(name, None)
+    if cfg.env_config().reward.mode == "sparse":
+        for name in _SHAPING_FIELDS:
+            d["env"]["reward"].pop(name, None)
+    return d
+
+
+def config_differences(old: TrainConfig, new: TrainConfig) -> list[str]:
+    """``'path: old -> new'`` for each effective setting that differs between two configs."""
+    out: list[str] = []
+
+    def walk(a: Any, b: Any, where: str) -> None:
+        if isinstance(a, dict) and isinstance(b, dict):
+            for k in sorted(set(a) | set(b)):
+                walk(a.get(k), b.get(k), f"{where}.{k}" if where else k)
+        elif a != b:
+            out.append(f"{where}: {a!r} -> {b!r}")
+
+    walk(effective_config(old), effective_config(new), "")
+    return out

@@ -33,7 +33,12 @@ def provenance(name: str, how: dict) -> str:
     methods = f" --methods {' '.join(how['methods'])}" if how.get("methods") else ""
     return (f"*Rendered {how.get('date', '?')} by `d2spo reproduce {name} --seeds {how.get('seeds')} "
             f"--episodes {how.get('episodes')}{methods}`: {how.get('finished', '?')} of {how.get('runs', '?')} "
-            f"runs finished.*")
+            f"runs finished{_stale(how)}.*")
+
+
+def _stale(how: dict) -> str:
+    n = how.get("stale", 0)
+    return f"; {n} of them trained with other settings than the defaults of the day (`--allow-stale`)" if n else ""
 
 
 def build_report(out: Path) -> Path:

@@ -147,7 +147,32 @@ def train_one(spec: RunSpec, out: str, progress: bool = False) -> dict:
     return read_json(d / "summary.json", "the run's summary")
 
 
-def _rendered_history(out: Path, targets: list[str], seeds: int, episodes: int, methods: list[str]) -> dict:
+def stale_runs(out: Path, specs: Iterable[RunSpec]) -> dict[str, list[str]]:
+    """Runs in OUT (finished or not) whose config.json differs from the config ``reproduce`` would
+    train today, e.g. after a default changed: name -> ``'setting: theirs -> today's'``. Only
+    settings that can change the run count (``config.effective_config``)."""
+    from d2spo.config import config_differences, config_from_dict
+    from d2spo.errors import ConfigError
+    from d2spo.runio import read_json
+
+    found: dict[str, list[str]] = {}
+    for s in specs:
+        path = run_dir(out, s) / "config.json"
+        if not path.is_file():
+            continue
+        try:
+            old = config_from_dict(read_json(path, "the run's config"))
+        except ConfigError as e:
+            found[s.name] = [f"unreadable config: {e}"]
+            continue
+        diffs = config_differences(old, s.config())
+        if diffs:
+            found[s.name] = diffs
+    return found
+
+
+def _rendered_history(out: Path, targets: list[str], seeds: int, episodes: int, methods: list[str],
+                      stale: dict[str, list[str]] | None = None) -> dict:
     """How each table or figure in OUT was last rendered (seeds, episodes, runs finished, date), kept
     across invocations so `d2spo report` can say it per section; earlier entries survive."""
     from datetime import date
@@ -164,7 +189,7 @@ def _rendered_history(out: Path, targets: list[str], seeds: int, episodes: int, 
         some = t in ("table2", "table3", "fig2") and list(methods) != list(METHODS)
         old[t] = {"seeds": seeds, "episodes": episodes, "methods": list(methods) if some else None,
                   "finished": sum(is_finished(out, s) for s in specs), "runs": len(specs),
-                  "date": date.today().isoformat()}
+                  "stale": sum(s.name in (stale or {}) for s in specs), "date": date.today().isoformat()}
     return old
 
 
@@ -469,11 +494,14 @@ def render(target: str, out: Path, seeds: int, episodes: int, methods: Iterable[
 
 def reproduce(targets: Iterable[str], out: Path, seeds: int = 3, episodes: int = 20_000, backend: str = "local",
               address: str | None = None, methods: Iterable[str] = METHODS, progress: bool = True,
-              log: Callable[[str], None] = print, train: bool = True, vmap_seeds: bool = True) -> list[Path]:
+              log: Callable[[str], None] = print, train: bool = True, vmap_seeds: bool = True,
+              allow_stale: bool = False) -> list[Path]:
     """Train what is missing for ``targets`` (unless ``train`` is False) and render them.
 
     Returns the written files. Tables count the seeds that have finished, so ``train=False``
-    renders whatever is there."""
+    renders whatever is there. Runs in OUT trained with other settings than today's (``stale_runs``)
+    are refused, so a table never mixes two rewards silently; ``allow_stale`` uses them as they are
+    and the report says how many there were."""
     if seeds < 1:
         raise UserError(f"--seeds must be >= 1, got {seeds}")
     if episodes < 1:
@@ -494,6 +522,16 @@ def reproduce(targets: Iterable[str], out: Path, seeds: int = 3, episodes: int =
                 specs.append(s)
     if backend not in ("local", "ray"):
         raise UserError(f"unknown backend {backend!r}; choose local or ray")
+    stale = stale_runs(out, specs)
+    if stale:
+        name, diffs = next(iter(stale.items()))
+        more = f" (and {len(diffs) - 1} more settings)" if len(diffs) > 1 else ""
+        what = f"{len(stale)} run{'s' if len(stale) > 1 else ''} in {out / 'runs'}"
+        if not allow_stale:
+            raise UserError(f"{what} were trained with other settings than today's, e.g. {name}: {diffs[0]}{more}; "
+                            f"use a new --out, or --allow-stale to use them as they are")
+        log(f"warning: {what} were trained with other settings than today's (--allow-stale), e.g. "
+            f"{name}: {diffs[0]}{more}")
     if not train:
         log(f"{sum(is_finished(out, s) for s in specs)} of {len(specs)} runs finished in {out}; rendering only")
     elif backend == "local":
@@ -503,7 +541,8 @@ def reproduce(targets: Iterable[str], out: Path, seeds: int = 3, episodes: int =
     written = [render(t, out, seeds, episodes, methods) for t in targets]
     meta = {"targets": targets, "seeds": seeds, "finished": sum(is_finished(out, s) for s in specs), "train": train, "episodes": episodes, "methods": methods, "backend": backend,
             "runs": [dataclasses.asdict(s) for s in specs]}
-    meta["rendered"] = _rendered_history(out, targets, seeds, episodes, methods)
+    meta["stale"] = stale
+    meta["rendered"] = _rendered_history(out, targets, seeds, episodes, methods, stale)
     atomic_write_json(out / "reproduce.json", meta)
     for p in written:
         log(f"wrote {p}")

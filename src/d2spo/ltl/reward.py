@@ -36,12 +36,13 @@ class RewardConfig:
     shaping_metric: str = "geodesic"
     """'geodesic': distance along the shortest obstacle-free path (``envs.geodesic``, from the
     layout's map); 'euclidean': straight line, which leads into obstacles lying on the line."""
-    shaping_clearance: float | None = None
+    shaping_clearance: float | None = 0.3
     """With the geodesic metric: path nodes closer than this to an obstacle or a wall cost
     ``envs.geodesic.BLOCKED_COST`` times their length, so the shortest path keeps this clearance
-    where it can. None (the default): the robot radius, i.e. only paths the robot cannot take are
-    penalised. A value equal to the barrier's safe distance (``cbf.d``) keeps the path inside the
-    CBF's safe set."""
+    where it can. The default 0.3 m equals the barrier's safe distance (``cbf.d``), so the path
+    stays in the CBF's safe set; None: the robot radius (0.15 m), i.e. only paths the robot cannot
+    take are penalised, and the path may run inside the barrier's margin, where D²SPO's policy
+    crawls (docs/ltl.md)."""
     shaping_gamma: float = 1.0
     """Discount in the shaping term gamma * Phi(s') - Phi(s). 1 (not the learner's 0.99): with
     gamma < 1 standing still far from the goal earns (1 - gamma) |Phi| > c_n per step."""
