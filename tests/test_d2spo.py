@@ -61,3 +61,27 @@ def test_short_run_on_relaxed_learns_to_reach_a1_safely(tmp_path):
     assert res["safety_rate"] == 1.0
     with pytest.raises(ConfigError):
         evaluate_run(tmp_path / "run", episodes=4, runtime_filter=True, filter_alpha=0.0)
+
+
+def test_one_compiled_rollout_serves_every_random_layout():
+    """Evaluation compiles the rollout once for layouts of the same shapes, passing each layout's
+    params as an argument: D²SPO's π_Ω must then see *that* layout's obstacles,
+    (through the nearest-obstacle feature of x), exactly as a rollout compiled for it alone does."""
+    import dataclasses
+
+    from d2spo.evaluate import learner_on
+    from d2spo.train import make_rollout
+
+    cfg = TrainConfig(algo="d2spo", task="phi1", episodes=10, num_envs=2)
+    cfg = dataclasses.replace(cfg, d2spo=dataclasses.replace(cfg.d2spo, pretrain=False))
+    env0, params0, learner0 = learner_on(cfg, "random:0", None)
+    policy = jax.jit(lambda k: learner0.policy(learner0.init(k)))(jax.random.PRNGKey(0))  # jit: eager init is slow
+    shared = make_rollout(learner0, env0, 2, 40)
+    key = jax.random.PRNGKey(1)
+    env4, params4, learner4 = learner_on(cfg, "random:4", None)
+    alone = make_rollout(learner4, env4, 2, 40)(params4, policy, key)
+    for a, b in zip(alone, shared(params4, policy, key)):
+        assert jnp.array_equal(a, b, equal_nan=True)
+    # and the layouts really differ (else the check above could not fail)
+    assert not jnp.array_equal(params0.geom.box_lo, params4.geom.box_lo)
+    assert not jnp.array_equal(shared(params0, policy, key)[4], alone[4], equal_nan=True)

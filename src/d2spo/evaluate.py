@@ -56,7 +56,7 @@ def learner_on(cfg: TrainConfig, layout: str | None, preset: str | None):
 def evaluate_run(run_dir: Path, episodes: int = 100, layout: str | None = None, preset: str | None = None,
                  seed: int = 0, layout_seeds: int = 1, runtime_filter: bool | None = None,
                  filter_iters: int | None = None, filter_alpha: float | None = None) -> dict:
-    from d2spo.train import evaluate
+    from d2spo.train import make_rollout, rates
 
     cfg, learner, policy, _ = load_policy(run_dir)
     has_filter = cfg.algo in ("d2spo", "sl")
@@ -74,13 +74,18 @@ def evaluate_run(run_dir: Path, episodes: int = 100, layout: str | None = None, 
         base = int(layout.split(":")[1]) if ":" in layout else 0
         layouts = [f"random:{base + i}" for i in range(layout_seeds)]
     results = []
+    compiled: dict = {}  # one compiled rollout per shape of the env params (random layouts share one)
     for lay in layouts:
         env, params, other = learner_on(cfg, lay, preset)
         if env.observation_size != learner_obs_size(learner):
             raise ConfigError("layout", f"the policy was trained with observations of size {learner_obs_size(learner)}, "
                               f"layout {lay!r} gives {env.observation_size} (different number of areas or "
                               "automaton states)")
-        results.append(evaluate(other, policy, env, params, episodes, jax.random.PRNGKey(seed)))
+        leaves, tree = jax.tree_util.tree_flatten(params)
+        shape = (tree, tuple((x.shape, x.dtype) for x in leaves), env.n_obstacles, env.observation_size)
+        if shape not in compiled:
+            compiled[shape] = make_rollout(other, env, episodes, int(params.max_steps))
+        results.append(rates(*compiled[shape](params, policy, jax.random.PRNGKey(seed))[:4]))
     out = {
         "run": str(run_dir), "episodes": episodes * len(layouts), "layout": layout or cfg.layout,
         "layouts": [lay or cfg.layout for lay in layouts], "dynamics": preset or cfg.env.preset, "seed": seed,

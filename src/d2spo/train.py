@@ -295,19 +295,30 @@ def _tensorboard(path: Path):
     return SummaryWriter(str(path), flush_secs=30)
 
 
-def rollout_episodes(learner, policy, env, params, episodes: int, key: jax.Array, max_steps: int):
-    """Run ``episodes`` envs in parallel for one episode each, deterministically.
+def acting_on(learner, params):
+    """``learner`` acting on env ``params`` (another layout of the same array shapes): a shallow
+    copy whose ``params`` are replaced. Acting reads the layout only through ``learner.params``
+    (D²SPO's sensed obstacles and arena), so ``params`` may be traced."""
+    import copy
 
-    Returns per-episode collided, completed, return, length, and the [T, E, 3] poses.
-    """
+    other = copy.copy(learner)
+    other.params = params
+    return other
 
-    def one(key):
+
+def make_rollout(learner, env, episodes: int, max_steps: int):
+    """A jitted ``(params, policy, key) -> (collided, completed, return, length, poses)``: ``episodes``
+    envs in parallel, one deterministic episode each; poses are [E, T + 1, 3]. The env params are an
+    argument, so one compilation serves every layout with the same array shapes."""
+
+    def one(params, policy, key):
+        lrn = acting_on(learner, params)
         k0, k1 = jax.random.split(key)
         state, obs = env.reset(k0, params)
 
         def body(c, k):
             state, obs, alive, ret, length, collided, completed = c
-            a = learner.act(policy, obs, state, k)
+            a = lrn.act(policy, obs, state, k)
             state2, obs2, r, cost, done, info = env.step(k, state, a, params)
             ret = ret + jnp.where(alive, r, 0.0)
             length = length + alive.astype(jnp.int32)
@@ -322,19 +333,33 @@ def rollout_episodes(learner, policy, env, params, episodes: int, key: jax.Array
         start = state.pose
         return collided, completed, ret, length, jnp.concatenate([start[None], poses], 0)
 
-    keys = jax.random.split(key, episodes)
-    return jax.jit(jax.vmap(one))(keys)
+    @jax.jit
+    def run(params, policy, key):
+        return jax.vmap(one, in_axes=(None, None, 0))(params, policy, jax.random.split(key, episodes))
+
+    return run
 
 
-def evaluate(learner, policy, env, params, episodes: int, key: jax.Array) -> dict:
-    """Safety and completion (true labelling) of the deterministic policy over ``episodes``."""
-    collided, completed, ret, length, _ = rollout_episodes(
-        learner, policy, env, params, episodes, key, int(params.max_steps))
+def rollout_episodes(learner, policy, env, params, episodes: int, key: jax.Array, max_steps: int):
+    """Run ``episodes`` envs in parallel for one episode each, deterministically.
+
+    Returns per-episode collided, completed, return, length, and the [E, T + 1, 3] poses.
+    """
+    return make_rollout(learner, env, episodes, max_steps)(params, policy, key)
+
+
+def rates(collided, completed, ret, length) -> dict:
+    """Safety and completion (true labelling) of finished evaluation episodes."""
     collided, completed = np.asarray(collided), np.asarray(completed)
     return {
-        "episodes": int(episodes),
+        "episodes": int(collided.shape[0]),
         "safety_rate": float(1.0 - collided.mean()),
         "completion_rate": float(completed.mean()),
         "mean_return": float(np.asarray(ret).mean()),
         "mean_length": float(np.asarray(length).mean()),
     }
+
+
+def evaluate(learner, policy, env, params, episodes: int, key: jax.Array) -> dict:
+    """Safety and completion (true labelling) of the deterministic policy over ``episodes``."""
+    return rates(*rollout_episodes(learner, policy, env, params, episodes, key, int(params.max_steps))[:4])

@@ -111,10 +111,17 @@ class D2SPOLearner(TD3Learner):
         self.dt = float(econf.dt)
         self.safety_nets = make_nets(cbf, self.H)
         self.lidar = env.observation_slices["lidar"]
-        self.arena_lo, self.arena_hi = params.geom.arena_lo, params.geom.arena_hi
         self.n_obstacles = int(params.geom.box_lo.shape[0])
         self.pose_slice = env.observation_slices["pose"]
         self.n_features = env.n_rays + 1
+
+    @property
+    def arena_lo(self) -> jax.Array:  # from self.params, so a learner acting on other params follows them
+        return self.params.geom.arena_lo
+
+    @property
+    def arena_hi(self) -> jax.Array:
+        return self.params.geom.arena_hi
 
     # -- the sensor model b(z, O_s) as the CBF sees it -----------------------------------
     def features(self, pose: jax.Array, ctx: Sensed) -> jax.Array:
