@@ -63,6 +63,18 @@ def test_short_run_on_relaxed_learns_to_reach_a1_safely(tmp_path):
         evaluate_run(tmp_path / "run", episodes=4, runtime_filter=True, filter_alpha=0.0)
 
 
+def test_eval_switches_the_runtime_filter_on_away_from_the_training_layout():
+    from d2spo.evaluate import filter_choice
+
+    d2 = TrainConfig(algo="d2spo", env=EnvConfig(layout="paper", preset="default"))
+    assert filter_choice(d2, None, None, None) is None  # as trained
+    assert filter_choice(d2, "paper", "default", None) is None
+    assert filter_choice(d2, "random:3", None, None) is True
+    assert filter_choice(d2, None, "turtlebot", None) is True
+    assert filter_choice(d2, "random:3", None, False) is False  # asked for: the paper's π_Ω alone
+    assert filter_choice(TrainConfig(algo="td3-lag"), "random:3", None, None) is None  # no filter to switch
+
+
 def test_one_compiled_rollout_serves_every_random_layout():
     """Evaluation compiles the rollout once for layouts of the same shapes, passing each layout's
     params as an argument: D²SPO's π_Ω must then see *that* layout's obstacles,

@@ -144,7 +144,8 @@ class EvalCmd:
     layout_seeds: int = 1
     """With --layout random: average over this many random layouts (seeds seed..seed+n-1)."""
     runtime_filter: bool | None = None
-    """D²SPO only: switch the runtime safety filter on (or off) for this evaluation; default: as trained."""
+    """D²SPO only: switch the runtime safety filter on or off for this evaluation; default: as trained on
+    the training layout and dynamics, on elsewhere (π_Ω alone transfers poorly to unseen layouts)."""
     filter_iters: int | None = None
     """D²SPO only: linearise-and-project iterations of the runtime filter; default: as trained."""
     filter_alpha: float | None = None

@@ -53,9 +53,23 @@ def learner_on(cfg: TrainConfig, layout: str | None, preset: str | None):
     return build(dataclasses.replace(cfg, env=env_cfg))
 
 
+def filter_choice(cfg: TrainConfig, layout: str | None, preset: str | None, asked: bool | None) -> bool | None:
+    """The runtime filter's setting for an evaluation: what was asked; else on for a D²SPO policy on
+    another layout or dynamics preset than it was trained on (deployment where the learned h never
+    saw data); else None, as trained."""
+    if asked is not None or cfg.algo not in ("d2spo", "sl"):
+        return asked
+    elsewhere = (layout is not None and layout != cfg.layout) or (preset is not None and preset != cfg.env.preset)
+    return True if elsewhere else None
+
+
 def evaluate_run(run_dir: Path, episodes: int = 100, layout: str | None = None, preset: str | None = None,
                  seed: int = 0, layout_seeds: int = 1, runtime_filter: bool | None = None,
                  filter_iters: int | None = None, filter_alpha: float | None = None) -> dict:
+    """Safety and completion of the run's final policy, deterministic, on its own layout and dynamics
+    or others. ``runtime_filter=None``: as trained on the training layout and dynamics, and on for a
+    D²SPO policy evaluated on another layout or dynamics preset (π_Ω alone is far less safe on
+    layouts it never saw: docs/cbf.md); True/False force it."""
     from d2spo.train import make_rollout, rates
 
     cfg, learner, policy, _ = load_policy(run_dir)
@@ -64,6 +78,7 @@ def evaluate_run(run_dir: Path, episodes: int = 100, layout: str | None = None, 
     for name, value in asked.items():
         if value is not None and not has_filter:
             raise ConfigError(name, f"only D²SPO has a runtime filter; this run is {cfg.algo!r}")
+    runtime_filter = filter_choice(cfg, layout, preset, runtime_filter)
     if runtime_filter is not None:
         cfg = dataclasses.replace(cfg, d2spo=dataclasses.replace(cfg.d2spo, runtime_filter=runtime_filter))
     cbf_changes = {k: v for k, v in (("filter_iters", filter_iters), ("filter_alpha_coef", filter_alpha)) if v is not None}
@@ -139,7 +154,12 @@ def eval_command(cmd) -> int:
         tag += f"-filter-a{res['filter_alpha']:g}-i{res['filter_iters']}"
     path = Path(cmd.run_dir) / f"eval-{tag}.json"
     atomic_write_json(path, res)
-    t = Table(title=f"{cmd.run_dir} on {res['layout']} / {res['dynamics']} ({res['episodes']} episodes)")
+    filt = ""
+    if res["runtime_filter"] is not None:
+        filt = ", runtime filter " + ("on" if res["runtime_filter"] else "off")
+        if res["runtime_filter"] and cmd.runtime_filter is None:
+            filt += " (not the training layout/dynamics; --runtime-filter False for π_Ω alone)"
+    t = Table(title=f"{cmd.run_dir} on {res['layout']} / {res['dynamics']} ({res['episodes']} episodes{filt})")
     t.add_column("safety_rate", justify="right")
     t.add_column("completion_rate", justify="right")
     t.add_column("mean_return", justify="right")
