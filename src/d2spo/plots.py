@@ -16,12 +16,15 @@ from matplotlib.figure import Figure
 from d2spo.envs.render import draw_layout, draw_trajectory
 
 
-def policy_trajectories(learner, policy, env, params, episodes: int, seed: int):
-    """Poses [E, T+1, 3] (NaN after each episode's end) and per-episode (collided, completed)."""
-    from d2spo.train import rollout_episodes
+def policy_trajectories(learner, policy, env, params, episodes: int, seed: int, rollout=None):
+    """Poses [E, T+1, 3] (NaN after each episode's end) and per-episode (collided, completed).
+    ``rollout``: a ``train.make_rollout`` of the same learner and size, to reuse its compilation
+    (e.g. for several snapshots of one run)."""
+    from d2spo.train import make_rollout
 
-    collided, completed, _, _, poses = rollout_episodes(
-        learner, policy, env, params, episodes, jax.random.PRNGKey(seed), int(params.max_steps))
+    if rollout is None:
+        rollout = make_rollout(learner, env, episodes, int(params.max_steps))
+    collided, completed, _, _, poses = rollout(params, policy, jax.random.PRNGKey(seed))
     return np.asarray(poses), np.asarray(collided), np.asarray(completed)
 
 

@@ -253,7 +253,8 @@ def run_ray(specs: list[RunSpec], out: Path, address: str | None = None, num_cpu
     except ImportError:
         raise UserError("--backend ray needs Ray: pip install 'd2spo[cluster]'") from None
     todo = [s for s in specs if not is_finished(out, s)]
-    log(f"{len(specs) - len(todo)} of {len(specs)} runs already finished in {out}; {len(todo)} Ray tasks")
+    tasks = f"{len(todo)} Ray task{'s' if len(todo) != 1 else ''}"
+    log(f"{len(specs) - len(todo)} of {len(specs)} runs already finished in {out}; {tasks}")
     if not todo:
         return
     started = not ray.is_initialized()
@@ -455,7 +456,7 @@ def fig5(out: Path, seeds: int, episodes: int, trajectories: int = 8) -> Path:
     from d2spo.envs.render import draw_layout, draw_trajectory
     from d2spo.evaluate import load_policy
     from d2spo.plots import policy_trajectories
-    from d2spo.train import load_snapshot
+    from d2spo.train import load_snapshot, make_rollout
 
     spec = runs_for("fig5", seeds, episodes)[0]
     d = run_dir(out, spec)
@@ -467,9 +468,11 @@ def fig5(out: Path, seeds: int, episodes: int, trajectories: int = 8) -> Path:
     ax = fig.add_subplot(1, 1 + len(spec.snapshots), 1)
     draw_layout(env.layout, ax, sensing_radius=float(params.sensing_radius))
     ax.set_title("(a) layout, start and sensing radius")
+    rollout = make_rollout(learner, env, trajectories, int(params.max_steps))  # one compilation for every snapshot
     for i, n in enumerate(spec.snapshots):
         policy = load_snapshot(d, n, learner)
-        poses, collided, completed = policy_trajectories(learner, policy, env, params, trajectories, seed=i)
+        poses, collided, completed = policy_trajectories(learner, policy, env, params, trajectories, seed=i,
+                                                         rollout=rollout)
         ax = fig.add_subplot(1, 1 + len(spec.snapshots), i + 2)
         draw_layout(env.layout, ax, show_sensing=False)
         for k in range(poses.shape[0]):

@@ -319,7 +319,7 @@ def make_rollout(learner, env, episodes: int, max_steps: int):
         def body(c, k):
             state, obs, alive, ret, length, collided, completed = c
             a = lrn.act(policy, obs, state, k)
-            state2, obs2, r, cost, done, info = env.step(k, state, a, params)
+            state2, obs2, r, _, done, info = env.step(k, state, a, params)
             ret = ret + jnp.where(alive, r, 0.0)
             length = length + alive.astype(jnp.int32)
             collided = collided | (alive & info["collided"])
