@@ -157,3 +157,15 @@ def test_seeds_vmapped_together_write_ordinary_runs_and_resume_exactly(tmp_path)
     assert 0.0 <= evaluate_run(outs[1], episodes=4)["safety_rate"] <= 1.0
     with pytest.raises(ConfigError, match="only in their seed"):
         train_seeds([tiny(seed=0), tiny(seed=1, num_envs=4)], [tmp_path / "c0", tmp_path / "c1"])
+
+
+def test_eval_rates_measure_the_distance_driven():
+    """mean_distance sums the steps of each episode until its end (NaN poses after it)."""
+    from d2spo.train import rates
+
+    nan = float("nan")
+    poses = np.array([[[0, 0, 0], [3, 4, 0], [3, 4, 1], [nan, nan, nan]],   # 5 m, then turning on the spot
+                      [[1, 1, 0], [1, 1, 0], [1, 2, 0], [1, 3, 0]]], float)  # 2 m
+    r = rates(np.array([False, True]), np.array([True, False]), np.array([1.0, 3.0]), np.array([3, 3]), poses)
+    assert r["mean_distance"] == pytest.approx(3.5) and r["safety_rate"] == 0.5 and r["completion_rate"] == 0.5
+    assert "mean_distance" not in rates(np.array([False]), np.array([True]), np.array([1.0]), np.array([3]))

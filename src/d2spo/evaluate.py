@@ -100,7 +100,7 @@ def evaluate_run(run_dir: Path, episodes: int = 100, layout: str | None = None, 
         shape = (tree, tuple((x.shape, x.dtype) for x in leaves), env.n_obstacles, env.observation_size)
         if shape not in compiled:
             compiled[shape] = make_rollout(other, env, episodes, int(params.max_steps))
-        results.append(rates(*compiled[shape](params, policy, jax.random.PRNGKey(seed))[:4]))
+        results.append(rates(*compiled[shape](params, policy, jax.random.PRNGKey(seed))))
     out = {
         "run": str(run_dir), "episodes": episodes * len(layouts), "layout": layout or cfg.layout,
         "layouts": [lay or cfg.layout for lay in layouts], "dynamics": preset or cfg.env.preset, "seed": seed,
@@ -111,6 +111,7 @@ def evaluate_run(run_dir: Path, episodes: int = 100, layout: str | None = None, 
         "safety_rate": float(np.mean([r["safety_rate"] for r in results])),
         "completion_rate": float(np.mean([r["completion_rate"] for r in results])),
         "mean_return": float(np.mean([r["mean_return"] for r in results])),
+        "mean_distance": float(np.mean([r["mean_distance"] for r in results])),
     }
     return out
 
@@ -163,7 +164,9 @@ def eval_command(cmd) -> int:
     t.add_column("safety_rate", justify="right")
     t.add_column("completion_rate", justify="right")
     t.add_column("mean_return", justify="right")
-    t.add_row(f"{100 * res['safety_rate']:.2f}%", f"{100 * res['completion_rate']:.2f}%", f"{res['mean_return']:.2f}")
+    t.add_column("distance driven", justify="right")
+    t.add_row(f"{100 * res['safety_rate']:.2f}%", f"{100 * res['completion_rate']:.2f}%", f"{res['mean_return']:.2f}",
+              f"{res['mean_distance']:.2f} m")
     Console().print(t)
     print(f"wrote {path}")
     return 0

@@ -348,18 +348,24 @@ def rollout_episodes(learner, policy, env, params, episodes: int, key: jax.Array
     return make_rollout(learner, env, episodes, max_steps)(params, policy, key)
 
 
-def rates(collided, completed, ret, length) -> dict:
-    """Safety and completion (true labelling) of finished evaluation episodes."""
+def rates(collided, completed, ret, length, poses=None) -> dict:
+    """Safety and completion (true labelling) of finished evaluation episodes; with the [E, T + 1, 3]
+    poses of ``make_rollout`` also the mean distance driven (m), which tells a safe policy that
+    moves from one that stands still."""
     collided, completed = np.asarray(collided), np.asarray(completed)
-    return {
+    out = {
         "episodes": int(collided.shape[0]),
         "safety_rate": float(1.0 - collided.mean()),
         "completion_rate": float(completed.mean()),
         "mean_return": float(np.asarray(ret).mean()),
         "mean_length": float(np.asarray(length).mean()),
     }
+    if poses is not None:
+        step = np.linalg.norm(np.diff(np.asarray(poses)[..., :2], axis=1), axis=-1)  # NaN after the end
+        out["mean_distance"] = float(np.nansum(step, axis=1).mean())
+    return out
 
 
 def evaluate(learner, policy, env, params, episodes: int, key: jax.Array) -> dict:
     """Safety and completion (true labelling) of the deterministic policy over ``episodes``."""
-    return rates(*rollout_episodes(learner, policy, env, params, episodes, key, int(params.max_steps))[:4])
+    return rates(*rollout_episodes(learner, policy, env, params, episodes, key, int(params.max_steps)))
