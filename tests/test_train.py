@@ -48,6 +48,13 @@ def test_outputs_and_summary(tmp_path):
     assert 0.0 <= summary["eval"]["safety_rate"] <= 1.0
     assert json.loads((run / "summary.json").read_text()) == summary
     assert list((run / "tb").iterdir()), "TensorBoard events written"
+    # `d2spo eval` on it: prints and writes the rates, with the distance driven
+    from d2spo.cli import main
+
+    assert main(["eval", str(run), "--episodes", "4"]) == 0
+    ev = json.loads((run / "eval-relaxed-default.json").read_text())
+    assert ev["episodes"] == 4 and [p["layout"] for p in ev["per_layout"]] == ["relaxed"]
+    assert ev["mean_distance"] > 0.0 and ev["runtime_filter"] is None  # tlgrl has no filter
 
 
 def test_same_seed_same_run_and_resume_is_exact(tmp_path):

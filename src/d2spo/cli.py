@@ -129,7 +129,8 @@ class TrainCmd:
 
 @dataclasses.dataclass
 class EvalCmd:
-    """Run a trained policy without exploration noise; prints and writes safety and completion rates."""
+    """Run a trained policy without exploration noise; prints safety and completion rates (per layout with
+    --layout-seeds) and writes them to RUN_DIR/eval-LAYOUT[xN]-DYNAMICS[-filter-aA-iN].json."""
 
     run_dir: tyro.conf.Positional[Path]
     """A run directory written by `d2spo train`."""

@@ -150,7 +150,8 @@ def eval_command(cmd) -> int:
 
     res = evaluate_run(cmd.run_dir, cmd.episodes, cmd.layout, cmd.dynamics, cmd.seed, cmd.layout_seeds,
                        cmd.runtime_filter, cmd.filter_iters, cmd.filter_alpha)
-    tag = f"{Path(res['layout']).stem.replace(':', '')}-{res['dynamics']}"
+    n = len(res["per_layout"])  # random:0 over 3 layouts is another evaluation than random:0 alone
+    tag = f"{Path(res['layout']).stem.replace(':', '')}{f'x{n}' if n > 1 else ''}-{res['dynamics']}"
     if res["runtime_filter"]:
         tag += f"-filter-a{res['filter_alpha']:g}-i{res['filter_iters']}"
     path = Path(cmd.run_dir) / f"eval-{tag}.json"
@@ -161,12 +162,20 @@ def eval_command(cmd) -> int:
         if res["runtime_filter"] and cmd.runtime_filter is None:
             filt += " (not the training layout/dynamics; --runtime-filter False for π_Ω alone)"
     t = Table(title=f"{cmd.run_dir} on {res['layout']} / {res['dynamics']} ({res['episodes']} episodes{filt})")
-    t.add_column("safety_rate", justify="right")
-    t.add_column("completion_rate", justify="right")
-    t.add_column("mean_return", justify="right")
-    t.add_column("distance driven", justify="right")
-    t.add_row(f"{100 * res['safety_rate']:.2f}%", f"{100 * res['completion_rate']:.2f}%", f"{res['mean_return']:.2f}",
-              f"{res['mean_distance']:.2f} m")
+    for name in ("layout", "safety_rate", "completion_rate", "mean_return", "distance driven"):
+        t.add_column(name, justify="left" if name == "layout" else "right")
+
+    def row(name: str, r: dict, **style) -> None:
+        t.add_row(name, f"{100 * r['safety_rate']:.2f}%", f"{100 * r['completion_rate']:.2f}%",
+                  f"{r['mean_return']:.2f}", f"{r['mean_distance']:.2f} m", **style)
+
+    per = res["per_layout"]
+    if len(per) > 1:  # which layouts fail matters more than the mean
+        for r in per:
+            row(r["layout"], r, style="red" if r["safety_rate"] < 1.0 else None)
+        row(f"all {len(per)}", res, end_section=False, style="bold")
+    else:
+        row(per[0]["layout"], res)
     Console().print(t)
     print(f"wrote {path}")
     return 0
