@@ -150,7 +150,7 @@ def train_one(spec: RunSpec, out: str, progress: bool = False) -> dict:
 def stale_runs(out: Path, specs: Iterable[RunSpec]) -> dict[str, list[str]]:
     """Runs in OUT (finished or not) whose config.json differs from the config ``reproduce`` would
     train today, e.g. after a default changed: name -> ``'setting: theirs -> today's'``. Only
-    settings that can change the run count (``config.effective_config``)."""
+    settings that can change the run (``config.effective_config``)."""
     from d2spo.config import config_differences, config_from_dict
     from d2spo.errors import ConfigError
     from d2spo.runio import read_json
