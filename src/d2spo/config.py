@@ -162,15 +162,6 @@ def config_from_dict(data: dict) -> TrainConfig:
     return _build(TrainConfig, _with_former_defaults(data), "")
 
 
-LEARNER_SECTIONS = {
-    "d2spo": ("td3", "anneal", "cbf", "d2spo"), "sl": ("td3", "cbf", "d2spo"),
-    "tlgrl": ("td3", "anneal"), "td3": ("td3",),
-    "td3-lag": ("td3_lag", "anneal"), "sac-lag": ("sac_lag", "anneal"), "rcrl": ("rcrl", "anneal"),
-    "ppo-lag": ("ppo_lag", "anneal"), "cpo": ("cpo", "anneal"),
-}
-"""The learner-specific config sections each ``--algo`` reads (``algos.make_learner``); the annealed
-radius only applies with the progress reward, so td3 and sl ignore it."""
-_LEARNER_FIELDS = {s for v in LEARNER_SECTIONS.values() for s in v}
 _SHAPING_FIELDS = ("shaping", "shaping_metric", "shaping_clearance", "shaping_gamma")
 
 
@@ -178,8 +169,10 @@ def effective_config(cfg: TrainConfig) -> dict:
     """``config_to_dict(cfg)`` without what cannot change this learner's run: the sections of other
     learners, and, under the sparse reward (td3, sl), the shaping fields. Two runs with equal
     effective configs train identically."""
+    from d2spo.algos import all_config_sections, config_sections
+
     d = config_to_dict(cfg)
-    for name in _LEARNER_FIELDS - set(LEARNER_SECTIONS.get(cfg.algo, _LEARNER_FIELDS)):
+    for name in all_config_sections() - set(config_sections(cfg.algo)):
         d.pop(name, None)
     if cfg.env_config().reward.mode == "sparse":
         for name in _SHAPING_FIELDS:

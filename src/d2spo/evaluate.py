@@ -57,7 +57,9 @@ def filter_choice(cfg: TrainConfig, layout: str | None, preset: str | None, aske
     """The runtime filter's setting for an evaluation: what was asked; else on for a D²SPO policy on
     another layout or dynamics preset than it was trained on (deployment where the learned h never
     saw data); else None, as trained."""
-    if asked is not None or cfg.algo not in ("d2spo", "sl"):
+    from d2spo.algos import has_runtime_filter
+
+    if asked is not None or not has_runtime_filter(cfg.algo):
         return asked
     elsewhere = (layout is not None and layout != cfg.layout) or (preset is not None and preset != cfg.env.preset)
     return True if elsewhere else None
@@ -70,10 +72,11 @@ def evaluate_run(run_dir: Path, episodes: int = 100, layout: str | None = None, 
     or others. ``runtime_filter=None``: as trained on the training layout and dynamics, and on for a
     D²SPO policy evaluated on another layout or dynamics preset (π_Ω alone is far less safe on
     layouts it never saw: docs/cbf.md); True/False force it."""
+    from d2spo.algos import has_runtime_filter
     from d2spo.train import make_rollout, rates
 
     cfg, learner, policy, _ = load_policy(run_dir)
-    has_filter = cfg.algo in ("d2spo", "sl")
+    has_filter = has_runtime_filter(cfg.algo)
     asked = {"runtime_filter": runtime_filter, "filter_iters": filter_iters, "filter_alpha": filter_alpha}
     for name, value in asked.items():
         if value is not None and not has_filter:
@@ -96,8 +99,8 @@ def evaluate_run(run_dir: Path, episodes: int = 100, layout: str | None = None, 
             raise ConfigError("layout", f"the policy was trained with observations of size {learner_obs_size(learner)}, "
                               f"layout {lay!r} gives {env.observation_size} (different number of areas or "
                               "automaton states)")
-        leaves, tree = jax.tree_util.tree_flatten(params)
-        shape = (tree, tuple((x.shape, x.dtype) for x in leaves), env.n_obstacles, env.observation_size)
+        leaves, tree = jax.tree_util.tree_flatten(params)  # the structure holds the static fields (n_rays, ...)
+        shape = (tree, tuple((x.shape, x.dtype) for x in leaves))
         if shape not in compiled:
             compiled[shape] = make_rollout(other, env, episodes, int(params.max_steps))
         results.append(rates(*compiled[shape](params, policy, jax.random.PRNGKey(seed))))
@@ -108,10 +111,8 @@ def evaluate_run(run_dir: Path, episodes: int = 100, layout: str | None = None, 
         "filter_iters": cfg.cbf.filter_iters if has_filter else None,
         "filter_alpha": cfg.cbf.filter_alpha if has_filter else None,
         "per_layout": [{"layout": lay or cfg.layout, **r} for lay, r in zip(layouts, results)],
-        "safety_rate": float(np.mean([r["safety_rate"] for r in results])),
-        "completion_rate": float(np.mean([r["completion_rate"] for r in results])),
-        "mean_return": float(np.mean([r["mean_return"] for r in results])),
-        "mean_distance": float(np.mean([r["mean_distance"] for r in results])),
+        **{k: float(np.mean([r[k] for r in results]))
+           for k in ("safety_rate", "completion_rate", "mean_return", "mean_distance")},
     }
     return out
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 from collections.abc import Callable
 
 _REGISTRY: dict[str, Callable] = {}
+_SECTIONS: dict[str, tuple[str, ...]] = {}
+"""The learner-specific TrainConfig sections each learner reads (the others cannot change its run)."""
 
 
 def _td3(cfg, env, params, anneal: bool):
@@ -32,6 +34,9 @@ _REGISTRY.update({
     "tlgrl": lambda cfg, env, params: _td3(cfg, env, params, anneal=True),
     "td3": lambda cfg, env, params: _td3(cfg, env, params, anneal=False),
 })
+# the annealed radius only applies with the progress reward, so td3 and sl ignore it
+_SECTIONS.update({"d2spo": ("td3", "anneal", "cbf", "d2spo"), "sl": ("td3", "cbf", "d2spo"),
+                  "tlgrl": ("td3", "anneal"), "td3": ("td3",)})
 
 
 def _safe_offpolicy(module: str, learner: str, field: str) -> Callable:
@@ -46,20 +51,32 @@ def _safe_offpolicy(module: str, learner: str, field: str) -> Callable:
     return build
 
 
-_REGISTRY.update({
-    "td3-lag": _safe_offpolicy("td3_lag", "TD3LagLearner", "td3_lag"),
-    "sac-lag": _safe_offpolicy("sac_lag", "SACLagLearner", "sac_lag"),
-    "rcrl": _safe_offpolicy("rcrl", "RCRLLearner", "rcrl"),
-})
-
-_REGISTRY.update({  # on-policy baselines, on the same footing (reward, annealed radius) as tlgrl
-    "ppo-lag": _safe_offpolicy("ppo_lag", "PPOLagLearner", "ppo_lag"),
-    "cpo": _safe_offpolicy("cpo", "CPOLearner", "cpo"),
-})
+# off-policy (td3-lag, sac-lag, rcrl) and on-policy (ppo-lag, cpo) baselines, on the same footing
+# (reward, annealed radius) as tlgrl
+for _name, _module, _learner in (("td3-lag", "td3_lag", "TD3LagLearner"), ("sac-lag", "sac_lag", "SACLagLearner"),
+                                 ("rcrl", "rcrl", "RCRLLearner"), ("ppo-lag", "ppo_lag", "PPOLagLearner"),
+                                 ("cpo", "cpo", "CPOLearner")):
+    _REGISTRY[_name] = _safe_offpolicy(_module, _learner, _module)
+    _SECTIONS[_name] = (_module, "anneal")
+del _name, _module, _learner
 
 
 def known_algos() -> tuple[str, ...]:
     return tuple(_REGISTRY)
+
+
+def config_sections(algo: str) -> tuple[str, ...]:
+    """The learner-specific TrainConfig sections ``algo`` reads (``td3``, ``cbf``, ``ppo_lag``, ...)."""
+    return _SECTIONS[algo]
+
+
+def all_config_sections() -> set[str]:
+    return {s for v in _SECTIONS.values() for s in v}
+
+
+def has_runtime_filter(algo: str) -> bool:
+    """Whether ``algo`` executes D²SPO's π_Ω, whose runtime filter ``--runtime-filter`` switches."""
+    return "d2spo" in config_sections(algo)
 
 
 def make_learner(cfg, env, params):
