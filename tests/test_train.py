@@ -33,7 +33,7 @@ def rows(path):
 def test_outputs_and_summary(tmp_path):
     summary = train(tiny(), tmp_path / "run")
     run = tmp_path / "run"
-    for name in ("config.json", "episodes.csv", "summary.json", "checkpoint.msgpack"):
+    for name in ("config.json", "episodes.csv", "summary.json", "checkpoint.json"):
         assert (run / name).is_file(), name
     table = rows(run / "episodes.csv")
     assert table[0] == ["episode", "return", "cost", "collided", "completed", "completed_relaxed", "length",
@@ -143,7 +143,7 @@ def test_seeds_vmapped_together_write_ordinary_runs_and_resume_exactly(tmp_path)
     summaries = train_seeds(cfgs, outs)
     assert [s["seed"] for s in summaries] == [0, 1, 2] and all(s["episodes"] == 60 for s in summaries)
     for out in outs:
-        for name in ("config.json", "episodes.csv", "summary.json", "checkpoint.msgpack"):
+        for name in ("config.json", "episodes.csv", "summary.json", "checkpoint.json"):
             assert (out / name).is_file(), name
         assert len(rows(out / "episodes.csv")) == 61
     assert not list((tmp_path / "a").glob(".group-*")), "the group checkpoint is removed at the end"

@@ -1,7 +1,8 @@
 """The ``d2spo`` command line. Built with tyro from the frozen config dataclasses.
 
 Every mistake a user can make (a formula, a layout, a flag, a run directory) ends in one line on
-stderr and exit status 2, never a traceback.
+stderr and exit status 2, never a traceback; a fault of the machine (a full disk, a read-only
+directory) in one line and exit status 1.
 """
 
 from __future__ import annotations
@@ -12,17 +13,29 @@ import io
 import json
 import re
 import sys
+import warnings
 from pathlib import Path
 from typing import Annotated, Union
 
 import tyro
 
 from d2spo.config import TrainConfig
-from d2spo.errors import LTLSyntaxError, NaNError, UserError
+from d2spo.errors import LTLSyntaxError, NaNError, RunDirWarning, UserError
 
 
 def _stderr(msg: str) -> None:
     print(f"d2spo: error: {msg}", file=sys.stderr)
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """``warnings.showwarning`` for the CLI: a RunDirWarning is one line on stderr."""
+    if issubclass(category, RunDirWarning):
+        print(f"d2spo: warning: {message}", file=sys.stderr)
+    else:
+        _PLAIN_SHOWWARNING(message, category, filename, lineno, file, line)
+
+
+_PLAIN_SHOWWARNING = warnings.showwarning
 
 
 # --------------------------------------------------------------------------------------- ltl
@@ -294,7 +307,10 @@ def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else list(argv)
     cmd = parse(args)
     try:
-        return int(cmd.run() or 0)
+        with warnings.catch_warnings():
+            warnings.simplefilter("always", RunDirWarning)
+            warnings.showwarning = _show_warning
+            return int(cmd.run() or 0)
     except LTLSyntaxError as e:
         _stderr(f"{e} in {e.formula!r}")
         if sys.stderr.isatty():  # an interactive user also gets the caret under the column
@@ -311,6 +327,9 @@ def main(argv: list[str] | None = None) -> int:
 
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
+    except OSError as e:  # the machine's fault: a full disk, a read-only or vanished directory
+        _stderr(f"{e.filename}: {e.strerror}" if e.filename and e.strerror else str(e))
+        return 1
     except KeyboardInterrupt:
         _stderr("interrupted")
         return 130

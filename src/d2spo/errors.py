@@ -34,3 +34,8 @@ class RunDirError(UserError):
 
 class NaNError(RuntimeError):
     """Training produced a non-finite value. Raised instead of training through it."""
+
+
+class RunDirWarning(UserWarning):
+    """Something in a run directory was repaired or skipped (e.g. a damaged checkpoint replaced by
+    the previous one). The CLI shows it as one line on stderr."""

@@ -13,9 +13,10 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from d2spo.checkpoint import load_checkpoint, run_fingerprint
 from d2spo.config import TrainConfig
 from d2spo.errors import ConfigError, RunDirError
-from d2spo.runio import atomic_write_json, load_checkpoint
+from d2spo.runio import atomic_write_json
 
 
 def load_policy(run_dir: Path):
@@ -28,7 +29,7 @@ def load_policy(run_dir: Path):
     cfg = load_run_config(run_dir)
     _, _, learner = build(cfg)
     template = jax.eval_shape(learner.init, jax.random.PRNGKey(0))  # shapes only: no pre-training
-    carry, meta = load_checkpoint(run_dir, template)
+    carry, meta = load_checkpoint(run_dir, template, run_fingerprint(run_dir))
     return cfg, learner, learner.policy(carry), meta
 
 

@@ -1,50 +1,96 @@
-"""Run directories: config.json, episodes.csv, checkpoints (atomic), summary.json.
+"""Run directories: config.json, episodes.csv, the lock, atomic writes, summary.json.
 
-Layout of a run directory::
+Layout of a run directory (docs/runs.md)::
 
     DIR/config.json        the one resolved config of the run
     DIR/episodes.csv       one row per finished training episode
-    DIR/checkpoint.msgpack training state (flax msgpack), replaced atomically
-    DIR/checkpoint.json    host-side counters that go with it
+    DIR/checkpoint*.json   checkpoint manifests, DIR/checkpoint-G.msgpack their state (d2spo.checkpoint)
     DIR/summary.json       written when the run ends
     DIR/tb/                TensorBoard scalars
+    DIR/.lock              held (flock) by the training that writes DIR
+
+Every file is replaced atomically (a temporary ``.NAME.*.tmp`` beside it, fsync, rename), created
+with the permissions the umask allows; temporary files a kill left behind are removed when a
+training next takes the directory.
 """
 
 from __future__ import annotations
 
 import csv
+import io
 import json
 import os
-import tempfile
+import secrets
+import socket
+import time
+from contextlib import suppress
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from flax import serialization
 
 from d2spo.errors import RunDirError
 
+try:
+    import fcntl
+except ImportError:  # pragma: no cover - not on Windows
+    fcntl = None
+
 EPISODE_FIELDS = ("episode", "return", "cost", "collided", "completed", "completed_relaxed", "length", "end_x", "end_y")
+_INT_COLUMNS = (0, 3, 4, 5, 6)
+
+
+def _named(e: OSError, path: Path) -> OSError:
+    """``e`` with the file it concerns, for a one-line report (write() and fsync() name none)."""
+    if e.filename is None and e.errno is not None:
+        return type(e)(e.errno, e.strerror, str(path))
+    return e
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:
     """Write ``data`` to ``path`` so that a reader sees the old file or the new one, never half."""
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    tmp = path.with_name(f".{path.name}.{os.getpid()}-{secrets.token_hex(4)}.tmp")
     try:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)  # the umask applies
         with os.fdopen(fd, "wb") as f:
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
+    except BaseException as e:
+        with suppress(OSError):
             os.unlink(tmp)
+        if isinstance(e, OSError):
+            raise _named(e, path) from None
         raise
+    _fsync_dir(path.parent)
+
+
+def _fsync_dir(path: Path) -> None:
+    """Make a rename in ``path`` durable (best effort: some file systems refuse it)."""
+    with suppress(OSError):
+        fd = os.open(path, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
 
 
 def atomic_write_json(path: Path, obj: Any) -> None:
     atomic_write_bytes(path, (json.dumps(obj, indent=2, sort_keys=True) + "\n").encode())
+
+
+def remove_file(path: Path) -> None:
+    with suppress(FileNotFoundError):
+        os.unlink(path)
+
+
+def remove_tmp_files(directory: Path) -> None:
+    """Temporary files of writes a kill interrupted (this and earlier versions' names)."""
+    for p in Path(directory).iterdir():
+        if (p.name.startswith(".") and p.name.endswith(".tmp")) or p.name == "episodes.csv.tmp":
+            remove_file(p)
 
 
 def read_json(path: Path, what: str) -> dict:
@@ -52,54 +98,153 @@ def read_json(path: Path, what: str) -> dict:
     if not path.is_file():
         raise RunDirError(f"{path.parent}: no {path.name} ({what}); is this a d2spo run directory?")
     try:
-        return json.loads(path.read_text())
+        return json.loads(path.read_bytes())
     except json.JSONDecodeError as e:
         raise RunDirError(f"{path}: not valid JSON ({e.msg} at line {e.lineno})") from None
+    except ValueError:  # not UTF-8
+        raise RunDirError(f"{path}: not valid JSON (not UTF-8 text)") from None
+
+
+def make_run_dir(path: Path) -> None:
+    """Create a run directory (and its parents); a file in the way is a RunDirError."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise RunDirError(f"{path}: exists and is not a directory")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):
+        raise RunDirError(f"{path}: cannot be created, a file is in the way") from None
+
+
+class RunLock:
+    """Exclusive use of a run directory by one training: ``DIR/.lock``, held with ``flock`` (the
+    kernel drops it when its process dies, so a lock left by a killed training is taken over)
+    and naming its holder. Creates the directory."""
+
+    def __init__(self, run_dir: Path):
+        self.dir = Path(run_dir)
+        self.path = self.dir / ".lock"
+        self._fd: int | None = None
+
+    def __enter__(self) -> RunLock:
+        make_run_dir(self.dir)
+        if fcntl is None:  # pragma: no cover
+            return self
+        for _ in range(5):
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = os.read(fd, 200).decode(errors="replace").strip() or "unknown holder"
+                os.close(fd)
+                raise RunDirError(f"{self.dir}: in use by another training ({holder}); wait for it to end or "
+                                  "stop it, or use another directory") from None
+            try:
+                same = os.path.samestat(os.fstat(fd), os.stat(self.path))
+            except FileNotFoundError:
+                same = False
+            if same:  # not a file its last holder unlinked while we waited
+                os.ftruncate(fd, 0)
+                os.write(fd, f"pid {os.getpid()} on {socket.gethostname()}, since "
+                             f"{time.strftime('%Y-%m-%d %H:%M:%S')}\n".encode())
+                self._fd = fd
+                return self
+            os.close(fd)
+        raise RunDirError(f"{self.dir}: cannot take its lock {self.path}")
+
+    def __exit__(self, *exc) -> None:
+        if self._fd is not None:
+            remove_file(self.path)
+            os.close(self._fd)
+            self._fd = None
 
 
 class EpisodeWriter:
-    """Appends finished episodes to episodes.csv and keeps them in memory for the summary."""
+    """Appends finished episodes to episodes.csv and keeps them in memory for the summary.
+
+    ``keep_rows`` > 0 resumes: the file must hold at least that many valid rows (the episodes
+    before the checkpoint); they are kept byte for byte and whatever follows them is dropped."""
 
     def __init__(self, path: Path, keep_rows: int = 0):
         self.path = Path(path)
-        self.rows: list[tuple] = read_episodes(self.path)[:keep_rows] if keep_rows > 0 else []
-        self._rewrite()
-
-    def _rewrite(self) -> None:
-        tmp = self.path.with_suffix(".csv.tmp")
-        with open(tmp, "w", newline="") as f:
-            w = csv.writer(f)
-            w.writerow(EPISODE_FIELDS)
-            w.writerows(self.rows)
-        os.replace(tmp, self.path)
+        if keep_rows > 0:
+            header, lines, self.rows = _read_rows(self.path, keep_rows)
+            if len(self.rows) < keep_rows:
+                raise RunDirError(f"{self.path}: holds {len(self.rows)} episodes but the checkpoint was taken "
+                                  f"after {keep_rows}; it was truncated or edited, so the run cannot resume")
+            data = header + b"".join(lines)
+        else:
+            self.rows = []
+            data = _csv_bytes([EPISODE_FIELDS])
+        atomic_write_bytes(self.path, data)
 
     def append(self, rows: list[tuple]) -> None:
         if not rows:
             return
+        data = _csv_bytes(rows)
+        with open(self.path, "ab") as f:
+            start = f.tell()
+            try:
+                f.write(data)
+                f.flush()
+            except OSError as e:  # e.g. a full disk: leave no half row behind
+                with suppress(OSError):
+                    f.truncate(start)
+                raise _named(e, self.path) from None
         self.rows.extend(rows)
-        with open(self.path, "a", newline="") as f:
-            csv.writer(f).writerows(rows)
+
+    def sync(self) -> None:
+        """Make the rows written so far durable (before a checkpoint that counts them)."""
+        fd = os.open(self.path, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        except OSError as e:
+            raise _named(e, self.path) from None
+        finally:
+            os.close(fd)
 
     def __len__(self) -> int:
         return len(self.rows)
 
 
+def _csv_bytes(rows) -> bytes:
+    buf = io.StringIO()
+    csv.writer(buf).writerows(rows)
+    return buf.getvalue().encode()
+
+
 def read_episodes(path: Path) -> list[tuple]:
-    path = Path(path)
+    """Every row of an episodes.csv; a damaged row is a RunDirError naming its line."""
+    return _read_rows(Path(path), None)[2]
+
+
+def _read_rows(path: Path, limit: int | None) -> tuple[bytes, list[bytes], list[tuple]]:
+    """(header line, the first ``limit`` row lines, their parsed rows); lines after them are not read."""
     if not path.is_file():
         raise RunDirError(f"{path.parent}: no episodes.csv")
-    out = []
-    with open(path, newline="") as f:
-        r = csv.reader(f)
-        header = next(r, None)
-        if header is None or tuple(header) != EPISODE_FIELDS:
-            raise RunDirError(f"{path}: unexpected header {header}")
-        for row in r:
-            out.append(
-                (int(row[0]), float(row[1]), float(row[2]), int(row[3]), int(row[4]), int(row[5]), int(row[6]),
-                 float(row[7]), float(row[8]))
-            )
-    return out
+    lines = path.read_bytes().splitlines(keepends=True)
+    if not lines or lines[0].rstrip(b"\r\n") != ",".join(EPISODE_FIELDS).encode():
+        head = lines[0][:80].decode(errors="replace").strip() if lines else ""
+        raise RunDirError(f"{path}: not an episodes.csv (header {head!r})")
+    body = lines[1:] if limit is None else lines[1:1 + limit]
+    rows = [_parse_row(path, i, line) for i, line in enumerate(body)]
+    return lines[0], body, rows
+
+
+def _parse_row(path: Path, i: int, line: bytes) -> tuple:
+    where = f"{path}, line {i + 2}"
+    if not line.endswith(b"\n"):
+        raise RunDirError(f"{where}: the row is cut short (the file is damaged)")
+    try:
+        fields = line.decode("ascii").rstrip("\r\n").split(",")
+        if len(fields) != len(EPISODE_FIELDS):
+            raise ValueError
+        row = tuple(int(v) if j in _INT_COLUMNS else float(v) for j, v in enumerate(fields))
+    except ValueError:
+        raise RunDirError(f"{where}: not a valid row (the file is damaged)") from None
+    if row[0] != i:
+        raise RunDirError(f"{where}: episode {row[0]} where {i} was expected (the file is damaged)")
+    return row
 
 
 def window_rates(rows: list[tuple], window: int) -> dict[str, float]:
@@ -116,23 +261,3 @@ def window_rates(rows: list[tuple], window: int) -> dict[str, float]:
         "mean_return": float(a[:, 1].mean()),
         "window_episodes": len(a),
     }
-
-
-def save_checkpoint(run_dir: Path, carry: Any, meta: dict) -> None:
-    """State first, then the counters that refer to it: a crash between the two is detected."""
-    run_dir = Path(run_dir)
-    atomic_write_bytes(run_dir / "checkpoint.msgpack", serialization.to_bytes(carry))
-    atomic_write_json(run_dir / "checkpoint.json", meta)
-
-
-def load_checkpoint(run_dir: Path, template: Any) -> tuple[Any, dict]:
-    run_dir = Path(run_dir)
-    meta = read_json(run_dir / "checkpoint.json", "checkpoint counters")
-    blob = run_dir / "checkpoint.msgpack"
-    if not blob.is_file():
-        raise RunDirError(f"{run_dir}: checkpoint.json without checkpoint.msgpack")
-    try:
-        carry = serialization.from_bytes(template, blob.read_bytes())
-    except Exception as e:  # a corrupt or foreign file
-        raise RunDirError(f"{blob}: cannot restore training state ({type(e).__name__})") from None
-    return carry, meta

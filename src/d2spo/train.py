@@ -7,7 +7,9 @@ finished episodes and scalar metrics.
 
 from __future__ import annotations
 
+import contextlib
 import time
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 
@@ -17,15 +19,17 @@ import numpy as np
 from flax import serialization
 
 from d2spo.algos.base import ChunkLog
-from d2spo.config import TrainConfig, config_from_dict, config_to_dict
-from d2spo.errors import ConfigError, NaNError, RunDirError
+from d2spo.checkpoint import Checkpoints, fingerprint, has_checkpoint, run_fingerprint
+from d2spo.config import TrainConfig, config_differences, config_from_dict, config_to_dict
+from d2spo.errors import ConfigError, NaNError, RunDirError, RunDirWarning
 from d2spo.runio import (
     EpisodeWriter,
+    RunLock,
     atomic_write_bytes,
     atomic_write_json,
-    load_checkpoint,
     read_json,
-    save_checkpoint,
+    remove_file,
+    remove_tmp_files,
     window_rates,
 )
 
@@ -62,12 +66,22 @@ def _rows_from_log(log: ChunkLog, first_episode: int, limit: int) -> list[tuple]
 
 
 def _prepare_dir(out: Path, cfg: TrainConfig, resume: bool) -> None:
-    out.mkdir(parents=True, exist_ok=True)
+    """With the directory's lock held: temporary files a kill left are removed; a resume checks
+    ``cfg`` against config.json; a new run writes config.json (over a run killed before its first
+    checkpoint, whose policy snapshots go too)."""
+    remove_tmp_files(out)
     cfg_path = out / "config.json"
     if resume:
+        theirs = load_run_config(out)
+        if theirs != cfg:
+            diffs = config_differences(theirs, cfg) or ["settings this learner does not read"]
+            raise RunDirError(f"{out}: resuming takes the run's own config.json, and this config differs "
+                              f"({'; '.join(diffs)})")
         return
-    if (out / "summary.json").exists() or (out / "checkpoint.json").exists():
+    if (out / "summary.json").exists() or has_checkpoint(out):
         raise RunDirError(f"{out}: already holds a run; use --resume {out} or another --out")
+    for p in out.glob("policy-*.msgpack"):
+        remove_file(p)
     atomic_write_json(cfg_path, config_to_dict(cfg))
 
 
@@ -79,8 +93,8 @@ class _Run:
     """The host-side bookkeeping of one run directory: episodes.csv, TensorBoard, counters,
     snapshots, checkpoints and the summary. ``train`` has one; ``train_seeds`` one per seed."""
 
-    def __init__(self, cfg: TrainConfig, out: Path, meta: dict | None = None):
-        self.cfg, self.out = cfg, Path(out)
+    def __init__(self, cfg: TrainConfig, out: Path, meta: dict | None, checkpoints: Checkpoints):
+        self.cfg, self.out, self.checkpoints = cfg, Path(out), checkpoints
         self.meta = meta or {"episodes": 0, "env_steps": 0, "chunks": 0, "wall_seconds": 0.0}
         self.writer = EpisodeWriter(self.out / "episodes.csv", keep_rows=self.meta["episodes"])
         self.tb = _tensorboard(self.out / "tb")
@@ -97,10 +111,11 @@ class _Run:
         cfg, writer, meta = self.cfg, self.writer, self.meta
         if bool(log.nonfinite):
             bad = [k for k, v in log.metrics.items() if np.any(np.isinf(np.asarray(v)))]
-            raise NaNError(
-                f"non-finite parameters during training (episode ~{len(writer)}; inf metrics: {bad}); "
-                f"last good checkpoint is in {self.out}"
-            )
+            last = self.checkpoints.latest
+            where = (f"the last checkpoint, after episode {last['episodes']}, is {self.out / 'checkpoint.json'}"
+                     if last is not None else f"no checkpoint was written in {self.out} before it")
+            raise NaNError(f"non-finite parameters during training (episode ~{len(writer)}; inf metrics: {bad}); "
+                           f"{where}")
         rows = _rows_from_log(log, len(writer), cfg.episodes - len(writer))
         writer.append(rows)
         meta["chunks"] += 1
@@ -130,7 +145,8 @@ class _Run:
             if n_done >= n and not snapshot_path(self.out, n).exists():
                 save_snapshot(self.out, n, learner.policy(carry))
         if force or n_done >= self.next_ckpt or self.done:
-            save_checkpoint(self.out, carry, self.meta)
+            self.writer.sync()
+            self.checkpoints.save(carry, self.meta)
             every = self.cfg.checkpoint_every
             self.next_ckpt = (n_done // every + 1) * every
             return True
@@ -161,22 +177,32 @@ def train(
 ) -> dict | None:
     """Train, writing the run directory. Returns the summary (None if stopped early on purpose).
 
-    ``stop_after_chunks`` simulates an interruption (used by the resume test).
+    The directory is locked while training (``runio.RunLock``). ``resume`` continues from the
+    newest usable checkpoint (``d2spo.checkpoint``), or from the start if the run was stopped
+    before its first. ``stop_after_chunks`` simulates an interruption (used by the resume test).
     """
     out = Path(out)
+    with RunLock(out):
+        return _train_locked(cfg, out, resume, progress, stop_after_chunks)
+
+
+def _train_locked(cfg: TrainConfig, out: Path, resume: bool, progress: ProgressFn | None,
+                  stop_after_chunks: int | None) -> dict | None:
     _prepare_dir(out, cfg, resume)
+    checkpoints = Checkpoints(out, run_fingerprint(out))
     env, params, learner = build(cfg)
     key = jax.random.PRNGKey(cfg.seed)
     chunk = jax.jit(learner.chunk, donate_argnums=0)
     meta = None
-    if resume:
-        if not (out / "checkpoint.json").exists():
-            raise RunDirError(f"{out}: no checkpoint to resume from")
-        carry, meta = load_checkpoint(out, jax.eval_shape(learner.init, key))
+    if resume and has_checkpoint(out):
+        carry, meta = checkpoints.load(jax.eval_shape(learner.init, key))
         carry = jax.tree_util.tree_map(jnp.asarray, carry)
     else:
+        if resume:
+            warnings.warn(f"{out}: no checkpoint was written before it stopped; training from the first episode",
+                          RunDirWarning, stacklevel=3)
         carry = jax.jit(learner.init)(key)
-    run = _Run(cfg, out, meta)
+    run = _Run(cfg, out, meta, checkpoints)
     chunks_this_call = 0
     while not run.done:
         carry, log = chunk(carry)
@@ -222,15 +248,26 @@ def train_seeds(
         if dict(config_to_dict(c), seed=None) != base:
             raise ConfigError("seed", "train_seeds: the configs may differ only in their seed")
     outs = [Path(o) for o in outs]
+    with contextlib.ExitStack() as locks:
+        for out in outs:
+            locks.enter_context(RunLock(out))
+        return _train_seeds_locked(cfgs, outs, progress, stop_after_chunks)
+
+
+def _train_seeds_locked(cfgs: list[TrainConfig], outs: list[Path], progress: list[ProgressFn | None] | None,
+                        stop_after_chunks: int | None) -> list[dict] | None:
     group = outs[0].parent / (".group-" + "+".join(o.name for o in outs))
-    resume = (group / "checkpoint.json").is_file()
+    resume = has_checkpoint(group)
     for cfg, out in zip(cfgs, outs):
         _prepare_dir(out, cfg, resume)
+    prints = [run_fingerprint(o) for o in outs]
+    checkpoints = Checkpoints(group, fingerprint(prints))
     env, params, learner = build(cfgs[0])
     keys = jnp.stack([jax.random.PRNGKey(c.seed) for c in cfgs])
     chunk = jax.jit(jax.vmap(learner.chunk), donate_argnums=0)
     if resume:
-        carry, gmeta = load_checkpoint(group, jax.eval_shape(jax.vmap(learner.init), keys))
+        remove_tmp_files(group)
+        carry, gmeta = checkpoints.load(jax.eval_shape(jax.vmap(learner.init), keys))
         carry = jax.tree_util.tree_map(jnp.asarray, carry)
         metas = gmeta["runs"]
     else:
@@ -239,7 +276,8 @@ def train_seeds(
         metas = [None] * len(cfgs)
     summaries: list[dict | None] = [read_json(o / "summary.json", "summary") if (o / "summary.json").is_file()
                                     else None for o in outs]
-    runs = [None if s_ is not None else _Run(c, o, m) for c, o, m, s_ in zip(cfgs, outs, metas, summaries)]
+    runs = [None if s_ is not None else _Run(c, o, m, Checkpoints(o, p))
+            for c, o, m, s_, p in zip(cfgs, outs, metas, summaries, prints)]
     progress = progress or [None] * len(cfgs)
     chunks_this_call = 0
     while any(s_ is None for s_ in summaries):
@@ -259,7 +297,7 @@ def train_seeds(
         interrupted = stop_after_chunks is not None and chunks_this_call >= stop_after_chunks
         if saved or interrupted:
             metas = [r.meta if r is not None else m for r, m in zip(runs, metas)]
-            save_checkpoint(group, carry, {"runs": metas})
+            checkpoints.save(carry, {"runs": metas})
         if interrupted and any(s_ is None for s_ in summaries):
             return None
     import shutil

@@ -334,9 +334,11 @@ def load(name_or_path: str) -> Layout:
     path = Path(name_or_path)
     if path.suffix == ".json" or path.exists():
         try:
-            text = path.read_text()
+            text = path.read_text(encoding="utf-8")
         except OSError as e:
             raise ConfigError("layout", f"cannot read {path}: {e.strerror}") from None
+        except UnicodeDecodeError as e:
+            raise ConfigError("layout", f"{path}: not UTF-8 text (byte {e.start})") from None
         try:
             data = json.loads(text)
         except json.JSONDecodeError as e:
