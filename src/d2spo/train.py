@@ -182,15 +182,16 @@ def train(
     before its first. ``stop_after_chunks`` simulates an interruption (used by the resume test).
     """
     out = Path(out)
+    built = build(cfg)  # a config that cannot be built is refused before anything is written
     with RunLock(out):
-        return _train_locked(cfg, out, resume, progress, stop_after_chunks)
+        return _train_locked(cfg, out, built, resume, progress, stop_after_chunks)
 
 
-def _train_locked(cfg: TrainConfig, out: Path, resume: bool, progress: ProgressFn | None,
+def _train_locked(cfg: TrainConfig, out: Path, built, resume: bool, progress: ProgressFn | None,
                   stop_after_chunks: int | None) -> dict | None:
+    env, params, learner = built
     _prepare_dir(out, cfg, resume)
     checkpoints = Checkpoints(out, run_fingerprint(out))
-    env, params, learner = build(cfg)
     key = jax.random.PRNGKey(cfg.seed)
     chunk = jax.jit(learner.chunk, donate_argnums=0)
     meta = None
@@ -248,21 +249,22 @@ def train_seeds(
         if dict(config_to_dict(c), seed=None) != base:
             raise ConfigError("seed", "train_seeds: the configs may differ only in their seed")
     outs = [Path(o) for o in outs]
+    built = build(cfgs[0])
     with contextlib.ExitStack() as locks:
         for out in outs:
             locks.enter_context(RunLock(out))
-        return _train_seeds_locked(cfgs, outs, progress, stop_after_chunks)
+        return _train_seeds_locked(cfgs, outs, built, progress, stop_after_chunks)
 
 
-def _train_seeds_locked(cfgs: list[TrainConfig], outs: list[Path], progress: list[ProgressFn | None] | None,
+def _train_seeds_locked(cfgs: list[TrainConfig], outs: list[Path], built, progress: list[ProgressFn | None] | None,
                         stop_after_chunks: int | None) -> list[dict] | None:
+    env, params, learner = built
     group = outs[0].parent / (".group-" + "+".join(o.name for o in outs))
     resume = has_checkpoint(group)
     for cfg, out in zip(cfgs, outs):
         _prepare_dir(out, cfg, resume)
     prints = [run_fingerprint(o) for o in outs]
     checkpoints = Checkpoints(group, fingerprint(prints))
-    env, params, learner = build(cfgs[0])
     keys = jnp.stack([jax.random.PRNGKey(c.seed) for c in cfgs])
     chunk = jax.jit(jax.vmap(learner.chunk), donate_argnums=0)
     if resume:
