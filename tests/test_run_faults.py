@@ -100,15 +100,21 @@ def reference(tmp_path_factory):
     return run, summary, images
 
 
-def state_of(run: Path) -> bytes:
-    return (run / json.loads((run / "checkpoint.json").read_bytes())["state"]).read_bytes()
+def state_file(run: Path, manifest: str = "checkpoint.json") -> Path:
+    """The state file a manifest names (the earlier format: always checkpoint.msgpack)."""
+    return run / json.loads((run / manifest).read_bytes()).get("state", "checkpoint.msgpack")
+
+
+def counters(run: Path) -> dict:
+    m = json.loads((run / "checkpoint.json").read_bytes())
+    return m.get("meta", m)
 
 
 def assert_same_run(run: Path, ref: Path, why: str) -> None:
     """Byte-identical episodes and final state; equal counters and rates; nothing left over."""
     assert (run / "episodes.csv").read_bytes() == (ref / "episodes.csv").read_bytes(), why
-    assert state_of(run) == state_of(ref), why
-    meta, ref_meta = (json.loads((d / "checkpoint.json").read_bytes())["meta"] for d in (run, ref))
+    assert state_file(run).read_bytes() == state_file(ref).read_bytes(), why
+    meta, ref_meta = counters(run), counters(ref)
     assert {**meta, "wall_seconds": 0} == {**ref_meta, "wall_seconds": 0}, why
     summary, ref_summary = (json.loads((d / "summary.json").read_bytes()) for d in (run, ref))
     timing = ("wall_seconds", "env_steps_per_second")
@@ -155,10 +161,10 @@ def flip_byte(path: Path, rng: random.Random, text: bool = False) -> None:
 
 
 def mid_run(reference, rng: random.Random, tmp_path: Path) -> Path:
-    """A copy of the run killed at a random moment between two checkpoints after the second."""
+    """A copy of the run killed at a random moment between two checkpoints after the third."""
     _, _, images = reference
-    first_two = [i for i, (lab, _) in enumerate(images.taken) if lab == "write checkpoint.prev.json"][:2]
-    _, d = images.pick(rng, lambda i, lab: i > first_two[-1] and lab == "append")
+    third = [i for i, (lab, _) in enumerate(images.taken) if lab == "write checkpoint.json"][2]
+    _, d = images.pick(rng, lambda i, lab: i > third and lab == "append")
     shutil.copytree(d, tmp_path / "run")
     return tmp_path / "run"
 
@@ -238,8 +244,7 @@ def test_a_damaged_newest_checkpoint_falls_back_to_the_previous_one(reference, t
     ref = reference[0]
     rng = random.Random(f"{SEED}-flip-{damaged}")
     run = mid_run(reference, rng, tmp_path)
-    target = run / ("checkpoint.json" if damaged == "manifest" else json.loads(
-        (run / "checkpoint.json").read_bytes())["state"])
+    target = run / "checkpoint.json" if damaged == "manifest" else state_file(run)
     flip_byte(target, rng, text=damaged == "manifest")
     with pytest.warns(RunDirWarning, match="resuming from the previous checkpoint") as caught:
         train(CFG, run, resume=True)
@@ -251,7 +256,7 @@ def test_an_edited_counter_is_caught_by_the_manifest_checksum(reference, tmp_pat
     rng = random.Random(f"{SEED}-edit")
     run = mid_run(reference, rng, tmp_path)
     m = json.loads((run / "checkpoint.json").read_bytes())
-    m["meta"]["episodes"] = "forty"
+    m.get("meta", m)["episodes"] = "forty"
     (run / "checkpoint.json").write_text(json.dumps(m))
     shutil.copy(run / "checkpoint.json", run / "checkpoint.prev.json")
     line = one_error(capsys, 2, "train", "--resume", run, "--no-progress")
@@ -263,7 +268,7 @@ def test_both_checkpoints_damaged_is_refused_in_one_line(reference, tmp_path, ca
     rng = random.Random(f"{SEED}-flip2-{damaged}")
     run = mid_run(reference, rng, tmp_path)
     for name in ("checkpoint.json", "checkpoint.prev.json"):
-        target = run / name if damaged == "manifest" else run / json.loads((run / name).read_bytes())["state"]
+        target = run / name if damaged == "manifest" else state_file(run, name)
         flip_byte(target, rng, text=damaged == "manifest")
     csv_before = (run / "episodes.csv").read_bytes()
     line = one_error(capsys, 2, "train", "--resume", run, "--no-progress")
@@ -284,6 +289,8 @@ def test_a_config_changed_after_the_run_started_is_refused(reference, tmp_path, 
 def _to_earlier_format(run: Path) -> None:
     """checkpoint.json holding only the counters and the state in checkpoint.msgpack."""
     m = json.loads((run / "checkpoint.json").read_bytes())
+    if "format" not in m:
+        return
     shutil.copy(run / m["state"], run / "checkpoint.msgpack")
     for p in [*run.glob("checkpoint-*.msgpack"), run / "checkpoint.prev.json"]:
         p.unlink()
@@ -315,7 +322,7 @@ def test_earlier_format_with_bad_counters_or_another_config_is_refused(reference
 def test_a_damaged_or_shortened_episodes_csv_is_refused(reference, tmp_path, capsys, how):
     run = mid_run(reference, random.Random(f"{SEED}-csv-{how}"), tmp_path)
     lines = (run / "episodes.csv").read_bytes().splitlines(keepends=True)
-    kept = json.loads((run / "checkpoint.json").read_bytes())["meta"]["episodes"]
+    kept = counters(run)["episodes"]
     if how == "garbled":
         lines[kept // 2] = b"7,\xff\xfe,zz\r\n"
         (run / "episodes.csv").write_bytes(b"".join(lines))
@@ -371,7 +378,7 @@ def test_a_full_disk_is_one_line_and_leaves_the_run_resumable(reference, tmp_pat
     def fsync(fd):
         st = os.fstat(fd)
         names = [p.name for p in run.iterdir() if p.stat().st_ino == st.st_ino] if run.is_dir() else []
-        if any(n.startswith(".checkpoint-") for n in names):
+        if any(n.startswith(".checkpoint") and ".msgpack." in n for n in names):  # a state file's
             seen.append(names[0])
             if len(seen) == 3:
                 raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
@@ -397,3 +404,25 @@ def test_a_layout_or_config_that_is_not_utf8_is_one_line(tmp_path, capsys):
     (tmp_path / "r").mkdir()
     (tmp_path / "r" / "config.json").write_bytes(b'{"algo": "\xff"}')
     assert "not UTF-8" in one_error(capsys, 2, "train", "--resume", tmp_path / "r", "--no-progress")
+
+
+def test_the_nan_message_names_a_checkpoint_that_exists(tmp_path):
+    """Before any checkpoint it says there is none; after one, it names checkpoint.json and its episode."""
+    import numpy as np
+
+    from d2spo.algos.base import ChunkLog
+    from d2spo.checkpoint import Checkpoints
+    from d2spo.errors import NaNError
+    from d2spo.train import _Run
+
+    z = np.zeros((2, 3))
+    log = ChunkLog(z.astype(bool), z, z, z, z, z, z, np.zeros((2, 3, 2)), {}, np.bool_(True))
+    (tmp_path / "config.json").write_text("{}")
+    run = _Run(CFG, tmp_path, None, Checkpoints(tmp_path, "fingerprint"))
+    with pytest.raises(NaNError, match="no checkpoint was written"):
+        run.record(log, None)
+    run.checkpoints.save({"w": np.ones(3)}, {"episodes": 7, "env_steps": 9, "chunks": 1, "wall_seconds": 1.0})
+    with pytest.raises(NaNError, match="after episode 7, is .*checkpoint.json") as e:
+        run.record(log, None)
+    assert Path(str(e.value).rsplit(" is ", 1)[1]).is_file()
+    run.tb.close()
