@@ -220,6 +220,22 @@ class Checkpoints:
         raw = (json.dumps({**body, "manifest_sha256": fingerprint(body)}, indent=2, sort_keys=True) + "\n").encode()
         return _Manifest(PREVIOUS, raw, 0, m.state, len(data), body["state_sha256"], self.config_sha256, m.meta)
 
+    def tidy(self) -> None:
+        """Delete state files no manifest names (a kill between a save's steps leaves them). Only
+        for the directory's lock holder: a reader must not delete what a writer is writing."""
+        named = set()
+        for name in (MANIFEST, PREVIOUS):
+            try:
+                data = json.loads((self.dir / name).read_bytes())
+            except FileNotFoundError:
+                continue
+            except (OSError, ValueError):
+                return  # cannot tell what it names: keep everything
+            named.add(data.get("state", LEGACY_STATE) if isinstance(data, dict) else LEGACY_STATE)
+        for p in self._state_files():
+            if p.name not in named:
+                remove_file(p)
+
     def _state_files(self) -> list[Path]:
         if not self.dir.is_dir():
             return []

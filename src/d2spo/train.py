@@ -197,6 +197,7 @@ def _train_locked(cfg: TrainConfig, out: Path, built, resume: bool, progress: Pr
     meta = None
     if resume and has_checkpoint(out):
         carry, meta = checkpoints.load(jax.eval_shape(learner.init, key))
+        checkpoints.tidy()
         carry = jax.tree_util.tree_map(jnp.asarray, carry)
     else:
         if resume:
@@ -270,6 +271,7 @@ def _train_seeds_locked(cfgs: list[TrainConfig], outs: list[Path], built, progre
     if resume:
         remove_tmp_files(group)
         carry, gmeta = checkpoints.load(jax.eval_shape(jax.vmap(learner.init), keys))
+        checkpoints.tidy()
         carry = jax.tree_util.tree_map(jnp.asarray, carry)
         metas = gmeta["runs"]
     else:
