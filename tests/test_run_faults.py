@@ -143,6 +143,10 @@ def cli(capsys, *args) -> tuple[int, list[str]]:
     return rc, [ln for ln in err.splitlines() if ln.strip()]
 
 
+def resume(run: Path) -> list:
+    return ["train", "--resume", run, "--no-progress"]
+
+
 def one_error(capsys, status: int, *args) -> str:
     """The one line of a refused command, which must exit with ``status``."""
     rc, lines = cli(capsys, *args)
@@ -229,7 +233,7 @@ train(config_from_dict(json.loads(sys.argv[2])), run)
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(__file__).parents[1] / "src"),
                                                         os.environ.get("PYTHONPATH", "")]))
     proc = subprocess.run([sys.executable, "-c", script, str(run), json.dumps(config_to_dict(CFG))], env=env,
-                          capture_output=True, text=True, timeout=300)
+                          check=False, capture_output=True, text=True, timeout=300)
     why = f"SIGKILL at checkpoint write {k} ({writes[k - 1]}), D2SPO_FAULT_SEED={SEED}"
     assert proc.returncode == -signal.SIGKILL, (why, proc.stderr[-2000:])
     assert [p for p in run.iterdir() if p.name.endswith(".tmp")], "the kill left a temporary file"
@@ -263,7 +267,7 @@ def test_an_edited_counter_is_caught_by_the_manifest_checksum(reference, tmp_pat
     m.get("meta", m)["episodes"] = "forty"
     (run / "checkpoint.json").write_text(json.dumps(m))
     shutil.copy(run / "checkpoint.json", run / "checkpoint.prev.json")
-    line = one_error(capsys, 2, "train", "--resume", run, "--no-progress")
+    line = one_error(capsys, 2, *resume(run))
     assert "no usable checkpoint" in line and "own SHA-256" in line
 
 
@@ -275,7 +279,7 @@ def test_both_checkpoints_damaged_is_refused_in_one_line(reference, tmp_path, ca
         target = run / name if damaged == "manifest" else state_file(run, name)
         flip_byte(target, rng, text=damaged == "manifest")
     csv_before = (run / "episodes.csv").read_bytes()
-    line = one_error(capsys, 2, "train", "--resume", run, "--no-progress")
+    line = one_error(capsys, 2, *resume(run))
     assert "no usable checkpoint" in line and "checkpoint.prev.json" in line
     assert (run / "episodes.csv").read_bytes() == csv_before, "nothing is changed by a refused resume"
 
@@ -286,7 +290,7 @@ def test_a_config_changed_after_the_run_started_is_refused(reference, tmp_path, 
     cfg = json.loads((run / "config.json").read_bytes())
     cfg["num_envs"] = 4
     (run / "config.json").write_text(json.dumps(cfg))
-    line = one_error(capsys, 2, "train", "--resume", run, "--no-progress")
+    line = one_error(capsys, 2, *resume(run))
     assert "another config.json" in line
 
 
@@ -316,12 +320,12 @@ def test_earlier_format_with_bad_counters_or_another_config_is_refused(reference
     _to_earlier_format(run)
     good = (run / "checkpoint.json").read_text()
     (run / "checkpoint.json").write_text(json.dumps({**json.loads(good), "episodes": "forty"}))
-    assert "'episodes' must be a non-negative integer" in one_error(capsys, 2, "train", "--resume", run, "--no-progress")
+    assert "'episodes' must be a non-negative integer" in one_error(capsys, 2, *resume(run))
     (run / "checkpoint.json").write_text(good)
     cfg = json.loads((run / "config.json").read_bytes())
     cfg["num_envs"] = 4  # the earlier format recorded no fingerprint: the state's shapes tell
     (run / "config.json").write_text(json.dumps(cfg))
-    assert "written with another config" in one_error(capsys, 2, "train", "--resume", run, "--no-progress")
+    assert "written with another config" in one_error(capsys, 2, *resume(run))
 
 
 @pytest.mark.parametrize("how", ["garbled", "shorter"])
@@ -332,10 +336,10 @@ def test_a_damaged_or_shortened_episodes_csv_is_refused(reference, tmp_path, cap
     if how == "garbled":
         lines[kept // 2] = b"7,\xff\xfe,zz\r\n"
         (run / "episodes.csv").write_bytes(b"".join(lines))
-        assert f"line {kept // 2 + 1}: not a valid row" in one_error(capsys, 2, "train", "--resume", run, "--no-progress")
+        assert f"line {kept // 2 + 1}: not a valid row" in one_error(capsys, 2, *resume(run))
     else:
         (run / "episodes.csv").write_bytes(b"".join(lines[:kept - 3]))
-        assert "the checkpoint was taken after" in one_error(capsys, 2, "train", "--resume", run, "--no-progress")
+        assert "the checkpoint was taken after" in one_error(capsys, 2, *resume(run))
 
 
 # ------------------------------------------------------------------------------ the directory
@@ -396,7 +400,7 @@ def test_a_full_disk_is_one_line_and_leaves_the_run_resumable(reference, tmp_pat
     assert "No space left on device" in line and "checkpoint-3.msgpack" in line
     assert not [p for p in run.iterdir() if p.name.endswith(".tmp")]
     assert json.loads((run / "checkpoint.json").read_bytes())["state"] == "checkpoint-2.msgpack"
-    rc, lines = cli(capsys, "train", "--resume", run, "--no-progress")
+    rc, lines = cli(capsys, *resume(run))
     assert rc == 0 and lines == [], lines
     assert_same_run(run, reference[0], "ENOSPC at the third checkpoint")
 
@@ -409,7 +413,7 @@ def test_a_layout_or_config_that_is_not_utf8_is_one_line(tmp_path, capsys):
     assert "not UTF-8" in line and not (tmp_path / "run").exists(), "nothing written for a bad layout"
     (tmp_path / "r").mkdir()
     (tmp_path / "r" / "config.json").write_bytes(b'{"algo": "\xff"}')
-    assert "not UTF-8" in one_error(capsys, 2, "train", "--resume", tmp_path / "r", "--no-progress")
+    assert "not UTF-8" in one_error(capsys, 2, *resume(tmp_path / "r"))
 
 
 def test_the_nan_message_names_a_checkpoint_that_exists(tmp_path):
@@ -432,3 +436,20 @@ def test_the_nan_message_names_a_checkpoint_that_exists(tmp_path):
         run.record(log, None)
     assert Path(str(e.value).rsplit(" is ", 1)[1]).is_file()
     run.tb.close()
+
+
+def test_run_files_get_the_permissions_the_umask_allows(tmp_path):
+    from d2spo.runio import RunLock, atomic_write_bytes
+
+    old = os.umask(0o022)
+    try:
+        atomic_write_bytes(tmp_path / "a", b"x")
+        EpisodeWriter(tmp_path / "episodes.csv")
+        with RunLock(tmp_path / "run"):
+            assert (tmp_path / "run" / ".lock").stat().st_mode & 0o777 == 0o644
+        os.umask(0o077)
+        atomic_write_bytes(tmp_path / "b", b"x")
+    finally:
+        os.umask(old)
+    assert [(tmp_path / n).stat().st_mode & 0o777 for n in ("a", "episodes.csv", "b")] == [0o644, 0o644, 0o600]
+    assert not (tmp_path / "run" / ".lock").exists(), "the lock is removed when released"

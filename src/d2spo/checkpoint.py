@@ -167,7 +167,7 @@ class Checkpoints:
             raise _Damaged(f"{m.state} fails its SHA-256 check")
         try:
             state = serialization.from_bytes(template, data)
-        except Exception as e:  # a damaged or foreign file
+        except Exception as e:  # noqa: BLE001 - a damaged or foreign file fails in many ways
             raise _Damaged(f"{m.state} cannot be restored ({type(e).__name__})") from None
         got = jax.tree_util.tree_flatten_with_path(state)[0]
         want = jax.tree_util.tree_leaves(template)
