@@ -256,7 +256,7 @@ Commands = Union[
 ]
 
 _BOX = re.compile(r"[╭╮╰╯│─]+")
-_CONFIG_ERROR = re.compile(r"^Error parsing \S+: ")
+_CONFIG_ERROR = re.compile(r"^Error parsing [^-\s]\S*: ")
 
 
 def _tyro_error_line(text: str) -> str:
