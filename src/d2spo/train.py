@@ -239,6 +239,14 @@ def _take_seed(tree, i: jax.Array):
     return jax.tree_util.tree_map(lambda x: x[i], tree)
 
 
+GROUP_PREFIX = ".group-"
+
+
+def group_dir(outs: list[Path]) -> Path:
+    """Where ``train_seeds`` checkpoints the group of runs ``outs``: ``OUT[0]/../.group-<names>``."""
+    return Path(outs[0]).parent / (GROUP_PREFIX + "+".join(Path(o).name for o in outs))
+
+
 def train_seeds(
     cfgs: list[TrainConfig], outs: list[Path], progress: list[ProgressFn | None] | None = None,
     stop_after_chunks: int | None = None,
@@ -260,7 +268,7 @@ def train_seeds(
         if dict(config_to_dict(c), seed=None) != base:
             raise ConfigError("seed", "train_seeds: the configs may differ only in their seed")
     outs = [Path(o) for o in outs]
-    group = outs[0].parent / (".group-" + "+".join(o.name for o in outs))
+    group = group_dir(outs)
     resume = (group / "checkpoint.json").is_file()
     env, params, learner = build(cfgs[0])  # every input checked before anything is written
     for cfg, out in zip(cfgs, outs):
