@@ -16,6 +16,16 @@ from d2spo import train as train_mod
 TINY_EPISODES = 24
 
 
+def _exit_code(args: list[str]) -> int:
+    """``d2spo ARGS``'s exit status (a usage error found while parsing leaves by SystemExit)."""
+    from d2spo.cli import main
+
+    try:
+        return main(args)
+    except SystemExit as e:
+        return e.code
+
+
 def _table(path) -> str:
     """A table without its wall-time column (the only thing that may differ between two runs)."""
     text = path.read_text()
@@ -74,3 +84,140 @@ def test_a_finished_groups_leftover_directory_is_removed(tmp_path):
     group.mkdir()
     (group / "checkpoint.msgpack").write_bytes(b"x" * 1000)
     assert rp.started_groups(tmp_path, [spec0, spec1]) == [] and not group.exists()
+
+
+# ---- every hyper-parameter checked where it is defined, one line, exit 2, nothing written --------
+BAD_FLAGS = [
+    ["--td3.gamma", "-1"], ["--td3.actor-lr", "-0.001"], ["--td3.policy-delay", "0"],
+    ["--td3.learning-starts", "-100"], ["--r-goal", "inf"], ["--c-n", "nan"], ["--td3.batch-size", "0"],
+    ["--td3.hidden", "0"], ["--td3.buffer-size", "0"], ["--d2spo.update-every", "0"], ["--seed", str(2**64)],
+    ["--cbf.cbf-lr", "1e6"], ["--sac-lag.sac.tau", "0"], ["--ppo-lag.gamma", "1.5"], ["--anneal.k1", "0"],
+    ["--rcrl.multiplier-lr", "nan"], ["--cpo.cg-damping", "-1"], ["--dt", "nan"],
+]
+
+
+@pytest.mark.parametrize("flag", BAD_FLAGS, ids=lambda f: f[0])
+def test_bad_hyper_parameter_is_one_line_exit_2_and_writes_nothing(flag, tmp_path, capsys):
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "config.json").write_text("mine")  # the user's own file must survive a rejected train
+    assert _exit_code(["train", "--episodes", "1", "--out", str(out), "--no-progress", *flag]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    field = flag[0][2:].replace("-", "_").split(".")[-1]
+    assert len(err) == 1 and err[0].startswith("d2spo: error:") and field in err[0], err
+    assert sorted(p.name for p in out.iterdir()) == ["config.json"] and (out / "config.json").read_text() == "mine"
+
+
+def test_defaults_validate_and_configs_check_every_section():
+    from d2spo.config import TrainConfig, config_from_dict, config_to_dict
+    from d2spo.errors import ConfigError
+
+    data = config_to_dict(TrainConfig())
+    assert config_from_dict(data) == TrainConfig()
+    data["sac_lag"]["sac"]["gamma"] = 0.0
+    with pytest.raises(ConfigError, match=r"sac.gamma: must be in \(0, 1\]"):
+        config_from_dict(data)  # a hand-edited config.json is refused like a flag
+
+
+def test_rejected_layout_leaves_the_users_config_json(tmp_path):
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "config.json").write_text("mine")
+    assert _exit_code(["train", "--episodes", "1", "--out", str(out), "--layout", "nope", "--no-progress"]) == 2
+    assert (out / "config.json").read_text() == "mine"
+
+
+# ---- the NaN guard ------------------------------------------------------------------------------
+def _log(chunk_steps=4, num_envs=2, ret=1.0, metrics=None):
+    import numpy as np
+
+    from d2spo.algos.base import ChunkLog
+
+    z = np.zeros((chunk_steps, num_envs))
+    done = z.astype(bool)
+    done[-1, 0] = True
+    return ChunkLog(done, z + ret, z, z.astype(int), z.astype(int), z.astype(int), z.astype(int) + 3,
+                    np.zeros((chunk_steps, num_envs, 2)), metrics or {}, np.bool_(False))
+
+
+def test_nan_guard_watches_returns_metrics_and_losses_before_writing(tmp_path):
+    import numpy as np
+
+    from d2spo.config import TrainConfig
+    from d2spo.errors import NaNError
+
+    cfg = TrainConfig(episodes=100, chunk_steps=4, num_envs=2)
+    run = train_mod._Run(cfg, tmp_path)
+    nan = np.nan
+    run.record(_log(metrics={"losses/qf": np.array([1.0, nan, 1.0, nan])}), None)
+    assert len(run.writer) == 1
+    for bad in (_log(ret=nan), _log(metrics={"charts/lambda": np.array([np.inf] * 4)})):
+        with pytest.raises(NaNError, match="no checkpoint was written"):
+            run.record(bad, None)
+    assert len(run.writer) == 1 and len((tmp_path / "episodes.csv").read_text().splitlines()) == 2
+    run.record(_log(metrics={"losses/qf": np.full(4, nan)}), None)  # no update this chunk: no value yet
+    with pytest.raises(NaNError, match="losses/qf has been NaN"):
+        for _ in range(3):
+            run.record(_log(metrics={"losses/qf": np.full(4, nan)}), None)
+    run.tb and run.tb.close()
+
+
+# ---- eval ---------------------------------------------------------------------------------------
+@pytest.mark.parametrize("args", [["--episodes", "0"], ["--episodes", "-1"], ["--layout-seeds", "0"],
+                                  ["--layout-seeds", "-1"], ["--layout-seeds", "3"], ["--seed", str(2**64)]])
+def test_eval_refuses_bad_counts_and_keeps_the_earlier_result(args, tmp_path, capsys):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "eval-relaxed-default.json").write_text("earlier")
+    assert _exit_code(["eval", str(run), *args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("d2spo: error:")
+    assert (run / "eval-relaxed-default.json").read_text() == "earlier"
+
+
+# ---- unbounded work ---------------------------------------------------------------------------
+def _ordered_visits(n: int) -> str:
+    f = "F A1"
+    for i in range(1, n):
+        f = f"F(A{i % 3 + 1} & X {f})"
+    return f
+
+
+@pytest.mark.parametrize("formula", ["X " * 3000 + "a", " | ".join(f"a{i % 10}" for i in range(3000)),
+                                     "(" * 400 + "a" + ")" * 400, " U ".join(["a"] * 150)],
+                         ids=["next-3000", "or-3000", "parens-400", "until-150"])
+def test_deep_or_long_formulas_are_refused_in_one_line(formula, capsys):
+    assert _exit_code(["ltl", formula]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and ("MAX_DEPTH" in err[0] or "MAX_SIZE" in err[0]), err
+
+
+def test_a_long_ordered_task_is_refused_naming_the_limit(monkeypatch):
+    import importlib
+    import time
+
+    from d2spo.ltl.translate import AutomatonTooLarge, translate
+
+    tr_mod = importlib.import_module("d2spo.ltl.translate")  # d2spo.ltl.translate is also the function
+
+    assert len(translate(_ordered_visits(6)).delta) == 7  # short ones still translate
+    monkeypatch.setattr(tr_mod, "MAX_TABLEAU_STEPS", 300_000)  # the same refusal, sooner
+    t = time.perf_counter()
+    with pytest.raises(AutomatonTooLarge, match="MAX_TABLEAU_STEPS=300000"):
+        translate(_ordered_visits(30))
+    assert time.perf_counter() - t < 20
+
+
+def test_huge_arena_is_refused_up_front_or_stays_fast():
+    import time
+
+    from d2spo.envs import EnvConfig, make_env
+    from d2spo.errors import ConfigError
+    from d2spo.ltl.reward import RewardConfig
+
+    with pytest.raises(ConfigError, match="MAX_NODES"):
+        make_env(EnvConfig(layout="relaxed", layout_scale=40.0), task="F A1")
+    t = time.perf_counter()
+    make_env(EnvConfig(layout="relaxed", layout_scale=40.0, reward=RewardConfig(shaping_metric="euclidean")),
+             task="F A1")
+    assert time.perf_counter() - t < 30  # minutes and > 6 GB before
