@@ -163,16 +163,37 @@ def test_nan_guard_watches_returns_metrics_and_losses_before_writing(tmp_path):
 
 
 # ---- eval ---------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    from d2spo.algos.td3 import TD3Config
+    import json
+
+    import jax
+
+    from d2spo.config import TrainConfig, config_to_dict
+    from d2spo.envs import EnvConfig
+    from d2spo.runio import save_checkpoint
+
+    cfg = TrainConfig(algo="tlgrl", task="relaxed", episodes=2, num_envs=2, chunk_steps=20, eval_episodes=0,
+                      env=EnvConfig(layout="relaxed", max_steps=20),
+                      td3=TD3Config(hidden=(8,), batch_size=8, learning_starts=8, buffer_size=256))
+    out = tmp_path_factory.mktemp("eval") / "run"
+    out.mkdir()
+    (out / "config.json").write_text(json.dumps(config_to_dict(cfg)))
+    _, _, learner = train_mod.build(cfg)  # an untrained policy is as good as any for a refusal
+    save_checkpoint(out, jax.jit(learner.init)(jax.random.PRNGKey(0)), {"episodes": 0})
+    return out
+
+
 @pytest.mark.parametrize("args", [["--episodes", "0"], ["--episodes", "-1"], ["--layout-seeds", "0"],
                                   ["--layout-seeds", "-1"], ["--layout-seeds", "3"], ["--seed", str(2**64)]])
-def test_eval_refuses_bad_counts_and_keeps_the_earlier_result(args, tmp_path, capsys):
-    run = tmp_path / "run"
-    run.mkdir()
-    (run / "eval-relaxed-default.json").write_text("earlier")
-    assert _exit_code(["eval", str(run), *args]) == 2
+def test_eval_refuses_bad_counts_and_keeps_the_earlier_result(args, tiny_run, capsys):
+    earlier = tiny_run / "eval-relaxed-default.json"
+    earlier.write_text("earlier")
+    assert _exit_code(["eval", str(tiny_run), *args]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith("d2spo: error:")
-    assert (run / "eval-relaxed-default.json").read_text() == "earlier"
+    assert len(err) == 1 and err[0].startswith("d2spo: error:"), err
+    assert earlier.read_text() == "earlier"
 
 
 # ---- unbounded work ---------------------------------------------------------------------------
