@@ -48,7 +48,7 @@ def test_interrupted_reproduce_resumes_its_seed_group_exactly(tmp_path, monkeypa
                                    env=dataclasses.replace(c.env, max_steps=40), ppo_lag=ppo)
 
     monkeypatch.setattr(rp.RunSpec, "config", small)
-    kw = dict(seeds=2, episodes=TINY_EPISODES, methods=["ppo-lag"], progress=False, log=lambda s: None)
+    kw = {"seeds": 2, "episodes": TINY_EPISODES, "methods": ["ppo-lag"], "progress": False, "log": lambda s: None}
     rp.reproduce(["table3"], tmp_path / "a", **kw)
 
     record, calls = train_mod._Run.record, []
@@ -165,11 +165,11 @@ def test_nan_guard_watches_returns_metrics_and_losses_before_writing(tmp_path):
 # ---- eval ---------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory):
-    from d2spo.algos.td3 import TD3Config
     import json
 
     import jax
 
+    from d2spo.algos.td3 import TD3Config
     from d2spo.config import TrainConfig, config_to_dict
     from d2spo.envs import EnvConfig
     from d2spo.runio import save_checkpoint

@@ -91,7 +91,7 @@ def distance_fields(arena, box_lo, box_hi, area_center, area_radius, robot_radiu
     Cached per (layout, robot radius): random-layout sweeps and tests build the same env often.
     """
     arena = (float(arena[0]), float(arena[1]))
-    nodes = (int(round(arena[0] / spacing)) + 1) * (int(round(arena[1] / spacing)) + 1)
+    nodes = (round(arena[0] / spacing) + 1) * (round(arena[1] / spacing) + 1)
     if nodes > MAX_NODES:
         raise ConfigError("layout.arena", f"an arena of {arena[0]:g} m x {arena[1]:g} m needs a geodesic shaping grid "
                           f"of {nodes} nodes at {spacing:g} m; at most MAX_NODES={MAX_NODES} (20 m x 20 m) are "
