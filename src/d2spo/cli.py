@@ -269,6 +269,7 @@ Commands = Union[
 ]
 
 _BOX = re.compile(r"[╭╮╰╯│─]+")
+_CONFIG_ERROR = re.compile(r"^Error parsing [^-\s]\S*: ")
 
 
 def _tyro_error_line(text: str) -> str:
@@ -287,6 +288,8 @@ def _tyro_error_line(text: str) -> str:
             continue
         body.append(stripped)
     msg = " ".join(body) or "invalid command line"
+    if _CONFIG_ERROR.match(msg):  # a config dataclass refused a value: its own message names the field
+        return _CONFIG_ERROR.sub("", msg)
     return f"{title}: {msg}" if title else msg
 
 
@@ -305,12 +308,11 @@ def parse(args: list[str]):
 
 def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else list(argv)
-    cmd = parse(args)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("always", RunDirWarning)
             warnings.showwarning = _show_warning
-            return int(cmd.run() or 0)
+            return int(parse(args).run() or 0)
     except LTLSyntaxError as e:
         _stderr(f"{e} in {e.formula!r}")
         if sys.stderr.isatty():  # an interactive user also gets the caret under the column

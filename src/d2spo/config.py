@@ -24,6 +24,7 @@ from d2spo.algos.td3 import TD3Config
 from d2spo.algos.td3_lag import TD3LagConfig
 from d2spo.envs import EnvConfig
 from d2spo.errors import ConfigError
+from d2spo.fields import check_fields
 from d2spo.ltl.anneal import AnnealConfig
 from d2spo.safety.cbf import CBFConfig
 
@@ -87,19 +88,18 @@ class TrainConfig:
         mode = "sparse" if self.algo in ("td3", "sl") else "progress"
         return dataclasses.replace(self.env, reward=dataclasses.replace(self.env.reward, mode=mode))
 
-    def check(self) -> TrainConfig:
+    def __post_init__(self) -> None:
         from d2spo.algos import known_algos
 
         if self.algo not in known_algos():
             raise ConfigError("algo", f"unknown algorithm {self.algo!r}; choose one of {list(known_algos())}")
-        for name in ("episodes", "num_envs", "chunk_steps", "checkpoint_every", "window"):
-            v = getattr(self, name)
-            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
-                raise ConfigError(name, f"must be a positive integer, got {v!r}")
-        if any(n < 1 for n in self.snapshots):
-            raise ConfigError("snapshots", f"episode counts must be >= 1, got {list(self.snapshots)}")
-        if self.eval_episodes < 0:
-            raise ConfigError("eval_episodes", f"must be >= 0, got {self.eval_episodes}")
+        check_fields(self, count=("episodes", "num_envs", "chunk_steps", "checkpoint_every", "window"),
+                     seed=("seed",), counts=("snapshots",), natural=("eval_episodes",))
+        if not isinstance(self.task, str) or not self.task.strip():
+            raise ConfigError("task", f"expected a task name or an LTL formula, got {self.task!r}")
+
+    def check(self) -> TrainConfig:
+        """This config (every field is checked when it is made, ``__post_init__``)."""
         return self
 
 

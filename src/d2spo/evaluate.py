@@ -9,13 +9,15 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
+from types import SimpleNamespace
 
 import jax
 import numpy as np
 
 from d2spo.checkpoint import load_checkpoint, run_fingerprint
 from d2spo.config import TrainConfig
-from d2spo.errors import ConfigError, RunDirError
+from d2spo.errors import ConfigError, NaNError, RunDirError
+from d2spo.fields import check_fields
 from d2spo.runio import atomic_write_json
 
 
@@ -76,6 +78,13 @@ def evaluate_run(run_dir: Path, episodes: int = 100, layout: str | None = None, 
     from d2spo.algos import has_runtime_filter
     from d2spo.train import make_rollout, rates
 
+    asked = SimpleNamespace(episodes=episodes, layout_seeds=layout_seeds, seed=seed, filter_iters=filter_iters,
+                            filter_alpha=filter_alpha)
+    check_fields(asked, nullable=("filter_iters", "filter_alpha"), count=("episodes", "layout_seeds"),
+                 seed=("seed",), natural=("filter_iters",), positive=("filter_alpha",))
+    if layout_seeds != 1 and not (layout or "").startswith("random"):
+        raise ConfigError("layout_seeds", f"only applies with --layout random[:SEED], got {layout_seeds} "
+                          f"with layout {layout or 'as trained'!r}")
     cfg, learner, policy, _ = load_policy(run_dir)
     has_filter = has_runtime_filter(cfg.algo)
     asked = {"runtime_filter": runtime_filter, "filter_iters": filter_iters, "filter_alpha": filter_alpha}
@@ -157,6 +166,9 @@ def eval_command(cmd) -> int:
     if res["runtime_filter"]:
         tag += f"-filter-a{res['filter_alpha']:g}-i{res['filter_iters']}"
     path = Path(cmd.run_dir) / f"eval-{tag}.json"
+    means = [res[k] for k in ("safety_rate", "completion_rate", "mean_return", "mean_distance")]
+    if not all(np.isfinite(means)):  # never replace an earlier result with a broken one
+        raise NaNError(f"{cmd.run_dir}: the evaluation gave non-finite rates {means}; {path.name} left as it was")
     atomic_write_json(path, res)
     filt = ""
     if res["runtime_filter"] is not None:

@@ -206,13 +206,48 @@ def _fresh_or_resumable(out: Path, spec: RunSpec) -> bool:
     return not (run_dir(out, spec) / "checkpoint.json").is_file()
 
 
+def started_groups(out: Path, specs: list[RunSpec]) -> list[list[RunSpec]]:
+    """Groups of seeds an earlier call started together (a ``.group-…`` directory in OUT/runs) that
+    hold a run of ``specs`` and are not finished: each resumes as the group it was, with all its
+    members, so every seed continues the program it started in (a seed's own checkpoint, written
+    by the group, would resume it alone, which rounds differently). A group whose members have all
+    finished is a leftover of a stop just before its removal, and is removed."""
+    import shutil
+
+    from d2spo.train import GROUP_PREFIX, group_dir
+
+    runs = Path(out) / "runs"
+    mine = {s.name: s for s in specs}
+    found = []
+    for d in sorted(runs.glob(GROUP_PREFIX + "*")) if runs.is_dir() else []:
+        names = d.name[len(GROUP_PREFIX):].split("+")
+        template = next((mine[n] for n in names if n in mine), None)
+        if template is None:
+            continue  # another target's or setting's group: not ours to touch
+        members = []
+        for n in names:
+            seed = n.rpartition("-s")[2]
+            member = dataclasses.replace(template, seed=int(seed)) if seed.isdigit() else None
+            if member is None or member.name != n:
+                break
+            members.append(member)
+        else:
+            if group_dir([run_dir(out, m) for m in members]) != d:
+                continue
+            if all(is_finished(out, m) for m in members):
+                shutil.rmtree(d, ignore_errors=True)
+            else:
+                found.append(members)
+    return found
+
+
 def train_group(specs: list[RunSpec], out: Path, progress: bool = False) -> list[dict]:
     """Seeds of one (algo, task, layout, …) trained together, ``jax.vmap`` over seeds."""
     from d2spo.progress import train_seeds_with_progress
-    from d2spo.train import train_seeds
+    from d2spo.train import group_dir, train_seeds
 
     outs = [run_dir(out, s) for s in specs]
-    group = outs[0].parent / (".group-" + "+".join(o.name for o in outs))
+    group = group_dir(outs)
     if not (group / "checkpoint.json").is_file():
         for o in outs:
             _discard_unstarted(o)
@@ -230,7 +265,12 @@ def run_local(specs: list[RunSpec], out: Path, progress: bool = True, log: Calla
     todo = [s for s in specs if not is_finished(out, s)]
     log(f"{len(specs) - len(todo)} of {len(specs)} runs already finished in {out}; training {len(todo)}")
     groups: dict[RunSpec, list[RunSpec]] = {}
+    for members in started_groups(out, specs):  # resumed as they were, even with --no-vmap-seeds
+        groups[members[0]] = members
+    grouped = {m for members in groups.values() for m in members}
     for s in todo:
+        if s in grouped:
+            continue
         together = vmap_seeds and _fresh_or_resumable(out, s)
         key = dataclasses.replace(s, seed=-1) if together else s
         groups.setdefault(key, []).append(s)

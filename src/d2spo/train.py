@@ -8,6 +8,7 @@ finished episodes and scalar metrics.
 from __future__ import annotations
 
 import contextlib
+import math
 import time
 import warnings
 from collections.abc import Callable
@@ -89,6 +90,42 @@ def load_run_config(run_dir: Path) -> TrainConfig:
     return config_from_dict(read_json(Path(run_dir) / "config.json", "the run's config"))
 
 
+class _NaNGuard:
+    """Stops a run at the first non-finite value it produces, before that chunk's rows are written.
+
+    Parameters (the learner's ``nonfinite`` flag), episode returns and costs, and every metric must
+    stay finite. NaN is also how a metric says "no value this step" (no update ran), so a ``losses/``
+    metric counts as diverged only once it has had values at some rhythm and then none for twice its
+    longest gap seen so far (and at least two chunks)."""
+
+    def __init__(self, chunk_steps: int):
+        self.chunk_steps = chunk_steps
+        self.last: dict[str, int] = {}  # metric -> vectorised step of its last finite value
+        self.gap: dict[str, int] = {}  # metric -> longest run of NaN steps between two values
+
+    def problem(self, log: ChunkLog, rows: list[tuple], first_step: int) -> str | None:
+        if bool(log.nonfinite):
+            return "non-finite parameters"
+        bad = [r[0] for r in rows if not (math.isfinite(r[1]) and math.isfinite(r[2]))]
+        if bad:
+            return f"a non-finite return or cost in episode {bad[0]}"
+        inf = sorted(k for k, v in log.metrics.items() if np.any(np.isinf(np.asarray(v))))
+        if inf:
+            return f"infinite metrics {inf}"
+        end = first_step + self.chunk_steps
+        for k, v in log.metrics.items():
+            if not k.startswith("losses/"):
+                continue
+            for i in np.flatnonzero(np.isfinite(np.asarray(v))):
+                step = first_step + int(i)
+                if k in self.last:
+                    self.gap[k] = max(self.gap.get(k, 0), step - self.last[k] - 1)
+                self.last[k] = step
+            if k in self.gap and end - self.last[k] - 1 > max(2 * self.gap[k], 2 * self.chunk_steps):
+                return f"{k} has been NaN for {end - self.last[k] - 1} steps since its last value"
+        return None
+
+
 class _Run:
     """The host-side bookkeeping of one run directory: episodes.csv, TensorBoard, counters,
     snapshots, checkpoints and the summary. ``train`` has one; ``train_seeds`` one per seed."""
@@ -101,6 +138,7 @@ class _Run:
         every = cfg.checkpoint_every
         self.next_ckpt = (self.meta["episodes"] // every + 1) * every
         self.t_start = time.perf_counter() - self.meta["wall_seconds"]
+        self.guard = _NaNGuard(cfg.chunk_steps)
 
     @property
     def done(self) -> bool:
@@ -109,14 +147,14 @@ class _Run:
     def record(self, log: ChunkLog, progress: ProgressFn | None) -> None:
         """Take in one chunk's log (NaN check, episodes, counters, TensorBoard, progress)."""
         cfg, writer, meta = self.cfg, self.writer, self.meta
-        if bool(log.nonfinite):
-            bad = [k for k, v in log.metrics.items() if np.any(np.isinf(np.asarray(v)))]
+        rows = _rows_from_log(log, len(writer), cfg.episodes - len(writer))
+        problem = self.guard.problem(log, rows, meta["chunks"] * cfg.chunk_steps)
+        if problem is not None:
             last = self.checkpoints.latest
             where = (f"the last checkpoint, after episode {last['episodes']}, is {self.out / 'checkpoint.json'}"
                      if last is not None else f"no checkpoint was written in {self.out} before it")
-            raise NaNError(f"non-finite parameters during training (episode ~{len(writer)}; inf metrics: {bad}); "
-                           f"{where}")
-        rows = _rows_from_log(log, len(writer), cfg.episodes - len(writer))
+            raise NaNError(f"training stopped at episode {len(writer)}: {problem}; episodes.csv holds the "
+                           f"episodes before it and {where}")
         writer.append(rows)
         meta["chunks"] += 1
         meta["env_steps"] += cfg.chunk_steps * cfg.num_envs
@@ -229,6 +267,14 @@ def _take_seed(tree, i: jax.Array):
     return jax.tree_util.tree_map(lambda x: x[i], tree)
 
 
+GROUP_PREFIX = ".group-"
+
+
+def group_dir(outs: list[Path]) -> Path:
+    """Where ``train_seeds`` checkpoints the group of runs ``outs``: ``OUT[0]/../.group-<names>``."""
+    return Path(outs[0]).parent / (GROUP_PREFIX + "+".join(Path(o).name for o in outs))
+
+
 def train_seeds(
     cfgs: list[TrainConfig], outs: list[Path], progress: list[ProgressFn | None] | None = None,
     stop_after_chunks: int | None = None,
@@ -260,7 +306,7 @@ def train_seeds(
 def _train_seeds_locked(cfgs: list[TrainConfig], outs: list[Path], built, progress: list[ProgressFn | None] | None,
                         stop_after_chunks: int | None) -> list[dict] | None:
     env, params, learner = built
-    group = outs[0].parent / (".group-" + "+".join(o.name for o in outs))
+    group = group_dir(outs)
     resume = has_checkpoint(group)
     for cfg, out in zip(cfgs, outs):
         _prepare_dir(out, cfg, resume)

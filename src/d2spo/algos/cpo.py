@@ -46,6 +46,7 @@ from d2spo.algos.onpolicy import (
 )
 from d2spo.algos.td3 import params_finite
 from d2spo.errors import ConfigError
+from d2spo.fields import check_fields
 from d2spo.ltl.anneal import AnnealConfig
 
 INFEASIBLE, REWARD_STEP, MIXED_STEP = 0, 1, 2
@@ -98,22 +99,13 @@ class CPOConfig:
     """Normalise observations with running moments (off in safety-starter-agents and OmniSafe CPO)."""
 
     def __post_init__(self) -> None:
-        for name in ("rollout_steps", "cg_iters", "backtrack_iters", "critic_epochs", "critic_minibatches"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ConfigError(f"cpo.{name}", f"must be a positive integer, got {v!r}")
-        for name in ("target_kl", "critic_lr"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"cpo.{name}", f"must be > 0, got {getattr(self, name)}")
-        if self.cost_limit < 0:
-            raise ConfigError("cpo.cost_limit", f"must be >= 0, got {self.cost_limit}")
-        if self.cg_damping < 0:
-            raise ConfigError("cpo.cg_damping", f"must be >= 0, got {self.cg_damping}")
+        check_fields(self, "cpo", nullable=("max_grad_norm",), widths=("hidden",), finite=("log_std_init",),
+                     count=("rollout_steps", "cg_iters", "backtrack_iters", "critic_epochs", "critic_minibatches"),
+                     positive=("target_kl", "max_grad_norm"), lr=("critic_lr",),
+                     non_negative=("cost_limit", "cg_damping"), discount=("gamma", "cost_gamma"),
+                     fraction=("lam", "cost_lam"), flag=("normalize_obs",))
         if not 0 < self.backtrack_coeff < 1:
             raise ConfigError("cpo.backtrack_coeff", f"must be in (0, 1), got {self.backtrack_coeff}")
-        for name in ("gamma", "lam", "cost_gamma", "cost_lam"):
-            if not 0 <= getattr(self, name) <= 1:
-                raise ConfigError(f"cpo.{name}", f"must be in [0, 1], got {getattr(self, name)}")
 
 
 # ---- the maths --------------------------------------------------------------------------------

@@ -18,6 +18,7 @@ The learner never calls the env's dynamics: f_n is fitted to observed (s, u, s')
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -38,6 +39,8 @@ from d2spo.algos.td3 import (
 )
 from d2spo.envs import geometry, sensors
 from d2spo.envs.geometry import Geometry
+from d2spo.errors import ConfigError
+from d2spo.fields import check_fields
 from d2spo.ltl.anneal import AnnealConfig
 from d2spo.safety import datasets as sd
 from d2spo.safety.cbf import CBFConfig, check_geometry
@@ -74,6 +77,14 @@ class D2SPOConfig:
     """Weight of ||π(z) - π_Ω(x, π(z))||² in the actor loss (with actor_through_safety)."""
     synthetic_box_half: tuple[float, float] = (0.15, 0.45)
     """Half-size range (m) of the random boxes of the synthetic pre-training data."""
+
+    def __post_init__(self) -> None:
+        check_fields(self, "d2spo", count=("update_every",), non_negative=("proposal_weight",),
+                     flag=("pretrain", "kinematic_prior", "runtime_filter", "actor_through_safety"))
+        lo_hi = self.synthetic_box_half
+        if not (isinstance(lo_hi, tuple) and len(lo_hi) == 2 and all(isinstance(v, (int, float)) for v in lo_hi)
+                and 0 < lo_hi[0] <= lo_hi[1] < math.inf):
+            raise ConfigError("d2spo.synthetic_box_half", f"must be two sizes 0 < lo <= hi, got {lo_hi!r}")
 
 
 class Sensed(NamedTuple):

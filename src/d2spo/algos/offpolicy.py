@@ -29,7 +29,7 @@ from d2spo.algos.common.lagrange import LagrangeConfig, LagrangeState
 from d2spo.algos.common.replay import ReplayBuffer, Transition
 from d2spo.algos.common.td3_losses import REDUCTIONS
 from d2spo.algos.td3 import params_finite
-from d2spo.errors import ConfigError
+from d2spo.fields import check_choice, check_fields
 from d2spo.ltl.anneal import AnnealConfig, annealed_params
 
 Metrics = dict[str, jax.Array]
@@ -183,11 +183,7 @@ def default_lagrange() -> LagrangeConfig:
     return LagrangeConfig(cost_limit=0.05, lr=1e-3, init=1e-3)
 
 
-def check_cost_options(cost_critics: int, cost_reduce: str, cost_window: int) -> None:
-    """ConfigError on a bad cost-critic ensemble, reduction or cost window."""
-    if cost_critics < 1:
-        raise ConfigError("cost_critics", f"must be >= 1, got {cost_critics}")
-    if cost_reduce not in REDUCTIONS:
-        raise ConfigError("cost_reduce", f"must be one of {list(REDUCTIONS)}, got {cost_reduce!r}")
-    if cost_window < 1:
-        raise ConfigError("cost_window", f"must be >= 1, got {cost_window}")
+def check_cost_options(cfg, section: str) -> None:
+    """ConfigError on a bad cost-critic ensemble, reduction or cost window (td3-lag, sac-lag)."""
+    check_fields(cfg, section, count=("cost_critics", "cost_window"))
+    check_choice(cfg, "cost_reduce", REDUCTIONS, section)

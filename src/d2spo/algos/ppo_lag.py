@@ -43,6 +43,7 @@ from d2spo.algos.onpolicy import (
 )
 from d2spo.algos.td3 import params_finite
 from d2spo.errors import ConfigError
+from d2spo.fields import check_fields
 from d2spo.ltl.anneal import AnnealConfig
 
 
@@ -90,16 +91,10 @@ class PPOLagConfig:
     here a collision rate; 0.05 = a 95 % safety target."""
 
     def __post_init__(self) -> None:
-        for name in ("rollout_steps", "epochs", "n_minibatches"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ConfigError(f"ppo_lag.{name}", f"must be a positive integer, got {v!r}")
-        for name in ("lr", "critic_lr", "clip", "target_kl"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"ppo_lag.{name}", f"must be > 0, got {getattr(self, name)}")
-        for name in ("gamma", "lam", "cost_gamma", "cost_lam"):
-            if not 0 <= getattr(self, name) <= 1:
-                raise ConfigError(f"ppo_lag.{name}", f"must be in [0, 1], got {getattr(self, name)}")
+        check_fields(self, "ppo_lag", nullable=("max_grad_norm",), widths=("hidden",), finite=("log_std_init",),
+                     count=("rollout_steps", "epochs", "n_minibatches"), lr=("lr", "critic_lr"),
+                     positive=("clip", "target_kl", "max_grad_norm"), non_negative=("entropy_coef",),
+                     discount=("gamma", "cost_gamma"), fraction=("lam", "cost_lam"), flag=("normalize_obs",))
 
 
 def ppo_clip_loss(log_prob: jax.Array, old_log_prob: jax.Array, adv: jax.Array, clip: float):

@@ -45,7 +45,7 @@ from d2spo.algos.sac_lag import (
     sac_behaviour,
     sac_critic_step,
 )
-from d2spo.errors import ConfigError
+from d2spo.fields import check_fields
 from d2spo.ltl.anneal import AnnealConfig
 
 
@@ -69,13 +69,8 @@ class RCRLConfig:
     """Constant added before the softplus: lambda(s) = softplus(bias) = 0.69 at the start (authors' mu_bias 0)."""
 
     def __post_init__(self) -> None:
-        if not self.margin > 0:
-            raise ConfigError("margin", f"must be > 0, got {self.margin}")
-        for name in ("safety_critics", "multiplier_delay"):
-            if getattr(self, name) < 1:
-                raise ConfigError(name, f"must be >= 1, got {getattr(self, name)}")
-        if not self.multiplier_lr > 0:
-            raise ConfigError("multiplier_lr", f"must be > 0, got {self.multiplier_lr}")
+        check_fields(self, "rcrl", positive=("margin",), count=("safety_critics", "multiplier_delay"),
+                     widths=("multiplier_hidden",), lr=("multiplier_lr",), finite=("multiplier_bias",))
 
 
 # -- the maths ------------------------------------------------------------------------------

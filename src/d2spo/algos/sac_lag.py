@@ -44,7 +44,7 @@ from d2spo.algos.offpolicy import (
     delayed,
     update_multiplier,
 )
-from d2spo.errors import ConfigError
+from d2spo.fields import check_fields
 from d2spo.ltl.anneal import AnnealConfig
 
 
@@ -81,11 +81,11 @@ class SACConfig:
     """Gradient updates per vectorised env step (num_envs transitions)."""
 
     def __post_init__(self) -> None:
-        for name in ("policy_delay", "batch_size", "buffer_size", "updates_per_step"):
-            if getattr(self, name) < 1:
-                raise ConfigError(name, f"must be >= 1, got {getattr(self, name)}")
-        if not self.init_alpha > 0:
-            raise ConfigError("init_alpha", f"must be > 0, got {self.init_alpha}")
+        check_fields(self, "sac", nullable=("target_entropy",), widths=("hidden",),
+                     lr=("actor_lr", "critic_lr", "alpha_lr"), positive=("init_alpha",), finite=("target_entropy",),
+                     discount=("gamma",), rate=("tau",),
+                     count=("policy_delay", "batch_size", "buffer_size", "updates_per_step"),
+                     natural=("learning_starts",))
 
 
 @dataclass(frozen=True)
@@ -104,7 +104,7 @@ class SACLagConfig:
     """Multiplier: cost limit d on the per-episode cost (collisions), its lr, initial value, optimizer."""
 
     def __post_init__(self) -> None:
-        check_cost_options(self.cost_critics, self.cost_reduce, self.cost_window)
+        check_cost_options(self, "sac_lag")
 
 
 # -- the SAC core (shared with RCRL) ----------------------------------------------------------

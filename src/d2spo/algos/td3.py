@@ -25,6 +25,7 @@ from d2spo.algos.common import replay
 from d2spo.algos.common.networks import DeterministicActor, TwinQ, init_params
 from d2spo.algos.common.replay import ReplayBuffer, Transition
 from d2spo.algos.common.td3_losses import soft_update, td3_actor_loss, td3_critic_loss
+from d2spo.fields import check_fields
 from d2spo.ltl.anneal import AnnealConfig, annealed_params
 
 
@@ -61,6 +62,12 @@ class TD3Config:
     1e4 to 2.5e4; 5000 is ours: 16 envs fill it in ~300 vectorised steps)."""
     updates_per_step: int = 1
     """Gradient updates per vectorised env step (num_envs transitions)."""
+
+    def __post_init__(self) -> None:
+        check_fields(self, "td3", widths=("hidden",), lr=("actor_lr", "critic_lr"), discount=("gamma",),
+                     rate=("tau",), non_negative=("policy_noise", "noise_clip", "exploration_noise"),
+                     count=("policy_delay", "batch_size", "buffer_size", "updates_per_step"),
+                     natural=("learning_starts",))
 
 
 @struct.dataclass

@@ -60,7 +60,7 @@ class TD3LagConfig:
     """Multiplier: cost limit d on the per-episode cost (collisions), its lr, initial value, optimizer."""
 
     def __post_init__(self) -> None:
-        check_cost_options(self.cost_critics, self.cost_reduce, self.cost_window)
+        check_cost_options(self, "td3_lag")
 
 
 @struct.dataclass

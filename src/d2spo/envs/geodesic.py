@@ -21,10 +21,16 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
+from d2spo.errors import ConfigError
+
 SPACING = 0.05
 """Grid spacing in metres."""
 BLOCKED_COST = 10.0
 """Multiplier of the path length through nodes where the robot would touch an obstacle or a wall."""
+MAX_NODES = 170_000
+"""Largest grid accepted: an arena of 20 m x 20 m at ``SPACING`` (160 801 nodes), whose fields take
+about 18 s on a 2-core CPU. The sweeps grow with the number of nodes times the grid's width (a
+40 m arena took 283 s, 200 m minutes and over 6 GB), so a larger arena is refused up front."""
 
 
 def _clearance(xs: np.ndarray, ys: np.ndarray, box_lo: np.ndarray, box_hi: np.ndarray, arena: tuple) -> np.ndarray:
@@ -85,6 +91,11 @@ def distance_fields(arena, box_lo, box_hi, area_center, area_radius, robot_radiu
     Cached per (layout, robot radius): random-layout sweeps and tests build the same env often.
     """
     arena = (float(arena[0]), float(arena[1]))
+    nodes = (round(arena[0] / spacing) + 1) * (round(arena[1] / spacing) + 1)
+    if nodes > MAX_NODES:
+        raise ConfigError("layout.arena", f"an arena of {arena[0]:g} m x {arena[1]:g} m needs a geodesic shaping grid "
+                          f"of {nodes} nodes at {spacing:g} m; at most MAX_NODES={MAX_NODES} (20 m x 20 m) are "
+                          "supported: use a smaller arena or layout scale, or --shaping-metric euclidean")
     boxes = tuple((tuple(map(float, lo)), tuple(map(float, hi))) for lo, hi in zip(np.asarray(box_lo), np.asarray(box_hi)))
     areas = tuple((float(c[0]), float(c[1]), float(r)) for c, r in zip(np.asarray(area_center), np.asarray(area_radius)))
     return _fields(arena, boxes, areas, float(robot_radius), float(spacing), float(blocked_cost))

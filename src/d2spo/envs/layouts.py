@@ -257,13 +257,13 @@ def check_robot_fits(layout: Layout, robot_radius: float, start_jitter_xy: float
     """The robot fits at the start (with jitter) and can reach every area; ConfigError otherwise.
 
     Reachability is a breadth-first search on a grid (resolution ~1/100 of the arena, at most
-    0.05 m) over the free space inflated by the robot radius.
+    0.05 m, but at most 1000 cells a side) over the free space inflated by the robot radius.
     """
     worst = robot_radius + start_jitter_xy * math.sqrt(2.0)
     if layout.clearance(np.array(layout.start[:2])) <= worst:
         raise ConfigError("layout.start", f"the robot (radius {robot_radius}, start jitter {start_jitter_xy}) "
                           f"at {layout.start[:2]} would touch an obstacle or wall")
-    resolution = min(0.05, max(layout.arena) / 100.0)
+    resolution = max(min(0.05, max(layout.arena) / 100.0), max(layout.arena) / 1000.0)  # <= 1000 cells a side
     reach, centres = reachable_grid(layout, robot_radius, resolution)
     for i, a in enumerate(layout.areas):
         inside = np.linalg.norm(centres - np.asarray(a.center), axis=-1) <= a.radius

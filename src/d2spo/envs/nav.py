@@ -34,6 +34,7 @@ from d2spo.envs.dynamics import DynamicsParams
 from d2spo.envs.geometry import Geometry
 from d2spo.envs.layouts import Layout
 from d2spo.errors import ConfigError
+from d2spo.fields import check_choice, check_fields
 from d2spo.ltl.automaton import UNREACHABLE, AutomatonArrays
 from d2spo.ltl.labelling import LABEL_MODES, next_state
 from d2spo.ltl.reward import (
@@ -102,38 +103,23 @@ class EnvConfig:
             for f in fields(dynamics.Preset)
             if getattr(self, f.name) is None
         }
-        cfg = replace(self, **filled)
-        cfg._check()
-        return cfg
+        return replace(self, **filled)  # checked again by __post_init__, now with no field unset
 
-    def _check(self) -> None:
-        positive = ("dt", "v_max", "omega_max", "robot_radius", "sensing_radius", "layout_scale", "v_gain",
-                    "omega_gain")
-        non_negative = ("actuator_tau", "noise_xy", "noise_theta", "start_jitter_xy", "start_jitter_theta")
-        for name in positive + non_negative:
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-                raise ConfigError(name, f"expected a finite number, got {v!r}")
-            if v < 0 or (v == 0 and name in positive):
-                raise ConfigError(name, f"must be {'positive' if name in positive else 'non-negative'}, got {v}")
-        if not 0 <= self.slip < 1:
-            raise ConfigError("slip", f"must be in [0, 1), got {self.slip}")
-        for name in ("max_steps", "n_rays"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ConfigError(name, f"must be a positive integer, got {v!r}")
-        if self.label_mode not in LABEL_MODES:
-            raise ConfigError("label_mode", f"unknown mode {self.label_mode!r}; choose one of {list(LABEL_MODES)}")
-        if self.label_radius is not None and not (math.isfinite(self.label_radius) and self.label_radius > 0):
-            raise ConfigError("label_radius", f"must be positive, got {self.label_radius}")
-        if self.reward.mode not in ("progress", "sparse"):
-            raise ConfigError("reward.mode", f"unknown mode {self.reward.mode!r}; choose 'progress' or 'sparse'")
-        if self.reward.shaping_metric not in ("geodesic", "euclidean"):
-            raise ConfigError("reward.shaping_metric", f"unknown metric {self.reward.shaping_metric!r}; "
-                              "choose 'geodesic' or 'euclidean'")
-        c = self.reward.shaping_clearance
-        if c is not None and not (math.isfinite(c) and c >= 0):
-            raise ConfigError("reward.shaping_clearance", f"must be >= 0, got {c}")
+    def __post_init__(self) -> None:
+        """Every field that is set; the preset's (None here) are checked once ``resolved`` fills them."""
+        dynamics.get_preset(self.preset)
+        preset_fields = ("dt", "v_max", "omega_max", "robot_radius", "sensing_radius", "layout_scale", "v_gain",
+                         "omega_gain", "actuator_tau", "noise_xy", "noise_theta", "slip")
+        check_fields(self, nullable=preset_fields + ("label_radius",),
+                     positive=("dt", "v_max", "omega_max", "robot_radius", "sensing_radius", "layout_scale",
+                               "v_gain", "omega_gain", "label_radius"),
+                     non_negative=("actuator_tau", "noise_xy", "noise_theta", "start_jitter_xy", "start_jitter_theta"),
+                     count=("max_steps", "n_rays"), flag=("collision_terminates",))
+        if self.slip is not None and not (isinstance(self.slip, (int, float)) and 0 <= self.slip < 1):
+            raise ConfigError("slip", f"must be in [0, 1), got {self.slip!r}")
+        check_choice(self, "label_mode", LABEL_MODES)
+        if not isinstance(self.layout, str):
+            raise ConfigError("layout", f"expected a layout name or a JSON path, got {self.layout!r}")
 
 
 @struct.dataclass

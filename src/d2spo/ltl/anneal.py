@@ -14,6 +14,8 @@ from dataclasses import dataclass
 import jax
 import jax.numpy as jnp
 
+from d2spo.fields import check_fields
+
 
 @dataclass(frozen=True)
 class AnnealConfig:
@@ -34,6 +36,10 @@ class AnnealConfig:
     true radius), so relaxed areas never overlap. Not in the paper: with k1 = 0.1 the paper layout's
     initial disks (3.5 m) overlap, every area is 'reached' at once and ordered tasks such as phi1 are
     rejected on the first step. False: the paper's rule as written."""
+
+    def __post_init__(self) -> None:
+        check_fields(self, "anneal", nullable=("k2", "d_bar"), positive=("k1", "d_bar"), non_negative=("k2",),
+                     rate=("until",), flag=("enabled", "separate"))
 
     def rate(self, total_episodes: int) -> float:
         """k2: explicit, or ln(1/k1) / (until * episodes) so that k1 e^(k2 I) reaches 1 at I = until * episodes."""

@@ -13,6 +13,35 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from d2spo.errors import UserError
+
+MAX_DEPTH = 100
+"""Deepest syntax tree accepted (``X X X a`` has depth 4; a chain ``a | b | c`` of n operands
+nests n - 1 binary nodes). Every pass over a formula (parsing, printing, hashing, translating)
+recurses once per level, so this keeps them far from Python's recursion limit; the named tasks
+have depth 8 at most."""
+MAX_SIZE = 1000
+"""Most nodes (operators, propositions, constants) in a formula."""
+
+
+class FormulaTooLarge(UserError):
+    """A formula is nested deeper than ``MAX_DEPTH`` or has more than ``MAX_SIZE`` nodes."""
+
+
+def check_size(f: Formula) -> None:
+    """FormulaTooLarge unless ``f`` is within ``MAX_DEPTH`` and ``MAX_SIZE`` (iterative: any input)."""
+    size, stack = 0, [(f, 1)]
+    while stack:
+        node, depth = stack.pop()
+        size += 1
+        if depth > MAX_DEPTH:
+            raise FormulaTooLarge(f"the formula is nested more than MAX_DEPTH={MAX_DEPTH} levels deep (a chain of "
+                                  "n binary operators counts n levels); simplify it")
+        if size > MAX_SIZE:
+            raise FormulaTooLarge(f"the formula has more than MAX_SIZE={MAX_SIZE} operators and propositions; "
+                                  "simplify it")
+        stack.extend((c, depth + 1) for c in node.children())
+
 
 class Formula:
     """Base class of all LTL syntax-tree nodes."""

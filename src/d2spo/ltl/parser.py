@@ -23,11 +23,14 @@ from typing import NamedTuple
 from d2spo.errors import LTLSyntaxError
 from d2spo.ltl.formula import (
     FALSE,
+    MAX_DEPTH,
+    MAX_SIZE,
     TRUE,
     Always,
     And,
     Eventually,
     Formula,
+    FormulaTooLarge,
     Iff,
     Implies,
     Next,
@@ -37,6 +40,7 @@ from d2spo.ltl.formula import (
     Release,
     Until,
     WeakUntil,
+    check_size,
 )
 
 _OPERAND = "a formula (a proposition, true, false, '(' or one of ! X F G)"
@@ -88,7 +92,17 @@ class _Parser:
     def __init__(self, text: str):
         self.text = text
         self.tokens = _tokenize(text)
+        if len(self.tokens) > MAX_SIZE + 1:  # a token makes at most one node, but for parentheses
+            raise FormulaTooLarge(f"the formula has {len(self.tokens) - 1} symbols; at most MAX_SIZE={MAX_SIZE} are "
+                                  "supported")
         self.pos = 0
+        self.depth = 0
+
+    def nest(self, step: int) -> None:
+        """Enter (+1) or leave (-1) a nested construct; refuse nesting deeper than ``MAX_DEPTH``."""
+        self.depth += step
+        if self.depth > MAX_DEPTH:
+            raise FormulaTooLarge(f"the formula is nested more than MAX_DEPTH={MAX_DEPTH} levels deep; simplify it")
 
     def peek(self) -> _Token:
         return self.tokens[self.pos]
@@ -120,7 +134,10 @@ class _Parser:
         f = self.disjunction()
         if self.peek().kind == "->":
             self.take()
-            return Implies(f, self.implies())
+            self.nest(1)
+            right = self.implies()
+            self.nest(-1)
+            return Implies(f, right)
         return f
 
     def disjunction(self) -> Formula:
@@ -142,14 +159,20 @@ class _Parser:
         kind = self.peek().kind
         if kind in _TEMPORAL:
             self.take()
-            return _TEMPORAL[kind](f, self.binary())
+            self.nest(1)
+            right = self.binary()
+            self.nest(-1)
+            return _TEMPORAL[kind](f, right)
         return f
 
     def unary(self) -> Formula:
         kind = self.peek().kind
         if kind in _UNARY:
             self.take()
-            return _UNARY[kind](self.unary())
+            self.nest(1)
+            arg = self.unary()
+            self.nest(-1)
+            return _UNARY[kind](arg)
         return self.atom()
 
     def atom(self) -> Formula:
@@ -165,7 +188,9 @@ class _Parser:
             return Prop(token.text)
         if token.kind == "(":
             self.take()
+            self.nest(1)
             f = self.iff()
+            self.nest(-1)
             if self.peek().kind != ")":
                 raise self.fail(f"')' to close the '(' at column {token.column}")
             self.take()
@@ -177,4 +202,6 @@ def parse(text: str) -> Formula:
     """Parse an LTL formula; raises ``LTLSyntaxError`` (1-based column, what was expected)."""
     if not isinstance(text, str):
         raise TypeError(f"parse expects a str, got {type(text).__name__}")
-    return _Parser(text).formula()
+    f = _Parser(text).formula()
+    check_size(f)  # chains of & | <-> nest without recursing in the parser
+    return f

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import jax.numpy as jnp
 
+from d2spo.fields import check_choice, check_fields
 from d2spo.ltl.automaton import UNREACHABLE, AutomatonArrays
 
 
@@ -48,6 +49,15 @@ class RewardConfig:
     gamma < 1 standing still far from the goal earns (1 - gamma) |Phi| > c_n per step."""
     mode: str = "progress"
     """'progress' = Eq. (8); 'sparse' = r_goal on completion only (the RL-phi ablation)."""
+
+    def __post_init__(self) -> None:
+        # magnitudes: each constant enters Eq. (8) with its sign written there
+        check_fields(self, "reward", nullable=("shaping_clearance",),
+                     non_negative=("c_n", "c_p", "r_goal", "c_regress", "r_reject", "c_collision", "shaping",
+                                   "shaping_clearance"),
+                     fraction=("shaping_gamma",))
+        check_choice(self, "mode", ("progress", "sparse"), "reward")
+        check_choice(self, "shaping_metric", ("geodesic", "euclidean"), "reward")
 
 
 def progress_reward(

@@ -41,6 +41,7 @@ from d2spo.ltl.formula import (
     Release,
     Until,
     WeakUntil,
+    check_size,
     conjunction,
     disjunction,
 )
@@ -50,6 +51,12 @@ MAX_APS = 12
 """Most atomic propositions a formula may use (the transition table has 2**len(aps) columns)."""
 MAX_TABLEAU_NODES = 200_000
 """Most tableau nodes the satisfiability checks of one translation may build."""
+MAX_TABLEAU_STEPS = 10_000_000
+"""Most work the tableau may do in one translation: each formula it expands counts one step plus
+the formulas its branch has already processed (what that step copies). A bound on the time (about
+4 s on a 2-core CPU), so a formula whose check grows exponentially is refused instead of running
+for minutes: an ordered visit of 11 areas ``F(a & X F(b & X F(...))`` needs 8 million steps (3 s),
+12 areas are refused (15 took 184 s before this bound). The named tasks need at most 1100."""
 
 
 class AutomatonTooLarge(UserError):
@@ -280,8 +287,9 @@ class _Tableau:
     postponed on all of them (a generalised Büchi emptiness check).
     """
 
-    def __init__(self, max_nodes: int):
+    def __init__(self, max_nodes: int, max_steps: int = 0):
         self.max_nodes = max_nodes
+        self.steps_left = max_steps or MAX_TABLEAU_STEPS
         self.edges: dict[frozenset, list[tuple[frozenset, frozenset]]] = {}
         self.good: dict[frozenset, bool] = {}
 
@@ -294,6 +302,12 @@ class _Tableau:
             todo, lits, nxt, post, done = work.pop()
             alive = True
             while todo and alive:
+                self.steps_left -= 1 + len(done)  # each step copies the branch's set of processed formulas
+                if self.steps_left < 0:
+                    raise AutomatonTooLarge(
+                        f"the satisfiability check needs more than MAX_TABLEAU_STEPS={MAX_TABLEAU_STEPS} tableau "
+                        "steps; simplify the formula (e.g. split a long ordered visit into shorter tasks)"
+                    )
                 f = todo.pop()
                 if f in done:
                     continue
@@ -420,6 +434,7 @@ def translate(formula: Formula | str, max_states: int = 1000) -> Automaton:
     ``AutomatonTooLarge`` when a size limit is hit (``max_states`` before minimisation,
     ``MAX_APS``, ``MAX_TABLEAU_NODES``). Warns ``NeverCompletedWarning`` when no prefix is good."""
     f = parse(formula) if isinstance(formula, str) else formula
+    check_size(f)
     aps = tuple(sorted(f.aps()))
     if len(aps) > MAX_APS:
         raise AutomatonTooLarge(f"the formula uses {len(aps)} propositions; at most {MAX_APS} are supported")

@@ -26,6 +26,7 @@ import jax
 import jax.numpy as jnp
 
 from d2spo.errors import ConfigError
+from d2spo.fields import check_choice, check_fields
 from d2spo.safety.nominal import nominal_next, straight_through_next
 
 ALPHAS = ("linear", "cubic")
@@ -117,24 +118,17 @@ class CBFConfig:
         return self.alpha_coef if self.filter_alpha_coef is None else self.filter_alpha_coef
 
     def __post_init__(self):
-        if self.alpha not in ALPHAS:
-            raise ConfigError("alpha", f"unknown class-K function {self.alpha!r}; choose one of {ALPHAS}")
-        for name in ("gamma_s", "gamma_u", "gamma_exp", "alpha_coef", "d", "unsafe_max", "sigma",
-                     "cbf_lr", "policy_lr", "nominal_lr"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(name, f"must be > 0, got {getattr(self, name)}")
-        for name in ("lambda_s", "lambda_u", "lambda_e", "lambda_g", "weight_decay", "synthetic_replay"):
-            if getattr(self, name) < 0:
-                raise ConfigError(name, f"must be ≥ 0, got {getattr(self, name)}")
-        for name in ("transitions_capacity", "p_exp_capacity", "unsafe_capacity", "batch_size",
-                     "ring_newton_iters", "pretrain_samples", "updates_per_iter", "pretrain_steps"):
-            if getattr(self, name) < 1:
-                raise ConfigError(name, f"must be ≥ 1, got {getattr(self, name)}")
-        if self.filter_alpha_coef is not None and not self.filter_alpha_coef > 0:
-            raise ConfigError("filter_alpha_coef", f"must be > 0, got {self.filter_alpha_coef}")
-        for name in ("nominal_updates_per_iter", "prior_steps", "filter_iters"):
-            if getattr(self, name) < 0:
-                raise ConfigError(name, f"must be ≥ 0, got {getattr(self, name)}")
+        check_choice(self, "alpha", ALPHAS, "cbf")
+        check_fields(self, "cbf", nullable=("filter_alpha_coef",),
+                     widths=("hidden", "policy_hidden", "nominal_hidden"),
+                     positive=("gamma_s", "gamma_u", "gamma_exp", "alpha_coef", "d", "unsafe_max", "sigma",
+                               "filter_alpha_coef"),
+                     lr=("cbf_lr", "policy_lr", "nominal_lr"),
+                     non_negative=("lambda_s", "lambda_u", "lambda_e", "lambda_g", "weight_decay", "synthetic_replay"),
+                     count=("transitions_capacity", "p_exp_capacity", "unsafe_capacity", "batch_size",
+                            "ring_newton_iters", "pretrain_samples", "updates_per_iter", "pretrain_steps"),
+                     natural=("nominal_updates_per_iter", "prior_steps", "filter_iters"),
+                     flag=("te_in_band", "replay_correction"))
 
 
 def check_geometry(cfg: CBFConfig, robot_radius: float, sensing_range: float) -> None:

@@ -24,6 +24,7 @@ import optax
 from flax import struct
 
 from d2spo.errors import ConfigError
+from d2spo.fields import check_choice, check_fields
 
 OPTIMIZERS = ("adam", "sgd")
 
@@ -44,14 +45,10 @@ class LagrangeConfig:
     """Optional cap on lambda; None leaves it unbounded above."""
 
     def __post_init__(self) -> None:
-        if self.cost_limit < 0:
-            raise ConfigError("cost_limit", f"must be >= 0, got {self.cost_limit}")
-        if not self.lr > 0:
-            raise ConfigError("lr", f"must be > 0, got {self.lr}")
-        if self.init < 0:
-            raise ConfigError("init", f"must be >= 0, got {self.init}")
-        if self.optimizer not in OPTIMIZERS:
-            raise ConfigError("optimizer", f"must be one of {OPTIMIZERS}, got {self.optimizer!r}")
+        # bare field names: this section sits under ppo_lag, td3_lag and sac_lag alike
+        check_fields(self, nullable=("upper_bound",), non_negative=("cost_limit", "init", "upper_bound"),
+                     lr=("lr",))
+        check_choice(self, "optimizer", OPTIMIZERS)
         if self.upper_bound is not None and self.upper_bound < self.init:
             raise ConfigError("upper_bound", f"must be >= init ({self.init}), got {self.upper_bound}")
 

@@ -1,0 +1,76 @@
+"""Checks of config fields: the one helper every config dataclass's ``__post_init__`` calls.
+
+Each field is validated where it is defined (``TD3Config``, ``CBFConfig``, ``RewardConfig``,
+``EnvConfig``, ``TrainConfig``, ...), by kind, so a bad value from a flag or from a config.json
+ends in the same one-line ``ConfigError`` naming the field (``td3.gamma: must be in (0, 1], got
+-1.0``), before anything is built or written.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from d2spo.errors import ConfigError
+
+MAX_LR = 1.0
+"""Largest learning rate accepted. Every optimiser here is Adam (steps of about lr per update,
+whatever the gradient) or the multiplier's SGD; a rate above 1 moves a weight of a tanh network by
+more than its whole useful range in one step, so it is a typo rather than a setting (a CBF lr of
+1e6 trained to 34 % safety with exit 0 before this bound)."""
+MAX_SEED = 2**31 - 1
+"""Largest seed. JAX keys take 32 bits (2**32 is the key of seed 0), and the final evaluation uses
+seed + 10000, so seeds stay in the non-negative int32 range."""
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+KINDS: dict[str, tuple[Any, str]] = {
+    "count": (lambda v: _is_int(v) and v >= 1, "a positive integer"),
+    "natural": (lambda v: _is_int(v) and v >= 0, "an integer >= 0"),
+    "seed": (lambda v: _is_int(v) and 0 <= v <= MAX_SEED, f"an integer in [0, {MAX_SEED}]"),
+    "finite": (_is_number, "a finite number"),
+    "positive": (lambda v: _is_number(v) and v > 0, "a finite number > 0"),
+    "non_negative": (lambda v: _is_number(v) and v >= 0, "a finite number >= 0"),
+    "discount": (lambda v: _is_number(v) and 0 < v <= 1, "in (0, 1]"),
+    "rate": (lambda v: _is_number(v) and 0 < v <= 1, "in (0, 1]"),
+    "fraction": (lambda v: _is_number(v) and 0 <= v <= 1, "in [0, 1]"),
+    "lr": (lambda v: _is_number(v) and 0 < v <= MAX_LR, f"a learning rate in (0, {MAX_LR:g}]"),
+    "widths": (lambda v: isinstance(v, tuple) and len(v) >= 1 and all(_is_int(w) and w >= 1 for w in v),
+               "a non-empty list of positive layer widths"),
+    "counts": (lambda v: isinstance(v, tuple) and all(_is_int(w) and w >= 1 for w in v),
+               "a list of positive integers"),
+    "flag": (lambda v: isinstance(v, bool), "true or false"),
+}
+"""Kind -> (predicate, what the value must be). ``discount`` (a gamma), ``rate`` (tau, a fraction
+of a run) and ``fraction`` (GAE lambda) differ only in whether 0 is allowed."""
+
+
+def check_fields(obj: Any, section: str = "", nullable: tuple[str, ...] = (), **kinds: tuple[str, ...]) -> None:
+    """ConfigError on the first field of ``obj`` that is not of its kind.
+
+    ``kinds`` maps a kind of ``KINDS`` to the field names of that kind; ``nullable`` names the
+    fields that may also be None; ``section`` prefixes the field in the message (``td3.gamma``).
+    """
+    for kind, names in kinds.items():
+        ok, what = KINDS[kind]
+        for name in names:
+            value = getattr(obj, name)
+            if value is None and name in nullable:
+                continue
+            if not ok(value):
+                raise ConfigError(f"{section}.{name}" if section else name, f"must be {what}, got {value!r}")
+
+
+def check_choice(obj: Any, name: str, choices, section: str = "") -> None:
+    """ConfigError unless ``obj.<name>`` is one of ``choices``."""
+    value = getattr(obj, name)
+    if value not in tuple(choices):
+        raise ConfigError(f"{section}.{name}" if section else name,
+                          f"must be one of {list(choices)}, got {value!r}")

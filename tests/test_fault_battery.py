@@ -1,0 +1,244 @@
+"""Faults a hostile user can cause, each of which once ended in a wrong result with exit 0 or in a
+traceback: an interrupted `reproduce`, hyper-parameters out of range, bad `eval` counts, a rejected
+`train` writing to --out, unbounded work (long ordered tasks, huge arenas, deep formulas)."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import re
+
+import pytest
+
+from d2spo import reproduce as rp
+from d2spo import train as train_mod
+
+TINY_EPISODES = 24
+
+
+def _exit_code(args: list[str]) -> int:
+    """``d2spo ARGS``'s exit status (a usage error found while parsing leaves by SystemExit)."""
+    from d2spo.cli import main
+
+    try:
+        return main(args)
+    except SystemExit as e:
+        return e.code
+
+
+def _table(path) -> str:
+    """A table without its wall-time column (the only thing that may differ between two runs)."""
+    text = path.read_text()
+    if path.suffix == ".csv":
+        rows = list(csv.DictReader(text.splitlines()))
+        return "\n".join(str({k: v for k, v in r.items() if k != "wall_seconds_mean"}) for r in rows)
+    return re.sub(r"\| [^|]* \|\n", "|\n", text)  # the last column of every row
+
+
+def test_interrupted_reproduce_resumes_its_seed_group_exactly(tmp_path, monkeypatch):
+    """Two seeds trained as one vmapped group, stopped in their third chunk after the group and each
+    seed had checkpointed: the rerun resumes the group (not each seed alone from its own checkpoint),
+    so the tables are those of an uninterrupted run, and the group directory is removed."""
+    config = rp.RunSpec.config
+
+    def small(spec):  # checkpoints every 10 episodes, so the group and each seed checkpoint mid-run
+        c = config(spec)
+        ppo = dataclasses.replace(c.ppo_lag, hidden=(16, 16), rollout_steps=50, n_minibatches=4, epochs=2)
+        return dataclasses.replace(c, checkpoint_every=10, num_envs=4, chunk_steps=50, eval_episodes=4,
+                                   env=dataclasses.replace(c.env, max_steps=40), ppo_lag=ppo)
+
+    monkeypatch.setattr(rp.RunSpec, "config", small)
+    kw = {"seeds": 2, "episodes": TINY_EPISODES, "methods": ["ppo-lag"], "progress": False, "log": lambda s: None}
+    rp.reproduce(["table3"], tmp_path / "a", **kw)
+
+    record, calls = train_mod._Run.record, []
+
+    def killed_in_chunk_3(run, log, progress):
+        calls.append(run)
+        if len(calls) == 5:  # the third chunk
+            raise KeyboardInterrupt
+        record(run, log, progress)
+
+    monkeypatch.setattr(train_mod._Run, "record", killed_in_chunk_3)
+    with pytest.raises(KeyboardInterrupt):
+        rp.reproduce(["table3"], tmp_path / "b", **kw)
+    monkeypatch.setattr(train_mod._Run, "record", record)
+    runs = tmp_path / "b" / "runs"
+    assert len(list(runs.glob(".group-*/checkpoint.json"))) == 1
+    assert list(runs.glob("ppo-lag-*/checkpoint.json"))  # what made a seed resume alone, the other restart
+    rp.reproduce(["table3"], tmp_path / "b", **kw)
+    for name in ("table3.md", "table3.csv"):
+        assert _table(tmp_path / "b" / name) == _table(tmp_path / "a" / name), name
+    for spec in rp.runs_for("table3", 2, TINY_EPISODES, ["ppo-lag"]):
+        a, b = rp.run_dir(tmp_path / "a", spec), rp.run_dir(tmp_path / "b", spec)
+        assert (a / "episodes.csv").read_bytes() == (b / "episodes.csv").read_bytes()
+    assert not list(runs.glob(".group-*")), "the group directory is removed"
+
+
+def test_a_finished_groups_leftover_directory_is_removed(tmp_path):
+    (spec0, spec1) = rp.runs_for("table3", 2, TINY_EPISODES, ["ppo-lag"])
+    for s in (spec0, spec1):
+        rp.run_dir(tmp_path, s).mkdir(parents=True)
+        (rp.run_dir(tmp_path, s) / "summary.json").write_text("{}")
+    group = train_mod.group_dir([rp.run_dir(tmp_path, spec0), rp.run_dir(tmp_path, spec1)])
+    group.mkdir()
+    (group / "checkpoint.msgpack").write_bytes(b"x" * 1000)
+    assert rp.started_groups(tmp_path, [spec0, spec1]) == [] and not group.exists()
+
+
+# ---- every hyper-parameter checked where it is defined, one line, exit 2, nothing written --------
+BAD_FLAGS = [
+    ["--td3.gamma", "-1"], ["--td3.actor-lr", "-0.001"], ["--td3.policy-delay", "0"],
+    ["--td3.learning-starts", "-100"], ["--r-goal", "inf"], ["--c-n", "nan"], ["--td3.batch-size", "0"],
+    ["--td3.hidden", "0"], ["--td3.buffer-size", "0"], ["--d2spo.update-every", "0"], ["--seed", str(2**64)],
+    ["--cbf.cbf-lr", "1e6"], ["--sac-lag.sac.tau", "0"], ["--ppo-lag.gamma", "1.5"], ["--anneal.k1", "0"],
+    ["--rcrl.multiplier-lr", "nan"], ["--cpo.cg-damping", "-1"], ["--dt", "nan"],
+]
+
+
+@pytest.mark.parametrize("flag", BAD_FLAGS, ids=lambda f: f[0])
+def test_bad_hyper_parameter_is_one_line_exit_2_and_writes_nothing(flag, tmp_path, capsys):
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "config.json").write_text("mine")  # the user's own file must survive a rejected train
+    assert _exit_code(["train", "--episodes", "1", "--out", str(out), "--no-progress", *flag]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    field = flag[0][2:].replace("-", "_").split(".")[-1]
+    assert len(err) == 1 and err[0].startswith("d2spo: error:") and field in err[0], err
+    assert sorted(p.name for p in out.iterdir()) == ["config.json"] and (out / "config.json").read_text() == "mine"
+
+
+def test_defaults_validate_and_configs_check_every_section():
+    from d2spo.config import TrainConfig, config_from_dict, config_to_dict
+    from d2spo.errors import ConfigError
+
+    data = config_to_dict(TrainConfig())
+    assert config_from_dict(data) == TrainConfig()
+    data["sac_lag"]["sac"]["gamma"] = 0.0
+    with pytest.raises(ConfigError, match=r"sac.gamma: must be in \(0, 1\]"):
+        config_from_dict(data)  # a hand-edited config.json is refused like a flag
+
+
+def test_rejected_layout_leaves_the_users_config_json(tmp_path):
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "config.json").write_text("mine")
+    assert _exit_code(["train", "--episodes", "1", "--out", str(out), "--layout", "nope", "--no-progress"]) == 2
+    assert (out / "config.json").read_text() == "mine"
+
+
+# ---- the NaN guard ------------------------------------------------------------------------------
+def _log(chunk_steps=4, num_envs=2, ret=1.0, metrics=None):
+    import numpy as np
+
+    from d2spo.algos.base import ChunkLog
+
+    z = np.zeros((chunk_steps, num_envs))
+    done = z.astype(bool)
+    done[-1, 0] = True
+    return ChunkLog(done, z + ret, z, z.astype(int), z.astype(int), z.astype(int), z.astype(int) + 3,
+                    np.zeros((chunk_steps, num_envs, 2)), metrics or {}, np.bool_(False))
+
+
+def test_nan_guard_watches_returns_metrics_and_losses_before_writing(tmp_path):
+    import numpy as np
+
+    from d2spo.config import TrainConfig
+    from d2spo.errors import NaNError
+
+    cfg = TrainConfig(episodes=100, chunk_steps=4, num_envs=2)
+    run = train_mod._Run(cfg, tmp_path)
+    nan = np.nan
+    run.record(_log(metrics={"losses/qf": np.array([1.0, nan, 1.0, nan])}), None)
+    assert len(run.writer) == 1
+    for bad in (_log(ret=nan), _log(metrics={"charts/lambda": np.array([np.inf] * 4)})):
+        with pytest.raises(NaNError, match="no checkpoint was written"):
+            run.record(bad, None)
+    assert len(run.writer) == 1 and len((tmp_path / "episodes.csv").read_text().splitlines()) == 2
+    run.record(_log(metrics={"losses/qf": np.full(4, nan)}), None)  # no update this chunk: no value yet
+    with pytest.raises(NaNError, match="losses/qf has been NaN"):
+        for _ in range(3):
+            run.record(_log(metrics={"losses/qf": np.full(4, nan)}), None)
+    run.tb and run.tb.close()
+
+
+# ---- eval ---------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    import json
+
+    import jax
+
+    from d2spo.algos.td3 import TD3Config
+    from d2spo.config import TrainConfig, config_to_dict
+    from d2spo.envs import EnvConfig
+    from d2spo.runio import save_checkpoint
+
+    cfg = TrainConfig(algo="tlgrl", task="relaxed", episodes=2, num_envs=2, chunk_steps=20, eval_episodes=0,
+                      env=EnvConfig(layout="relaxed", max_steps=20),
+                      td3=TD3Config(hidden=(8,), batch_size=8, learning_starts=8, buffer_size=256))
+    out = tmp_path_factory.mktemp("eval") / "run"
+    out.mkdir()
+    (out / "config.json").write_text(json.dumps(config_to_dict(cfg)))
+    _, _, learner = train_mod.build(cfg)  # an untrained policy is as good as any for a refusal
+    save_checkpoint(out, jax.jit(learner.init)(jax.random.PRNGKey(0)), {"episodes": 0})
+    return out
+
+
+@pytest.mark.parametrize("args", [["--episodes", "0"], ["--episodes", "-1"], ["--layout-seeds", "0"],
+                                  ["--layout-seeds", "-1"], ["--layout-seeds", "3"], ["--seed", str(2**64)]])
+def test_eval_refuses_bad_counts_and_keeps_the_earlier_result(args, tiny_run, capsys):
+    earlier = tiny_run / "eval-relaxed-default.json"
+    earlier.write_text("earlier")
+    assert _exit_code(["eval", str(tiny_run), *args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("d2spo: error:"), err
+    assert earlier.read_text() == "earlier"
+
+
+# ---- unbounded work ---------------------------------------------------------------------------
+def _ordered_visits(n: int) -> str:
+    f = "F A1"
+    for i in range(1, n):
+        f = f"F(A{i % 3 + 1} & X {f})"
+    return f
+
+
+@pytest.mark.parametrize("formula", ["X " * 3000 + "a", " | ".join(f"a{i % 10}" for i in range(3000)),
+                                     "(" * 400 + "a" + ")" * 400, " U ".join(["a"] * 150)],
+                         ids=["next-3000", "or-3000", "parens-400", "until-150"])
+def test_deep_or_long_formulas_are_refused_in_one_line(formula, capsys):
+    assert _exit_code(["ltl", formula]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and ("MAX_DEPTH" in err[0] or "MAX_SIZE" in err[0]), err
+
+
+def test_a_long_ordered_task_is_refused_naming_the_limit(monkeypatch):
+    import importlib
+    import time
+
+    from d2spo.ltl.translate import AutomatonTooLarge, translate
+
+    tr_mod = importlib.import_module("d2spo.ltl.translate")  # d2spo.ltl.translate is also the function
+
+    assert len(translate(_ordered_visits(6)).delta) == 7  # short ones still translate
+    monkeypatch.setattr(tr_mod, "MAX_TABLEAU_STEPS", 300_000)  # the same refusal, sooner
+    t = time.perf_counter()
+    with pytest.raises(AutomatonTooLarge, match="MAX_TABLEAU_STEPS=300000"):
+        translate(_ordered_visits(30))
+    assert time.perf_counter() - t < 20
+
+
+def test_huge_arena_is_refused_up_front_or_stays_fast():
+    import time
+
+    from d2spo.envs import EnvConfig, make_env
+    from d2spo.errors import ConfigError
+    from d2spo.ltl.reward import RewardConfig
+
+    with pytest.raises(ConfigError, match="MAX_NODES"):
+        make_env(EnvConfig(layout="relaxed", layout_scale=40.0), task="F A1")
+    t = time.perf_counter()
+    make_env(EnvConfig(layout="relaxed", layout_scale=40.0, reward=RewardConfig(shaping_metric="euclidean")),
+             task="F A1")
+    assert time.perf_counter() - t < 30  # minutes and > 6 GB before
