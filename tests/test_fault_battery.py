@@ -147,7 +147,9 @@ def test_nan_guard_watches_returns_metrics_and_losses_before_writing(tmp_path):
     from d2spo.errors import NaNError
 
     cfg = TrainConfig(episodes=100, chunk_steps=4, num_envs=2)
-    run = train_mod._Run(cfg, tmp_path)
+    from d2spo.checkpoint import Checkpoints
+
+    run = train_mod._Run(cfg, tmp_path, None, Checkpoints(tmp_path, None))
     nan = np.nan
     run.record(_log(metrics={"losses/qf": np.array([1.0, nan, 1.0, nan])}), None)
     assert len(run.writer) == 1
@@ -172,7 +174,7 @@ def tiny_run(tmp_path_factory):
     from d2spo.algos.td3 import TD3Config
     from d2spo.config import TrainConfig, config_to_dict
     from d2spo.envs import EnvConfig
-    from d2spo.runio import save_checkpoint
+    from d2spo.checkpoint import Checkpoints, run_fingerprint
 
     cfg = TrainConfig(algo="tlgrl", task="relaxed", episodes=2, num_envs=2, chunk_steps=20, eval_episodes=0,
                       env=EnvConfig(layout="relaxed", max_steps=20),
@@ -181,7 +183,8 @@ def tiny_run(tmp_path_factory):
     out.mkdir()
     (out / "config.json").write_text(json.dumps(config_to_dict(cfg)))
     _, _, learner = train_mod.build(cfg)  # an untrained policy is as good as any for a refusal
-    save_checkpoint(out, jax.jit(learner.init)(jax.random.PRNGKey(0)), {"episodes": 0})
+    Checkpoints(out, run_fingerprint(out)).save(jax.jit(learner.init)(jax.random.PRNGKey(0)),
+                                                {"episodes": 0, "env_steps": 0, "chunks": 0, "wall_seconds": 0.0})
     return out
 
 
