@@ -37,7 +37,9 @@ class LtlCmd:
     dot: bool = False
     """Print the automaton in Graphviz dot format."""
     layout: str | None = None
-    """Restrict distances to letters that can occur on this layout (name or JSON file)."""
+    """Distances over the letters this layout can produce (name or JSON file); default: one area at a time."""
+    all_letters: bool = False
+    """Distances over every letter, as if all areas could hold at once (e.g. {A1, A2, A3} in one step)."""
     label_mode: str = "event"
     """Labelling the distances assume: 'event' (no empty letter) or 'step'."""
 
@@ -46,18 +48,27 @@ class LtlCmd:
 
         if self.json and self.dot:
             raise UserError("--json and --dot are exclusive; choose one")
+        if self.layout is not None and self.all_letters:
+            raise UserError("--layout and --all-letters are exclusive; choose one")
         aut = translate(task_formula(self.formula))
-        feasible = None
-        if self.layout is not None:
+        if self.all_letters:
+            feasible, letters = None, "every letter (all areas may hold at once)"
+        elif self.layout is not None:
             from d2spo.envs import layouts
 
-            feasible = layouts.feasible_letters(layouts.load(self.layout), aut.aps, self.label_mode)
+            lay = layouts.load(self.layout)
+            feasible = layouts.feasible_letters(lay, aut.aps, self.label_mode)
+            letters = f"the letters layout {lay.name!r} can produce"
+        else:  # disjoint areas, as on every built-in layout: the robot is in at most one area
+            feasible = [1 << i for i in range(len(aut.aps))] + ([0] if self.label_mode == "step" else [])
+            letters = "one area at a time (disjoint areas; --layout NAME for a layout's, --all-letters for every letter)"
         if self.json:
             print(json.dumps(aut.to_json(feasible)))
         elif self.dot:
             print(aut.to_dot())
         else:
             print(aut.pretty(feasible))
+            print(f"distance: area visits (letters) still needed to accept, over {letters}")
         return 0
 
 
@@ -160,21 +171,30 @@ class EvalCmd:
 
 @dataclasses.dataclass
 class EnvCheckCmd:
-    """Validate a layout (built-in or JSON file) and print what it holds."""
+    """Validate a layout (built-in or JSON file) for the robot of a preset and print what it holds."""
 
     layout: str = "paper"
     """Built-in layout name or a JSON file."""
-    task: str = "phi1"
-    """Also check that this task can be completed on the layout."""
+    task: str | None = None
+    """Also check that this task (a name or a formula) can be completed on the layout; default: no task."""
+    preset: str = "default"
+    """Robot preset whose size and layout scale the layout is checked with: ideal, default or turtlebot."""
 
     def run(self) -> int:
         from d2spo.envs import EnvConfig, make_env
+        from d2spo.envs.nav import checked_layout
 
-        env, params = make_env(EnvConfig(layout=self.layout), task=self.task)
-        lay = env.layout
-        print(f"layout {lay.name!r}: arena {lay.arena[0]:g} x {lay.arena[1]:g} m, {len(lay.obstacles)} obstacles, "
-              f"areas {', '.join(lay.area_names)}; task {self.task!r} needs "
-              f"{int(params.aut.distance[int(params.aut.initial)])} area visits; observation size {env.observation_size}")
+        cfg, lay = checked_layout(EnvConfig(layout=self.layout, preset=self.preset))
+        n_obs = len(lay.obstacles)
+        print(f"layout {lay.name!r}: arena {lay.arena[0]:g} x {lay.arena[1]:g} m, {n_obs} obstacle{'s' * (n_obs != 1)}, "
+              f"areas {', '.join(lay.area_names)}; a robot of radius {cfg.robot_radius:g} m fits at the start "
+              "and reaches every area")
+        if self.task is None:
+            print("no task checked (--task NAME_OR_FORMULA checks one)")
+            return 0
+        env, params = make_env(EnvConfig(layout=self.layout, preset=self.preset), task=self.task)
+        print(f"task {self.task!r}: needs {int(params.aut.distance[int(params.aut.initial)])} area visits on this "
+              f"layout; observation size {env.observation_size}")
         return 0
 
 
@@ -258,34 +278,69 @@ Commands = Union[
 _BOX = re.compile(r"[╭╮╰╯│─]+")
 
 
-def _tyro_error_line(text: str) -> str:
-    """Condense tyro's boxed error message into one line."""
-    lines = [ln for ln in text.splitlines() if ln.strip()]
-    title = ""
+def _tyro_error_line(text: str, args: list[str] = ()) -> str:
+    """Condense tyro's boxed error message into one line. Its suggestions for a misspelled flag are
+    kept ("did you mean --episodes?"), only those of the subcommand in ``args`` when it names one."""
+    # With a terminal (or UTF-8) tyro draws a box; otherwise a title line underlined with dashes.
+    lines = [_BOX.sub(" ", ln).strip() for ln in text.splitlines() if ln.strip()]
+    title = lines[0] if lines else ""
     body: list[str] = []
-    for ln in lines:
-        if ln.lstrip().startswith("╭"):
-            title = _BOX.sub(" ", ln).strip()
+    similar: dict[str, dict[str, list[str]]] = {}  # misspelled flag ("" = unnamed) -> flag -> subcommands
+    section: dict[str, list[str]] | None = None
+    flag = ""
+    for stripped in lines[1:]:
+        if set(stripped) <= set("-+ "):  # a rule (empty: a rule of box characters)
+            if body and section is None:
+                section = {}  # past the first block: only suggestions are read from here on
             continue
-        stripped = ln.strip().strip("│").strip()
-        if not stripped or set(stripped) <= set("─╰╯"):
-            if body:
-                break
-            continue
-        body.append(stripped)
+        m = re.match(r"(?:Perhaps you meant|Arguments similar to (\S+)):$", stripped)
+        if m:
+            section = similar.setdefault(m.group(1) or "", {})
+        elif section is not None and stripped.startswith("-"):
+            flag = stripped.split()[0]
+            section.setdefault(flag, [])
+        elif section is not None and flag in section and re.fullmatch(r"in .+ --help", stripped):
+            section[flag].append(stripped[3:-7])
+        elif section is None:
+            body.append(stripped)
     msg = " ".join(body) or "invalid command line"
-    return f"{title}: {msg}" if title else msg
+    command = " ".join(["d2spo", *[a for a in args if not a.startswith("-")]])
+    hints = []
+    for typo, flags in similar.items():
+        ok = [f for f, where in flags.items() if not where or any(command.startswith(w) for w in where)]
+        if ok:
+            hints.append(" or ".join(ok[:3]) + (f" for {typo}" if typo else ""))
+    if hints:
+        msg += f" (did you mean {'; '.join(hints)}?)"
+    return f"{title}: {msg}" if title and not msg.startswith(title) else msg
+
+
+def version() -> str:
+    """The installed d2spo's version (the package metadata; the source tree's when run from it)."""
+    from importlib import metadata
+
+    try:
+        return metadata.version("d2spo")
+    except metadata.PackageNotFoundError:
+        from d2spo import __version__
+
+        return __version__
 
 
 def parse(args: list[str]):
     """Parse the command line; on a usage error print one line and exit 2."""
+    if args in (["--version"], ["-V"]):
+        print(f"d2spo {version()}")
+        raise SystemExit(0)
     buf = io.StringIO()
     try:
         with contextlib.redirect_stderr(buf):
-            return tyro.cli(Commands, args=args, prog="d2spo")
+            return tyro.cli(Commands, args=args, prog="d2spo",
+                            description="D²SPO: safe RL with LTL tasks and learned control barrier functions. "
+                                        "`d2spo --version` prints the version.")
     except SystemExit as e:
         if e.code not in (0, None):
-            _stderr(_tyro_error_line(buf.getvalue()) + " (see d2spo --help)")
+            _stderr(_tyro_error_line(buf.getvalue(), args) + " (see d2spo --help)")
             raise SystemExit(2) from None
         raise
 
