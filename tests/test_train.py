@@ -31,7 +31,8 @@ def rows(path):
 
 
 def test_outputs_and_summary(tmp_path):
-    summary = train(tiny(), tmp_path / "run")
+    events = []
+    summary = train(tiny(), tmp_path / "run", progress=events.append)
     run = tmp_path / "run"
     for name in ("config.json", "episodes.csv", "summary.json", "checkpoint.msgpack"):
         assert (run / name).is_file(), name
@@ -47,6 +48,13 @@ def test_outputs_and_summary(tmp_path):
     assert summary["episodes"] == 60 and summary["window"] == 50
     assert 0.0 <= summary["eval"]["safety_rate"] <= 1.0
     assert json.loads((run / "summary.json").read_text()) == summary
+    # wall time without compilation (the training loop), the compilation, and everything together
+    assert summary["compile_seconds"] > 0 and summary["wall_seconds"] > 0
+    assert summary["wall_seconds_total"] >= summary["wall_seconds"] + summary["compile_seconds"]
+    # the progress callback hears of the compilation before the first chunk and of the final evaluation
+    phases = [e.get("phase", "chunk") for e in events]
+    assert phases[:2] == ["compiling", "compiled"] and phases[-1] == "evaluating"
+    assert set(phases[2:-1]) == {"chunk"} and events[-2]["episodes"] == 60
     assert list((run / "tb").iterdir()), "TensorBoard events written"
     # `d2spo eval` on it: prints and writes the rates, with the distance driven
     from d2spo.cli import main
