@@ -71,6 +71,8 @@ def test_eval_switches_the_runtime_filter_on_away_from_the_training_layout():
     assert filter_choice(d2, "paper", "default", None) is None
     assert filter_choice(d2, "random:3", None, None) is True
     assert filter_choice(d2, None, "turtlebot", None) is True
+    assert filter_choice(d2, None, None, None, {"slip": 0.2}) is True  # a per-field change of the dynamics
+    assert filter_choice(d2, None, None, None, {"slip": 0.05}) is None  # the trained value: nothing changes
     assert filter_choice(d2, "random:3", None, False) is False  # asked for: the paper's π_Ω alone
     assert filter_choice(TrainConfig(algo="td3-lag"), "random:3", None, None) is None  # no filter to switch
 

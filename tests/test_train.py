@@ -30,7 +30,7 @@ def rows(path):
         return list(csv.reader(f))
 
 
-def test_outputs_and_summary(tmp_path):
+def test_outputs_and_summary(tmp_path, capsys):
     events = []
     summary = train(tiny(), tmp_path / "run", progress=events.append)
     run = tmp_path / "run"
@@ -63,6 +63,19 @@ def test_outputs_and_summary(tmp_path):
     ev = json.loads((run / "eval-relaxed-default.json").read_text())
     assert ev["episodes"] == 4 and [p["layout"] for p in ev["per_layout"]] == ["relaxed"]
     assert ev["mean_distance"] > 0.0 and ev["runtime_filter"] is None  # tlgrl has no filter
+    # under custom dynamics: a JSON file with every field, and a per-field flag on top of it
+    robot = {"dt": 0.1, "v_max": 0.5, "omega_max": 1.0, "actuator_tau": 0.0, "v_gain": 1.0, "omega_gain": 1.0,
+             "slip": 0.0, "noise_xy": 0.0, "noise_theta": 0.0}
+    (tmp_path / "slow.json").write_text(json.dumps(robot))
+    assert main(["eval", str(run), "--episodes", "4", "--dynamics", str(tmp_path / "slow.json"), "--slip", "0.2"]) == 0
+    ev = json.loads((run / "eval-relaxed-slow-slip0.2.json").read_text())
+    assert ev["dynamics"] == "slow-slip0.2" and ev["dynamics_values"] == {**robot, "slip": 0.2}
+    (tmp_path / "bad.json").write_text(json.dumps({**robot, "v_gain": -1}))
+    assert main(["eval", str(run), "--dynamics", str(tmp_path / "bad.json")]) == 2
+    assert main(["eval", str(run), "--noise-xy", "-1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"d2spo: error: dynamics.v_gain: must be positive, got -1 (in {tmp_path / 'bad.json'})",
+                   "d2spo: error: noise_xy: must be non-negative, got -1.0"]
 
 
 def test_same_seed_same_run_and_resume_is_exact(tmp_path):

@@ -18,7 +18,7 @@ from typing import Annotated, Union
 import tyro
 
 from d2spo.config import TrainConfig
-from d2spo.errors import LTLSyntaxError, NaNError, UserError
+from d2spo.errors import ConfigError, LTLSyntaxError, NaNError, UserError
 
 
 def _stderr(msg: str) -> None:
@@ -130,12 +130,54 @@ class TrainCmd:
     resume: Path | None = None
     """Continue the interrupted run in this directory (its config.json wins over other flags)."""
     progress: bool = True
-    """Show a progress bar."""
+    """Show a progress bar (on a terminal; plain periodic lines otherwise)."""
+    dynamics: Path | None = None
+    """A JSON file with the robot's dynamics (every field: docs/env.md); it replaces the preset's, and
+    flags such as --v-gain override it. config.json records the values."""
+
+    def config(self) -> TrainConfig:
+        """The run's config: the flags, with the --dynamics file filling the dynamics fields they leave unset."""
+        if self.dynamics is None:
+            return self.cfg
+        from d2spo.envs.dynamics import load_dynamics
+
+        if self.resume is not None:
+            raise ConfigError("dynamics", "--resume continues the run with its own config.json; leave out --dynamics")
+        values = load_dynamics(self.dynamics)
+        env = dataclasses.replace(self.cfg.env, **{k: v for k, v in values.items() if getattr(self.cfg.env, k) is None})
+        return dataclasses.replace(self.cfg, env=env)
 
     def run(self) -> int:
         from d2spo.progress import train_with_progress
 
-        return train_with_progress(self.cfg, self.out, self.resume, self.progress)
+        return train_with_progress(self.config(), self.out, self.resume, self.progress)
+
+
+@dataclasses.dataclass(frozen=True)
+class DynamicsFlags:
+    """Per-field dynamics of an evaluation (each one replaces the trained value, or --dynamics')."""
+
+    dt: float | None = None
+    """Control period (s)."""
+    v_max: float | None = None
+    """Largest linear speed (m/s): action[0] = 1 commands v_max."""
+    omega_max: float | None = None
+    """Largest angular speed (rad/s): action[1] = 1 commands omega_max."""
+    actuator_tau: float | None = None
+    """Time constant of the first-order actuator lag (s); 0 = none."""
+    v_gain: float | None = None
+    """Realised / commanded linear speed."""
+    omega_gain: float | None = None
+    """Realised / commanded angular speed."""
+    slip: float | None = None
+    """Largest fraction of speed lost to wheel slip per step, in [0, 1)."""
+    noise_xy: float | None = None
+    """Std of the Gaussian process noise on x and on y per step (m)."""
+    noise_theta: float | None = None
+    """Std of the Gaussian process noise on theta per step (rad)."""
+
+    def given(self) -> dict[str, float]:
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if getattr(self, f.name) is not None}
 
 
 @dataclasses.dataclass
@@ -150,7 +192,8 @@ class EvalCmd:
     layout: str | None = None
     """Evaluate on another layout (name or JSON file); default: the training layout."""
     dynamics: str | None = None
-    """Evaluate under another dynamics preset (ideal, default, turtlebot)."""
+    """Evaluate under other dynamics: a preset (ideal, default, turtlebot: its unmodelled effects, with the
+    trained time step and speed limits) or a JSON file (every field it gives: docs/env.md)."""
     seed: int = 0
     """Seed of the evaluation episodes."""
     layout_seeds: int = 1
@@ -162,6 +205,7 @@ class EvalCmd:
     """D²SPO only: linearise-and-project iterations of the runtime filter; default: as trained."""
     filter_alpha: float | None = None
     """D²SPO only: coefficient of α in the runtime filter's condition (smaller brakes earlier); default: as trained."""
+    dynamics_fields: Annotated[DynamicsFlags, tyro.conf.arg(name="")] = DynamicsFlags()
 
     def run(self) -> int:
         from d2spo.evaluate import eval_command
