@@ -91,12 +91,14 @@ class EnvShowCmd:
         from d2spo.envs.render import save_layout_png
 
         lay = layouts.load(self.layout)
-        trajs = None
+        trajs, title = None, None
         if self.rollout_steps > 0:
             from d2spo.demo import random_rollout
 
-            trajs = [random_rollout(self.layout, self.rollout_steps, self.seed)]
-        save_layout_png(lay, self.out, trajectories=trajs)
+            task = f"F {lay.area_names[-1]}"  # the rollout's task: it ends on reaching the last area
+            trajs = [random_rollout(self.layout, self.rollout_steps, self.seed, task=task)]
+            title = f"layout {lay.name!r}: a random-action rollout, task {task!r} (seed {self.seed})"
+        save_layout_png(lay, self.out, trajectories=trajs, title=title, trajectory_label="random actions (x: end)")
         print(f"wrote {self.out}")
         return 0
 
