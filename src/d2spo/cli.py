@@ -61,7 +61,8 @@ class LtlCmd:
             letters = f"the letters layout {lay.name!r} can produce"
         else:  # disjoint areas, as on every built-in layout: the robot is in at most one area
             feasible = [1 << i for i in range(len(aut.aps))] + ([0] if self.label_mode == "step" else [])
-            letters = "one area at a time (disjoint areas; --layout NAME for a layout's, --all-letters for every letter)"
+            letters = ("one area at a time (disjoint areas; --layout NAME for a layout's, "
+                       "--all-letters for every letter)")
         if self.json:
             print(json.dumps(aut.to_json(feasible)))
         elif self.dot:
@@ -134,8 +135,7 @@ class TrainCmd:
     progress: bool = True
     """Show a progress bar (on a terminal; plain periodic lines otherwise)."""
     dynamics: Path | None = None
-    """A JSON file with the robot's dynamics (every field: docs/env.md); it replaces the preset's, and
-    flags such as --v-gain override it. config.json records the values."""
+    """JSON file of the robot's dynamics (docs/env.md): replaces the preset's; flags like --v-gain override it."""
 
     def config(self) -> TrainConfig:
         """The run's config: the flags, with the --dynamics file filling the dynamics fields they leave unset."""
@@ -232,9 +232,9 @@ class EnvCheckCmd:
 
         cfg, lay = checked_layout(EnvConfig(layout=self.layout, preset=self.preset))
         n_obs = len(lay.obstacles)
-        print(f"layout {lay.name!r}: arena {lay.arena[0]:g} x {lay.arena[1]:g} m, {n_obs} obstacle{'s' * (n_obs != 1)}, "
-              f"areas {', '.join(lay.area_names)}; a robot of radius {cfg.robot_radius:g} m fits at the start "
-              "and reaches every area")
+        print(f"layout {lay.name!r}: arena {lay.arena[0]:g} x {lay.arena[1]:g} m, "
+              f"{n_obs} obstacle{'s' * (n_obs != 1)}, areas {', '.join(lay.area_names)}; "
+              f"a robot of radius {cfg.robot_radius:g} m fits at the start and reaches every area")
         if self.task is None:
             print("no task checked (--task NAME_OR_FORMULA checks one)")
             return 0

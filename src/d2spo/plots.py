@@ -93,7 +93,8 @@ def draw_policy_figure(learner, policy, env, params, episodes: int = 8, seed: in
     ax.set_title(title or f"{completed.mean():.0%} completed, {1 - collided.mean():.0%} safe "
                           f"({poses.shape[0]} episodes)")
     names = {"completed": "task completed", "collided": "collision", "neither": "out of time"}
-    add_legend(ax, [Line2D([], [], color=c, label=f"trajectory: {names[k]} (x: end)") for k, c in OUTCOME_COLORS.items()])
+    add_legend(ax, [Line2D([], [], color=c, label=f"trajectory: {names[k]} (x: end)")
+                    for k, c in OUTCOME_COLORS.items()])
     if has_cbf:
         draw_cbf(fig.add_subplot(1, 2, 2), learner, policy[1], env.layout, heading=0.0, colorbar_fig=fig)
     fig.suptitle(suptitle or f"layout {env.layout.name!r}")

@@ -174,7 +174,8 @@ class _Bars:
 
 class _Lines:
     """Plain lines for a log: the phases, the first chunk that ends an episode, then a line once
-    ``every`` seconds have passed since the last, and the last one: ``label: 1200/20000 episodes (6%), 0:01:02, eta 0:10:00, 26.1 ep/s · safe …``."""
+    ``every`` seconds have passed since the last, and the last one, e.g.
+    ``label: 1200/20000 episodes (6%), 0:01:02, eta 0:10:00, 26.1 ep/s · safe …``."""
 
     def __init__(self, file, every: float = 30.0):
         self.file, self.every = file, every

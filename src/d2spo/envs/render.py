@@ -33,8 +33,8 @@ def draw_layout(
     w, h = layout.arena
     ax.add_patch(Rectangle((0, 0), w, h, fill=False, edgecolor="black", linewidth=1.5))
     for i, o in enumerate(layout.obstacles):
-        ax.add_patch(Rectangle(tuple(o.lo), 2 * o.half_extents[0], 2 * o.half_extents[1],
-                               facecolor=OBSTACLE_COLOR, edgecolor=OBSTACLE_COLOR, label="obstacle" if i == 0 else None))
+        ax.add_patch(Rectangle(tuple(o.lo), 2 * o.half_extents[0], 2 * o.half_extents[1], facecolor=OBSTACLE_COLOR,
+                               edgecolor=OBSTACLE_COLOR, label="obstacle" if i == 0 else None))
     for i, a in enumerate(layout.areas):
         ax.add_patch(Circle(a.center, a.radius, facecolor=AREA_COLOR, alpha=0.35, edgecolor=AREA_COLOR,
                             label="area of interest (its name is the LTL proposition)" if i == 0 else None))
