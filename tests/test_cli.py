@@ -42,3 +42,63 @@ def test_usage_errors_exit_2_with_one_line(args):
     assert len(lines) == 1, res.stderr
     assert lines[0].startswith("d2spo: error: ")
     assert "Traceback" not in res.stderr
+
+
+def _docs_layout_example() -> str:
+    """The example layout of docs/layouts.md, verbatim (the first ```json block)."""
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "layouts.md").read_text()
+    return text.split("```json\n", 1)[1].split("```", 1)[0]
+
+
+def test_env_check_needs_no_task(tmp_path, capsys):
+    """The layout copied from docs/layouts.md (one area) passes `env check`; a task is checked only
+    when one is given, and phi1 (A1, A2, A3) then fails with one line naming what is missing."""
+    path = tmp_path / "my_lab.json"
+    path.write_text(_docs_layout_example())
+    assert cli.main(["env", "check", "--layout", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "'my-lab'" in out and "areas A1" in out and "no task checked" in out
+    assert cli.main(["env", "check", "--layout", str(path), "--task", "F A1"]) == 0
+    assert "task 'F A1': needs 1 area visits" in capsys.readouterr().out
+    assert cli.main(["env", "check", "--layout", str(path), "--task", "phi1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "task:" in err[0] and "'A2', 'A3'" in err[0]
+
+
+def test_misspelled_flag_keeps_the_suggestion(capsys):
+    with pytest.raises(SystemExit) as e:
+        cli.main(["train", "--episods", "10"])
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].count("Unrecognized options") == 1, err
+    assert "did you mean --episodes?" in err[0]
+    with pytest.raises(SystemExit):  # two typos: each gets its own, from this subcommand only (not --seeds)
+        cli.main(["train", "--seeed", "1", "--episods", "3"])
+    err = capsys.readouterr().err
+    assert "--episodes for --episods" in err and "--seed for --seeed" in err and "--seeds" not in err
+
+
+def test_version(capsys):
+    from d2spo import __version__
+
+    with pytest.raises(SystemExit) as e:
+        cli.main(["--version"])
+    assert e.value.code == 0 and capsys.readouterr().out.strip() == f"d2spo {__version__}"
+
+
+def test_ltl_distance_defaults_to_one_area_at_a_time(capsys):
+    """phi1 needs three visits with disjoint areas; the distance over every letter (1: all three areas at
+    once) is only shown when asked for, and the output says which letters the distances use."""
+    def initial_distance(*flags: str) -> tuple[str, str]:
+        assert cli.main(["ltl", "phi1", *flags]) == 0
+        out = capsys.readouterr().out.splitlines()
+        return out[2].split()[2], out[-1]
+
+    d, note = initial_distance()
+    assert d == "3" and "one area at a time" in note
+    d, note = initial_distance("--all-letters")
+    assert d == "1" and "every letter" in note
+    d, note = initial_distance("--layout", "relaxed")  # relaxed has no A3
+    assert d == "-" and "'relaxed'" in note

@@ -61,6 +61,25 @@ def test_short_run_on_relaxed_learns_to_reach_a1_safely(tmp_path):
     assert res["safety_rate"] == 1.0
     with pytest.raises(ConfigError):
         evaluate_run(tmp_path / "run", episodes=4, runtime_filter=True, filter_alpha=0.0)
+    # the demo's picture of it: named, with units, legends and a colourbar label, and no title clipped
+    from d2spo.evaluate import load_policy
+    from d2spo.plots import draw_policy_figure
+
+    _, learner, policy, _ = load_policy(tmp_path / "run")
+    fig, rates = draw_policy_figure(learner, policy, learner.env, learner.params, episodes=4,
+                                    suptitle="D²SPO: layout 'relaxed', task 'F A1'")
+    traj, cbf, bar = fig.axes
+    assert {ax.get_xlabel() for ax in (traj, cbf)} == {"x (m)"} and {ax.get_ylabel() for ax in (traj, cbf)} == {"y (m)"}
+    assert bar.get_ylabel() == "h, the learned CBF (h ≥ 0: safe set)"
+    legend = [t.get_text() for t in traj.get_legend().get_texts()]
+    assert "start; arrow: initial heading" in legend and "sensing radius H = 1.2 m (around the start)" in legend
+    assert "trajectory: collision (x: end)" in legend
+    fig.canvas.draw()
+    box = fig.bbox
+    for text in (fig._suptitle, traj.title, cbf.title):
+        ext = text.get_window_extent()
+        assert box.x0 <= ext.x0 and ext.x1 <= box.x1 and box.y0 <= ext.y0 and ext.y1 <= box.y1, text.get_text()
+    assert rates["safety_rate"] == 1.0
 
 
 def test_eval_switches_the_runtime_filter_on_away_from_the_training_layout():
@@ -71,6 +90,8 @@ def test_eval_switches_the_runtime_filter_on_away_from_the_training_layout():
     assert filter_choice(d2, "paper", "default", None) is None
     assert filter_choice(d2, "random:3", None, None) is True
     assert filter_choice(d2, None, "turtlebot", None) is True
+    assert filter_choice(d2, None, None, None, {"slip": 0.2}) is True  # a per-field change of the dynamics
+    assert filter_choice(d2, None, None, None, {"slip": 0.05}) is None  # the trained value: nothing changes
     assert filter_choice(d2, "random:3", None, False) is False  # asked for: the paper's π_Ω alone
     assert filter_choice(TrainConfig(algo="td3-lag"), "random:3", None, None) is None  # no filter to switch
 

@@ -187,6 +187,11 @@ def test_render_writes_png_without_pyplot(tmp_path):
     render.draw_layout(layout, ax, show_sensing=True)
     render.draw_trajectory(ax, np.zeros((3, 2)))
     assert len(ax.patches) >= 1 + 8 + 4 + 1
+    # named, in metres, with a legend for the start arrow and the sensing circle
+    render.add_legend(ax)
+    assert ax.get_title() == "layout 'paper'" and ax.get_xlabel() == "x (m)" and ax.get_ylabel() == "y (m)"
+    legend = {t.get_text() for t in ax.get_legend().get_texts()}
+    assert {"start; arrow: initial heading", "sensing radius H = 1.2 m (around the start)", "obstacle"} <= legend
     if "matplotlib.pyplot" in sys.modules:
         assert sys.modules["matplotlib.pyplot"].get_fignums() == []
 

@@ -72,6 +72,7 @@ def test_table3_trains_once_reuses_and_reports(tmp_path):
     assert float(row["collision_rate_all_mean"]) == pytest.approx(np.mean(collided))
     md = (out / "table3.md").read_text()
     assert "| LPPO | 2 |" in md and "91.59" in md and "63.50" in md
+    assert f"over all {TINY_EPISODES} training episodes" in md  # not "the last 2000 of 24"
     # a second call trains nothing: the summaries are not rewritten
     stamp = [(out / "runs" / r / "summary.json").stat().st_mtime_ns for r in runs]
     logs = []
@@ -153,6 +154,11 @@ def test_fig2_plots_reward_bands(tmp_path):
     _, _, one_std = rp.reward_curves(out, specs[:1], smooth=5)["ppo-lag"]
     assert np.all(one_std == 0)  # one seed: no spread
     assert rp.fig2(out, 2, 50, ["ppo-lag"]).stat().st_size > 10_000
+    # a run shorter than the default width of 200 still gets a curve: a fifth of it per window,
+    # each point placed at the end of its window (not at 200 + i)
+    x, mean, _ = rp.reward_curves(out, specs)["ppo-lag"]
+    assert len(x) == 41 and x[0] == 10 and x[-1] == 50
+    np.testing.assert_allclose(mean[0], np.mean(np.arange(10)) + 1.0)
 
 
 def test_snapshots_are_saved_and_loaded(tmp_path):

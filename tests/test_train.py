@@ -30,8 +30,9 @@ def rows(path):
         return list(csv.reader(f))
 
 
-def test_outputs_and_summary(tmp_path):
-    summary = train(tiny(), tmp_path / "run")
+def test_outputs_and_summary(tmp_path, capsys):
+    events = []
+    summary = train(tiny(), tmp_path / "run", progress=events.append)
     run = tmp_path / "run"
     for name in ("config.json", "episodes.csv", "summary.json", "checkpoint.json"):
         assert (run / name).is_file(), name
@@ -47,6 +48,13 @@ def test_outputs_and_summary(tmp_path):
     assert summary["episodes"] == 60 and summary["window"] == 50
     assert 0.0 <= summary["eval"]["safety_rate"] <= 1.0
     assert json.loads((run / "summary.json").read_text()) == summary
+    # wall time without compilation (the training loop), the compilation, and everything together
+    assert summary["compile_seconds"] > 0 and summary["wall_seconds"] > 0
+    assert summary["wall_seconds_total"] >= summary["wall_seconds"] + summary["compile_seconds"]
+    # the progress callback hears of the compilation before the first chunk and of the final evaluation
+    phases = [e.get("phase", "chunk") for e in events]
+    assert phases[:2] == ["compiling", "compiled"] and phases[-1] == "evaluating"
+    assert set(phases[2:-1]) == {"chunk"} and events[-2]["episodes"] == 60
     assert list((run / "tb").iterdir()), "TensorBoard events written"
     # `d2spo eval` on it: prints and writes the rates, with the distance driven
     from d2spo.cli import main
@@ -55,6 +63,19 @@ def test_outputs_and_summary(tmp_path):
     ev = json.loads((run / "eval-relaxed-default.json").read_text())
     assert ev["episodes"] == 4 and [p["layout"] for p in ev["per_layout"]] == ["relaxed"]
     assert ev["mean_distance"] > 0.0 and ev["runtime_filter"] is None  # tlgrl has no filter
+    # under custom dynamics: a JSON file with every field, and a per-field flag on top of it
+    robot = {"dt": 0.1, "v_max": 0.5, "omega_max": 1.0, "actuator_tau": 0.0, "v_gain": 1.0, "omega_gain": 1.0,
+             "slip": 0.0, "noise_xy": 0.0, "noise_theta": 0.0}
+    (tmp_path / "slow.json").write_text(json.dumps(robot))
+    assert main(["eval", str(run), "--episodes", "4", "--dynamics", str(tmp_path / "slow.json"), "--slip", "0.2"]) == 0
+    ev = json.loads((run / "eval-relaxed-slow-slip0.2.json").read_text())
+    assert ev["dynamics"] == "slow-slip0.2" and ev["dynamics_values"] == {**robot, "slip": 0.2}
+    (tmp_path / "bad.json").write_text(json.dumps({**robot, "v_gain": -1}))
+    assert main(["eval", str(run), "--dynamics", str(tmp_path / "bad.json")]) == 2
+    assert main(["eval", str(run), "--noise-xy", "-1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"d2spo: error: dynamics.v_gain: must be positive, got -1 (in {tmp_path / 'bad.json'})",
+                   "d2spo: error: noise_xy: must be non-negative, got -1.0"]
 
 
 def test_same_seed_same_run_and_resume_is_exact(tmp_path):

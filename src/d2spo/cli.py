@@ -20,7 +20,7 @@ from typing import Annotated, Union
 import tyro
 
 from d2spo.config import TrainConfig
-from d2spo.errors import LTLSyntaxError, NaNError, RunDirWarning, UserError
+from d2spo.errors import ConfigError, LTLSyntaxError, NaNError, RunDirWarning, UserError
 
 
 def _stderr(msg: str) -> None:
@@ -50,7 +50,9 @@ class LtlCmd:
     dot: bool = False
     """Print the automaton in Graphviz dot format."""
     layout: str | None = None
-    """Restrict distances to letters that can occur on this layout (name or JSON file)."""
+    """Distances over the letters this layout can produce (name or JSON file); default: one area at a time."""
+    all_letters: bool = False
+    """Distances over every letter, as if all areas could hold at once (e.g. {A1, A2, A3} in one step)."""
     label_mode: str = "event"
     """Labelling the distances assume: 'event' (no empty letter) or 'step'."""
 
@@ -59,18 +61,28 @@ class LtlCmd:
 
         if self.json and self.dot:
             raise UserError("--json and --dot are exclusive; choose one")
+        if self.layout is not None and self.all_letters:
+            raise UserError("--layout and --all-letters are exclusive; choose one")
         aut = translate(task_formula(self.formula))
-        feasible = None
-        if self.layout is not None:
+        if self.all_letters:
+            feasible, letters = None, "every letter (all areas may hold at once)"
+        elif self.layout is not None:
             from d2spo.envs import layouts
 
-            feasible = layouts.feasible_letters(layouts.load(self.layout), aut.aps, self.label_mode)
+            lay = layouts.load(self.layout)
+            feasible = layouts.feasible_letters(lay, aut.aps, self.label_mode)
+            letters = f"the letters layout {lay.name!r} can produce"
+        else:  # disjoint areas, as on every built-in layout: the robot is in at most one area
+            feasible = [1 << i for i in range(len(aut.aps))] + ([0] if self.label_mode == "step" else [])
+            letters = ("one area at a time (disjoint areas; --layout NAME for a layout's, "
+                       "--all-letters for every letter)")
         if self.json:
             print(json.dumps(aut.to_json(feasible)))
         elif self.dot:
             print(aut.to_dot())
         else:
             print(aut.pretty(feasible))
+            print(f"distance: area visits (letters) still needed to accept, over {letters}")
         return 0
 
 
@@ -93,12 +105,14 @@ class EnvShowCmd:
         from d2spo.envs.render import save_layout_png
 
         lay = layouts.load(self.layout)
-        trajs = None
+        trajs, title = None, None
         if self.rollout_steps > 0:
             from d2spo.demo import random_rollout
 
-            trajs = [random_rollout(self.layout, self.rollout_steps, self.seed)]
-        save_layout_png(lay, self.out, trajectories=trajs)
+            task = f"F {lay.area_names[-1]}"  # the rollout's task: it ends on reaching the last area
+            trajs = [random_rollout(self.layout, self.rollout_steps, self.seed, task=task)]
+            title = f"layout {lay.name!r}: a random-action rollout, task {task!r} (seed {self.seed})"
+        save_layout_png(lay, self.out, trajectories=trajs, title=title, trajectory_label="random actions (x: end)")
         print(f"wrote {self.out}")
         return 0
 
@@ -132,12 +146,53 @@ class TrainCmd:
     resume: Path | None = None
     """Continue the interrupted run in this directory (its config.json wins over other flags)."""
     progress: bool = True
-    """Show a progress bar."""
+    """Show a progress bar (on a terminal; plain periodic lines otherwise)."""
+    dynamics: Path | None = None
+    """JSON file of the robot's dynamics (docs/env.md): replaces the preset's; flags like --v-gain override it."""
+
+    def config(self) -> TrainConfig:
+        """The run's config: the flags, with the --dynamics file filling the dynamics fields they leave unset."""
+        if self.dynamics is None:
+            return self.cfg
+        from d2spo.envs.dynamics import load_dynamics
+
+        if self.resume is not None:
+            raise ConfigError("dynamics", "--resume continues the run with its own config.json; leave out --dynamics")
+        values = load_dynamics(self.dynamics)
+        env = dataclasses.replace(self.cfg.env, **{k: v for k, v in values.items() if getattr(self.cfg.env, k) is None})
+        return dataclasses.replace(self.cfg, env=env)
 
     def run(self) -> int:
         from d2spo.progress import train_with_progress
 
-        return train_with_progress(self.cfg, self.out, self.resume, self.progress)
+        return train_with_progress(self.config(), self.out, self.resume, self.progress)
+
+
+@dataclasses.dataclass(frozen=True)
+class DynamicsFlags:
+    """Per-field dynamics of an evaluation (each one replaces the trained value, or --dynamics')."""
+
+    dt: float | None = None
+    """Control period (s)."""
+    v_max: float | None = None
+    """Largest linear speed (m/s): action[0] = 1 commands v_max."""
+    omega_max: float | None = None
+    """Largest angular speed (rad/s): action[1] = 1 commands omega_max."""
+    actuator_tau: float | None = None
+    """Time constant of the first-order actuator lag (s); 0 = none."""
+    v_gain: float | None = None
+    """Realised / commanded linear speed."""
+    omega_gain: float | None = None
+    """Realised / commanded angular speed."""
+    slip: float | None = None
+    """Largest fraction of speed lost to wheel slip per step, in [0, 1)."""
+    noise_xy: float | None = None
+    """Std of the Gaussian process noise on x and on y per step (m)."""
+    noise_theta: float | None = None
+    """Std of the Gaussian process noise on theta per step (rad)."""
+
+    def given(self) -> dict[str, float]:
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if getattr(self, f.name) is not None}
 
 
 @dataclasses.dataclass
@@ -152,7 +207,8 @@ class EvalCmd:
     layout: str | None = None
     """Evaluate on another layout (name or JSON file); default: the training layout."""
     dynamics: str | None = None
-    """Evaluate under another dynamics preset (ideal, default, turtlebot)."""
+    """Evaluate under other dynamics: a preset (ideal, default, turtlebot: its unmodelled effects, with the
+    trained time step and speed limits) or a JSON file (every field it gives: docs/env.md)."""
     seed: int = 0
     """Seed of the evaluation episodes."""
     layout_seeds: int = 1
@@ -164,6 +220,7 @@ class EvalCmd:
     """D²SPO only: linearise-and-project iterations of the runtime filter; default: as trained."""
     filter_alpha: float | None = None
     """D²SPO only: coefficient of α in the runtime filter's condition (smaller brakes earlier); default: as trained."""
+    dynamics_fields: Annotated[DynamicsFlags, tyro.conf.arg(name="")] = DynamicsFlags()
 
     def run(self) -> int:
         from d2spo.evaluate import eval_command
@@ -173,21 +230,30 @@ class EvalCmd:
 
 @dataclasses.dataclass
 class EnvCheckCmd:
-    """Validate a layout (built-in or JSON file) and print what it holds."""
+    """Validate a layout (built-in or JSON file) for the robot of a preset and print what it holds."""
 
     layout: str = "paper"
     """Built-in layout name or a JSON file."""
-    task: str = "phi1"
-    """Also check that this task can be completed on the layout."""
+    task: str | None = None
+    """Also check that this task (a name or a formula) can be completed on the layout; default: no task."""
+    preset: str = "default"
+    """Robot preset whose size and layout scale the layout is checked with: ideal, default or turtlebot."""
 
     def run(self) -> int:
         from d2spo.envs import EnvConfig, make_env
+        from d2spo.envs.nav import checked_layout
 
-        env, params = make_env(EnvConfig(layout=self.layout), task=self.task)
-        lay = env.layout
-        print(f"layout {lay.name!r}: arena {lay.arena[0]:g} x {lay.arena[1]:g} m, {len(lay.obstacles)} obstacles, "
-              f"areas {', '.join(lay.area_names)}; task {self.task!r} needs "
-              f"{int(params.aut.distance[int(params.aut.initial)])} area visits; observation size {env.observation_size}")
+        cfg, lay = checked_layout(EnvConfig(layout=self.layout, preset=self.preset))
+        n_obs = len(lay.obstacles)
+        print(f"layout {lay.name!r}: arena {lay.arena[0]:g} x {lay.arena[1]:g} m, "
+              f"{n_obs} obstacle{'s' * (n_obs != 1)}, areas {', '.join(lay.area_names)}; "
+              f"a robot of radius {cfg.robot_radius:g} m fits at the start and reaches every area")
+        if self.task is None:
+            print("no task checked (--task NAME_OR_FORMULA checks one)")
+            return 0
+        env, params = make_env(EnvConfig(layout=self.layout, preset=self.preset), task=self.task)
+        print(f"task {self.task!r}: needs {int(params.aut.distance[int(params.aut.initial)])} area visits on this "
+              f"layout; observation size {env.observation_size}")
         return 0
 
 
@@ -272,36 +338,71 @@ _BOX = re.compile(r"[╭╮╰╯│─]+")
 _CONFIG_ERROR = re.compile(r"^Error parsing [^-\s]\S*: ")
 
 
-def _tyro_error_line(text: str) -> str:
-    """Condense tyro's boxed error message into one line."""
-    lines = [ln for ln in text.splitlines() if ln.strip()]
-    title = ""
+def _tyro_error_line(text: str, args: list[str] = ()) -> str:
+    """Condense tyro's boxed error message into one line. Its suggestions for a misspelled flag are
+    kept ("did you mean --episodes?"), only those of the subcommand in ``args`` when it names one."""
+    # With a terminal (or UTF-8) tyro draws a box; otherwise a title line underlined with dashes.
+    lines = [_BOX.sub(" ", ln).strip() for ln in text.splitlines() if ln.strip()]
+    title = lines[0] if lines else ""
     body: list[str] = []
-    for ln in lines:
-        if ln.lstrip().startswith("╭"):
-            title = _BOX.sub(" ", ln).strip()
+    similar: dict[str, dict[str, list[str]]] = {}  # misspelled flag ("" = unnamed) -> flag -> subcommands
+    section: dict[str, list[str]] | None = None
+    flag = ""
+    for stripped in lines[1:]:
+        if set(stripped) <= set("-+ "):  # a rule (empty: a rule of box characters)
+            if body and section is None:
+                section = {}  # past the first block: only suggestions are read from here on
             continue
-        stripped = ln.strip().strip("│").strip()
-        if not stripped or set(stripped) <= set("─╰╯"):
-            if body:
-                break
-            continue
-        body.append(stripped)
+        m = re.match(r"(?:Perhaps you meant|Arguments similar to (\S+)):$", stripped)
+        if m:
+            section = similar.setdefault(m.group(1) or "", {})
+        elif section is not None and stripped.startswith("-"):
+            flag = stripped.split()[0]
+            section.setdefault(flag, [])
+        elif section is not None and flag in section and re.fullmatch(r"in .+ --help", stripped):
+            section[flag].append(stripped[3:-7])
+        elif section is None:
+            body.append(stripped)
     msg = " ".join(body) or "invalid command line"
     if _CONFIG_ERROR.match(msg):  # a config dataclass refused a value: its own message names the field
         return _CONFIG_ERROR.sub("", msg)
-    return f"{title}: {msg}" if title else msg
+    command = " ".join(["d2spo", *[a for a in args if not a.startswith("-")]])
+    hints = []
+    for typo, flags in similar.items():
+        ok = [f for f, where in flags.items() if not where or any(command.startswith(w) for w in where)]
+        if ok:
+            hints.append(" or ".join(ok[:3]) + (f" for {typo}" if typo else ""))
+    if hints:
+        msg += f" (did you mean {'; '.join(hints)}?)"
+    return f"{title}: {msg}" if title and not msg.startswith(title) else msg
+
+
+def version() -> str:
+    """The installed d2spo's version (the package metadata; the source tree's when run from it)."""
+    from importlib import metadata
+
+    try:
+        return metadata.version("d2spo")
+    except metadata.PackageNotFoundError:
+        from d2spo import __version__
+
+        return __version__
 
 
 def parse(args: list[str]):
     """Parse the command line; on a usage error print one line and exit 2."""
+    if args in (["--version"], ["-V"]):
+        print(f"d2spo {version()}")
+        raise SystemExit(0)
     buf = io.StringIO()
     try:
         with contextlib.redirect_stderr(buf):
-            return tyro.cli(Commands, args=args, prog="d2spo")
+            return tyro.cli(Commands, args=args, prog="d2spo",
+                            description="D²SPO: safe RL with LTL tasks and learned control barrier functions. "
+                                        "`d2spo --version` prints the version.")
     except SystemExit as e:
         if e.code not in (0, None):
-            _stderr(_tyro_error_line(buf.getvalue()) + " (see d2spo --help)")
+            _stderr(_tyro_error_line(buf.getvalue(), args) + " (see d2spo --help)")
             raise SystemExit(2) from None
         raise
 

@@ -93,6 +93,7 @@ def run_demo(out: Path, seed: int = 0, episodes: int = 500) -> int:
     cfg, learner, policy, _ = load_policy(run)
     env, params, _ = build(cfg)
     picture = out / "d2spo_relaxed.png"
-    policy_figure(picture, learner, policy, env, params, episodes=8, seed=seed)
+    policy_figure(picture, learner, policy, env, params, episodes=8, seed=seed,
+                  suptitle=f"D²SPO after {episodes} episodes: layout {env.layout.name!r}, task {DEMO_TASK!r}")
     console.print(f"picture: {picture}")
     return 0

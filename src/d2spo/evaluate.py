@@ -39,43 +39,74 @@ EFFECT_FIELDS = ("actuator_tau", "v_gain", "omega_gain", "slip", "noise_xy", "no
 """What ``d2spo eval --dynamics PRESET`` changes."""
 
 
-def learner_on(cfg: TrainConfig, layout: str | None, preset: str | None):
-    """A learner of the same kind on another layout/dynamics (for acting only)."""
-    from d2spo.train import build
+def eval_env_config(cfg: TrainConfig, layout: str | None, dynamics: str | None = None,
+                    overrides: dict[str, float] | None = None):
+    """The env config of an evaluation: the training one on ``layout``, under ``dynamics`` (a preset:
+    its unmodelled effects only, the robot's time step and speed limits stay those the policy was
+    trained with; or a JSON file: every field it gives), then the per-field ``overrides``."""
+    from d2spo.envs import dynamics as dyn
 
     env_cfg = cfg.env
     if layout is not None:
         env_cfg = dataclasses.replace(env_cfg, layout=layout)
-    if preset is not None:
-        # The unmodelled effects come from the new preset; the robot's geometry, speed limits and
-        # time step stay those the policy was trained with (its observations depend on them).
-        from d2spo.envs import dynamics
-
-        p = dynamics.get_preset(preset)
+    if dynamics in dyn.PRESETS:
+        p = dyn.get_preset(dynamics)
         env_cfg = dataclasses.replace(env_cfg, **{k: getattr(p, k) for k in EFFECT_FIELDS})
-    return build(dataclasses.replace(cfg, env=env_cfg))
+    elif dynamics is not None:
+        if not (dynamics.endswith(".json") or Path(dynamics).exists()):
+            raise ConfigError("dynamics", f"unknown dynamics {dynamics!r}; use a preset {sorted(dyn.PRESETS)} "
+                              "or a .json file (docs/env.md)")
+        env_cfg = dataclasses.replace(env_cfg, **dyn.load_dynamics(dynamics))
+    for name, value in (overrides or {}).items():
+        if name not in dyn.DYNAMICS_FIELDS:
+            raise ConfigError(name, f"not a dynamics field; choose from {list(dyn.DYNAMICS_FIELDS)}")
+        env_cfg = dataclasses.replace(env_cfg, **{name: dyn.check_value(name, value)})
+    return env_cfg
 
 
-def filter_choice(cfg: TrainConfig, layout: str | None, preset: str | None, asked: bool | None) -> bool | None:
+def dynamics_label(dynamics: str | None, overrides: dict[str, float] | None, trained: str) -> str:
+    """How an evaluation's dynamics are named in its output and file name: the preset, or the file's
+    stem, or the trained preset, then each override, e.g. ``default-slip0.2``."""
+    base = trained if dynamics is None else (dynamics if "/" not in dynamics and not dynamics.endswith(".json")
+                                             else Path(dynamics).stem)
+    return base + "".join(f"-{k}{v:g}" for k, v in sorted((overrides or {}).items()))
+
+
+def learner_on(cfg: TrainConfig, layout: str | None, preset: str | None, overrides: dict[str, float] | None = None):
+    """A learner of the same kind on another layout/dynamics (for acting only); ``preset`` is a preset
+    name or a dynamics JSON file (``eval_env_config``)."""
+    from d2spo.train import build
+
+    return build(dataclasses.replace(cfg, env=eval_env_config(cfg, layout, preset, overrides)))
+
+
+def filter_choice(cfg: TrainConfig, layout: str | None, preset: str | None, asked: bool | None,
+                  overrides: dict[str, float] | None = None) -> bool | None:
     """The runtime filter's setting for an evaluation: what was asked; else on for a D²SPO policy on
-    another layout or dynamics preset than it was trained on (deployment where the learned h never
+    another layout or other dynamics than it was trained on (deployment where the learned h never
     saw data); else None, as trained."""
     from d2spo.algos import has_runtime_filter
+    from d2spo.envs.dynamics import DYNAMICS_FIELDS
 
     if asked is not None or not has_runtime_filter(cfg.algo):
         return asked
-    elsewhere = (layout is not None and layout != cfg.layout) or (preset is not None and preset != cfg.env.preset)
+    trained, now = cfg.env.resolved(), eval_env_config(cfg, layout, preset, overrides).resolved()
+    elsewhere = ((layout is not None and layout != cfg.layout)
+                 or any(getattr(trained, k) != getattr(now, k) for k in DYNAMICS_FIELDS))
     return True if elsewhere else None
 
 
 def evaluate_run(run_dir: Path, episodes: int = 100, layout: str | None = None, preset: str | None = None,
                  seed: int = 0, layout_seeds: int = 1, runtime_filter: bool | None = None,
-                 filter_iters: int | None = None, filter_alpha: float | None = None) -> dict:
+                 filter_iters: int | None = None, filter_alpha: float | None = None,
+                 dynamics: dict[str, float] | None = None) -> dict:
     """Safety and completion of the run's final policy, deterministic, on its own layout and dynamics
     or others. ``runtime_filter=None``: as trained on the training layout and dynamics, and on for a
-    D²SPO policy evaluated on another layout or dynamics preset (π_Ω alone is far less safe on
-    layouts it never saw: docs/cbf.md); True/False force it."""
+    D²SPO policy evaluated on another layout or dynamics (π_Ω alone is far less safe on layouts it
+    never saw: docs/cbf.md); True/False force it. ``preset``: a dynamics preset or JSON file;
+    ``dynamics``: per-field values on top of it (``eval_env_config``)."""
     from d2spo.algos import has_runtime_filter
+    from d2spo.envs.dynamics import DYNAMICS_FIELDS
     from d2spo.train import make_rollout, rates
 
     asked = SimpleNamespace(episodes=episodes, layout_seeds=layout_seeds, seed=seed, filter_iters=filter_iters,
@@ -91,7 +122,7 @@ def evaluate_run(run_dir: Path, episodes: int = 100, layout: str | None = None, 
     for name, value in asked.items():
         if value is not None and not has_filter:
             raise ConfigError(name, f"only D²SPO has a runtime filter; this run is {cfg.algo!r}")
-    runtime_filter = filter_choice(cfg, layout, preset, runtime_filter)
+    runtime_filter = filter_choice(cfg, layout, preset, runtime_filter, dynamics)
     if runtime_filter is not None:
         cfg = dataclasses.replace(cfg, d2spo=dataclasses.replace(cfg.d2spo, runtime_filter=runtime_filter))
     cbf_changes = {k: v for k, v in (("filter_iters", filter_iters), ("filter_alpha_coef", filter_alpha)) if v is not None}
@@ -104,7 +135,7 @@ def evaluate_run(run_dir: Path, episodes: int = 100, layout: str | None = None, 
     results = []
     compiled: dict = {}  # one compiled rollout per shape of the env params (random layouts share one)
     for lay in layouts:
-        env, params, other = learner_on(cfg, lay, preset)
+        env, params, other = learner_on(cfg, lay, preset, dynamics)
         if env.observation_size != learner_obs_size(learner):
             raise ConfigError("layout", f"the policy was trained with observations of size {learner_obs_size(learner)}, "
                               f"layout {lay!r} gives {env.observation_size} (different number of areas or "
@@ -116,7 +147,8 @@ def evaluate_run(run_dir: Path, episodes: int = 100, layout: str | None = None, 
         results.append(rates(*compiled[shape](params, policy, jax.random.PRNGKey(seed))))
     out = {
         "run": str(run_dir), "episodes": episodes * len(layouts), "layout": layout or cfg.layout,
-        "layouts": [lay or cfg.layout for lay in layouts], "dynamics": preset or cfg.env.preset, "seed": seed,
+        "layouts": [lay or cfg.layout for lay in layouts], "dynamics": dynamics_label(preset, dynamics, cfg.env.preset),
+        "dynamics_values": {k: getattr(env.config, k) for k in DYNAMICS_FIELDS}, "seed": seed,
         "runtime_filter": bool(cfg.d2spo.runtime_filter) if has_filter else None,
         "filter_iters": cfg.cbf.filter_iters if has_filter else None,
         "filter_alpha": cfg.cbf.filter_alpha if has_filter else None,
@@ -160,7 +192,7 @@ def eval_command(cmd) -> int:
     from rich.table import Table
 
     res = evaluate_run(cmd.run_dir, cmd.episodes, cmd.layout, cmd.dynamics, cmd.seed, cmd.layout_seeds,
-                       cmd.runtime_filter, cmd.filter_iters, cmd.filter_alpha)
+                       cmd.runtime_filter, cmd.filter_iters, cmd.filter_alpha, cmd.dynamics_fields.given())
     n = len(res["per_layout"])  # random:0 over 3 layouts is another evaluation than random:0 alone
     tag = f"{Path(res['layout']).stem.replace(':', '')}{f'x{n}' if n > 1 else ''}-{res['dynamics']}"
     if res["runtime_filter"]:

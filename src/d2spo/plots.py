@@ -13,7 +13,10 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from d2spo.envs.render import draw_layout, draw_trajectory
+from d2spo.envs.render import add_legend, draw_layout, draw_trajectory
+
+OUTCOME_COLORS = {"completed": "tab:purple", "collided": "tab:red", "neither": "tab:orange"}
+"""Trajectory colours: the task completed (true labelling), a collision, or the episode ran out."""
 
 
 def policy_trajectories(learner, policy, env, params, episodes: int, seed: int, rollout=None):
@@ -56,29 +59,43 @@ def draw_cbf(ax, learner, safety, layout, heading: float = 0.0, levels: int = 15
     cs = ax.contourf(xs, ys, h, levels=levels, cmap="RdYlGn", vmin=-lim, vmax=lim)
     ax.contour(xs, ys, h, levels=[0.0], colors="white", linewidths=1.5)
     draw_layout(layout, ax, show_sensing=False)
-    ax.set_title(f"learned CBF h at heading {np.degrees(heading):.0f}°")
+    ax.set_title(f"learned CBF h at heading {np.degrees(heading):.0f}° (white: h = 0)")
     if colorbar_fig is not None:
-        colorbar_fig.colorbar(cs, ax=ax, shrink=0.8)
+        cb = colorbar_fig.colorbar(cs, ax=ax, shrink=0.8)
+        cb.set_label("h, the learned CBF (h ≥ 0: safe set)")
 
 
 def policy_figure(path: Path, learner, policy, env, params, episodes: int = 8, seed: int = 0,
-                  title: str = "") -> dict:
-    """Layout with the policy's trajectories (left) and, for D²SPO, the learned CBF (right)."""
+                  title: str = "", suptitle: str = "") -> dict:
+    """Write ``draw_policy_figure`` to ``path``; returns the safety and completion rates it shows."""
+    fig, rates = draw_policy_figure(learner, policy, env, params, episodes, seed, title, suptitle)
+    fig.savefig(str(path), dpi=100)
+    return rates
+
+
+def draw_policy_figure(learner, policy, env, params, episodes: int = 8, seed: int = 0, title: str = "",
+                       suptitle: str = "") -> tuple[Figure, dict]:
+    """Layout with the policy's trajectories (left) and, for D²SPO, the learned CBF (right), under
+    ``suptitle`` (default: the layout's name); and the safety and completion rates of the episodes."""
+    from matplotlib.lines import Line2D
+
     poses, collided, completed = policy_trajectories(learner, policy, env, params, episodes, seed)
     has_cbf = hasattr(learner, "safety_nets")
-    fig = Figure(figsize=(10 if has_cbf else 5, 5))
+    fig = Figure(figsize=(11 if has_cbf else 5.5, 6.2), layout="constrained")  # constrained: no title is clipped
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 2 if has_cbf else 1, 1)
     draw_layout(env.layout, ax, sensing_radius=float(params.sensing_radius))
     for i in range(poses.shape[0]):
         xy = poses[i, :, :2]
         xy = xy[np.all(np.isfinite(xy), axis=-1)]
-        color = "tab:red" if collided[i] else ("tab:purple" if completed[i] else "tab:orange")
-        draw_trajectory(ax, xy, color=color)
+        outcome = "collided" if collided[i] else ("completed" if completed[i] else "neither")
+        draw_trajectory(ax, xy, color=OUTCOME_COLORS[outcome])
     ax.set_title(title or f"{completed.mean():.0%} completed, {1 - collided.mean():.0%} safe "
                           f"({poses.shape[0]} episodes)")
+    names = {"completed": "task completed", "collided": "collision", "neither": "out of time"}
+    add_legend(ax, [Line2D([], [], color=c, label=f"trajectory: {names[k]} (x: end)")
+                    for k, c in OUTCOME_COLORS.items()])
     if has_cbf:
         draw_cbf(fig.add_subplot(1, 2, 2), learner, policy[1], env.layout, heading=0.0, colorbar_fig=fig)
-    fig.tight_layout()
-    fig.savefig(str(path), dpi=100)
-    return {"safety_rate": float(1 - collided.mean()), "completion_rate": float(completed.mean())}
+    fig.suptitle(suptitle or f"layout {env.layout.name!r}")
+    return fig, {"safety_rate": float(1 - collided.mean()), "completion_rate": float(completed.mean())}

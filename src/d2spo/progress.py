@@ -1,7 +1,9 @@
-"""Rich progress bar and summary table around ``d2spo.train.train`` (CLI side only)."""
+"""Progress of training runs (a live bar on a terminal, plain lines in a log) and the summary table
+around ``d2spo.train.train`` (CLI side only)."""
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 from d2spo.config import TrainConfig
@@ -22,7 +24,10 @@ def summary_table(summary: dict, title: str):
     pct = lambda v: f"{100 * v:.2f}%"
     t.add_row("episodes", str(summary["episodes"]))
     t.add_row("env steps", f"{summary['env_steps']:,}")
-    t.add_row("wall time", f"{summary['wall_seconds']:.0f} s ({summary['env_steps_per_second']:,.0f} steps/s)")
+    t.add_row("wall time, training", f"{summary['wall_seconds']:.0f} s ({summary['env_steps_per_second']:,.0f} steps/s)")
+    if "wall_seconds_total" in summary:  # summaries written before compilation was timed lack it
+        t.add_row("wall time, all (env, compiling, final eval)",
+                  f"{summary['wall_seconds_total']:.0f} s (compiling {summary['compile_seconds']:.0f} s)")
     t.add_row(f"safety rate (last {summary['window_episodes']})", pct(summary["safety_rate"]))
     t.add_row(f"completion rate (last {summary['window_episodes']})", pct(summary["completion_rate"]))
     t.add_row("completion rate, relaxed labelling", pct(summary["completion_rate_relaxed"]))
@@ -44,41 +49,11 @@ def train_with_progress(cfg: TrainConfig, out: Path | None, resume: Path | None,
         out = resume
     cfg = cfg.check()
     out = Path(out) if out is not None else default_out(cfg)
-    with _progress(console, show) as bar:
-        on_chunk = _bar_task(bar, f"{cfg.algo} {cfg.task}", cfg.episodes)
-        summary = train(cfg, out, resume=resume is not None, progress=on_chunk)
+    with progress_display(console, show) as display:
+        on_event = display.add(_label(cfg), cfg.episodes)
+        summary = train(cfg, out, resume=resume is not None, progress=on_event)
     Console().print(summary_table(summary, f"{cfg.algo} on {cfg.task} / {cfg.layout} (seed {cfg.seed}) → {out}"))
     return 0
-
-
-def _progress(console, show: bool):
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        TextColumn,
-        TimeElapsedColumn,
-        TimeRemainingColumn,
-    )
-
-    columns = [
-        TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TextColumn("episodes"),
-        TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn(), TextColumn("{task.fields[stats]}"),
-    ]
-    return Progress(*columns, console=console, disable=not show, transient=False)
-
-
-def _bar_task(bar, description: str, total: int):
-    """A progress row and the callback that ``train`` calls after each chunk."""
-    task = bar.add_task(description, total=total, stats="compiling…")
-
-    def on_chunk(d: dict) -> None:
-        eps_per_s = d["episodes"] / max(d["wall_seconds"], 1e-9)
-        stats = (f"{eps_per_s:.1f} ep/s  safe {100 * d['safety_rate']:.1f}%  "
-                 f"done {100 * d['completion_rate']:.1f}% (relaxed {100 * d['completion_rate_relaxed']:.1f}%)")
-        bar.update(task, completed=d["episodes"], stats=stats)
-
-    return on_chunk
 
 
 def train_seeds_with_progress(cfgs: list[TrainConfig], outs: list[Path], show: bool) -> list[dict]:
@@ -89,9 +64,153 @@ def train_seeds_with_progress(cfgs: list[TrainConfig], outs: list[Path], show: b
 
     console = Console(stderr=True)
     cfgs = [c.check() for c in cfgs]
-    with _progress(console, show) as bar:
-        callbacks = [_bar_task(bar, f"{c.algo} {c.task} s{c.seed}", c.episodes) for c in cfgs]
+    with progress_display(console, show) as display:
+        callbacks = [display.add(f"{_label(c)} s{c.seed}", c.episodes) for c in cfgs]
         summaries = train_seeds(cfgs, outs, progress=callbacks)
     for cfg, out, summary in zip(cfgs, outs, summaries):
         Console().print(summary_table(summary, f"{cfg.algo} on {cfg.task} / {cfg.layout} (seed {cfg.seed}) → {out}"))
     return summaries
+
+
+def _label(cfg: TrainConfig, width: int = 22) -> str:
+    text = f"{cfg.algo} {cfg.task}"
+    return text if len(text) <= width else text[: width - 1] + "…"
+
+
+# ----------------------------------------------------------------------------------- displays
+# ``train`` calls a run's callback with {"phase": "compiling"}, {"phase": "compiled",
+# "compile_seconds"}, then once per chunk with the counters and rates (no "phase"), and
+# {"phase": "evaluating"} before the final evaluation.
+
+
+def _stats(d: dict, eps_per_s: float) -> str:
+    pct = lambda v: "–" if v != v else f"{100 * v:.1f}%"  # NaN before the first episode ends
+    return (f"{eps_per_s:.1f} ep/s · safe {pct(d['safety_rate'])} · done {pct(d['completion_rate'])} "
+            f"(relaxed {pct(d['completion_rate_relaxed'])})")
+
+
+def _clock(seconds: float) -> str:
+    seconds = int(round(seconds))
+    return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
+
+
+def progress_display(console, show: bool):
+    """A context manager whose ``add(label, total)`` returns the progress callback of one run: a
+    live bar on a terminal; plain periodic lines when the output is a log, CI or nohup; nothing
+    with ``show=False``."""
+    if not show:
+        return _Silent()
+    if console.is_terminal:
+        return _Bars(console)
+    return _Lines(console.file)
+
+
+class _Silent:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        return None
+
+    def add(self, label: str, total: int):
+        return None
+
+
+class _Bars:
+    """rich bars, two lines per run, so that at 80 columns the first keeps the episode count and the
+    ETA: ``label [bar] 1200/20000 episodes 0:01:02 eta 0:10:00``, then the phase or the rates."""
+
+    def __init__(self, console):
+        from rich.progress import (
+            BarColumn,
+            MofNCompleteColumn,
+            Progress,
+            TextColumn,
+            TimeElapsedColumn,
+            TimeRemainingColumn,
+        )
+        from rich.table import Column
+        from rich.text import Text
+
+        class TwoLines(Progress):
+            def get_renderables(self):
+                for task in self.tasks:
+                    yield self.make_tasks_table([task])
+                    yield Text("  " + task.fields["stats"], style="dim", no_wrap=True, overflow="ellipsis")
+
+        self.bar = TwoLines(
+            TextColumn("[bold]{task.description}"), BarColumn(bar_width=None, table_column=Column(ratio=1)),
+            MofNCompleteColumn(), TextColumn("episodes"), TimeElapsedColumn(), TextColumn("eta"),
+            TimeRemainingColumn(), console=console, expand=True,
+        )
+
+    def __enter__(self):
+        self.bar.__enter__()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.bar.__exit__(*exc)
+
+    def add(self, label: str, total: int):
+        bar = self.bar
+        task = bar.add_task(label, total=total, stats="starting…")
+        t_train = [0.0]
+
+        def on_event(d: dict) -> None:
+            phase = d.get("phase")
+            if phase == "compiling":
+                bar.update(task, completed=d["episodes"], stats="compiling the learner (once per run)…")
+            elif phase == "compiled":
+                t_train[0] = time.perf_counter()
+                bar.update(task, stats=f"compiled in {d['compile_seconds']:.0f} s; training…")
+            elif phase == "evaluating":
+                bar.update(task, stats=f"evaluating the final policy ({d['episodes']} episodes)…")
+            else:
+                eps_per_s = d["episodes"] / max(d["wall_seconds"], 1e-9)
+                bar.update(task, completed=d["episodes"], stats=_stats(d, eps_per_s))
+
+        return on_event
+
+
+class _Lines:
+    """Plain lines for a log: the phases, the first chunk that ends an episode, then a line once
+    ``every`` seconds have passed since the last, and the last one, e.g.
+    ``label: 1200/20000 episodes (6%), 0:01:02, eta 0:10:00, 26.1 ep/s · safe …``."""
+
+    def __init__(self, file, every: float = 30.0):
+        self.file, self.every = file, every
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        return None
+
+    def _print(self, text: str) -> None:
+        print(text, file=self.file, flush=True)
+
+    def add(self, label: str, total: int):
+        t = {"start": time.perf_counter(), "train": None, "episodes0": 0, "last": None}
+
+        def on_event(d: dict) -> None:
+            now = time.perf_counter()
+            phase = d.get("phase")
+            if phase == "compiling":
+                t["episodes0"] = d["episodes"]
+                self._print(f"{label}: compiling the learner (once per run)…")
+            elif phase == "compiled":
+                t["train"] = now
+                self._print(f"{label}: compiled in {d['compile_seconds']:.1f} s; training "
+                            f"{total - d['episodes']} episodes")
+            elif phase == "evaluating":
+                self._print(f"{label}: evaluating the final policy ({d['episodes']} episodes)…")
+            elif ((t["last"] is None and d["episodes"] > t["episodes0"]) or d["episodes"] >= total
+                  or now - (t["last"] or t["train"] or t["start"]) >= self.every):
+                t["last"] = now
+                ran = now - (t["train"] if t["train"] is not None else t["start"])
+                rate = (d["episodes"] - t["episodes0"]) / max(ran, 1e-9)
+                eta = _clock((total - d["episodes"]) / rate) if rate > 0 else "?"
+                self._print(f"{label}: {d['episodes']}/{total} episodes ({100 * d['episodes'] / total:.0f}%), "
+                            f"{_clock(now - t['start'])}, eta {eta}, {_stats(d, rate)}")
+
+        return on_event

@@ -365,10 +365,11 @@ def write_table(target: str, out: Path, seeds: int, episodes: int, methods: Iter
         w = csv.DictWriter(f, fieldnames=[k for k in rows[0] if not k.startswith("_")])
         w.writeheader()
         w.writerows([{k: v for k, v in r.items() if not k.startswith("_")} for r in rows])
-    window = next((g["window"] for gs in by.values() for g in gs), 2000)
+    window = min(next((g["window"] for gs in by.values() for g in gs), 2000), episodes)  # a short run: all of it
     title = {"table2": "Table II: ϕ1 on `paper`", "table3": "Table III: relaxed ϕ1 on `relaxed`"}[target]
     lines = [f"### {title}", "",
-             f"Safety and completion rate (%) over the last {window} of {episodes} training episodes, mean ± std "
+             f"Safety and completion rate (%) over {f'the last {window} of' if window < episodes else 'all'} "
+             f"{episodes} training episodes, mean ± std "
              f"over seeds; task `{task}`, layout `{layout}`; the paper's figures beside them. \"Collisions, all "
              f"episodes\": the share of every training episode that collided (mean over seeds).", "",
              "| method | seeds | safety | completion | paper safety | paper completion | collisions, all episodes | wall time / run |",
@@ -386,26 +387,32 @@ def write_table(target: str, out: Path, seeds: int, episodes: int, methods: Iter
 
 
 # ----------------------------------------------------------------------------------- figures
+def smoothing_window(n_episodes: int, smooth: int = 200) -> int:
+    """Episodes per moving-average point: ``smooth``, but at most a fifth of a short run, so that a
+    quick run still draws a curve of a few points rather than a single one."""
+    return max(1, min(smooth, n_episodes // 5))
+
+
 def reward_curves(out: Path, specs: list[RunSpec], smooth: int = 200):
-    """Per algo: (episode index, mean return over seeds, std) of the moving-average return."""
+    """Per algo: (episode index, mean return over seeds, std) of the moving-average return over
+    ``smoothing_window`` episodes (seeds cut to the shortest); the index is the episode count at
+    the end of each window."""
     from d2spo.runio import read_episodes
 
-    curves: dict[str, list[np.ndarray]] = {}
+    returns: dict[str, list[np.ndarray]] = {}
     for s in specs:
         p = run_dir(out, s) / "episodes.csv"
         if not p.is_file():
             continue
         ret = np.array([r[1] for r in read_episodes(p)], float)
-        if len(ret) == 0:
-            continue
-        k = max(1, min(smooth, len(ret)))
-        ma = np.convolve(ret, np.ones(k) / k, mode="valid")
-        curves.setdefault(s.algo, []).append(ma)
+        if len(ret) > 0:
+            returns.setdefault(s.algo, []).append(ret)
     result = {}
-    for algo, cs in curves.items():
-        n = min(len(c) for c in cs)
-        a = np.stack([c[:n] for c in cs])
-        result[algo] = (np.arange(n) + smooth, a.mean(0), a.std(0))
+    for algo, rs in returns.items():
+        n = min(len(r) for r in rs)
+        k = smoothing_window(n, smooth)
+        a = np.stack([np.convolve(r[:n], np.ones(k) / k, mode="valid") for r in rs])
+        result[algo] = (np.arange(a.shape[1]) + k, a.mean(0), a.std(0))
     return result
 
 
@@ -420,10 +427,12 @@ def _figure(ncols: int, nrows: int = 1, size: float = 4.5):
 
 def _curve_axes(ax, curves, title: str) -> None:
     for algo, (x, mean, std) in curves.items():
-        line = ax.plot(x, mean, label=METHOD_NAMES.get(algo, algo))[0]
+        line = ax.plot(x, mean, label=METHOD_NAMES.get(algo, algo), marker="o" if len(x) == 1 else None)[0]
         ax.fill_between(x, mean - std, mean + std, color=line.get_color(), alpha=0.2)
     ax.set_xlabel("episode")
-    ax.set_ylabel("return (moving average)")
+    widths = sorted({int(x[0]) for x, _, _ in curves.values()})  # a curve's first point ends its first window
+    ax.set_ylabel(f"return (moving average over {'/'.join(map(str, widths))} episodes)" if widths
+                  else "return (moving average)")
     ax.set_title(title)
     if curves:
         ax.legend(fontsize=8)

@@ -130,9 +130,14 @@ class _Run:
     """The host-side bookkeeping of one run directory: episodes.csv, TensorBoard, counters,
     snapshots, checkpoints and the summary. ``train`` has one; ``train_seeds`` one per seed."""
 
-    def __init__(self, cfg: TrainConfig, out: Path, meta: dict | None, checkpoints: Checkpoints):
+    def __init__(self, cfg: TrainConfig, out: Path, meta: dict | None, checkpoints: Checkpoints,
+                 overhead: dict | None = None):
         self.cfg, self.out, self.checkpoints = cfg, Path(out), checkpoints
-        self.meta = meta or {"episodes": 0, "env_steps": 0, "chunks": 0, "wall_seconds": 0.0}
+        self.meta = dict(meta or {"episodes": 0, "env_steps": 0, "chunks": 0, "wall_seconds": 0.0})
+        # Time outside the training loop, summed over the sessions of a resumed run (0 in checkpoints
+        # written before these were counted): compiling the learner, and the rest (building the env).
+        for k, v in (overhead or {}).items():
+            self.meta[k] = self.meta.get(k, 0.0) + v
         self.writer = EpisodeWriter(self.out / "episodes.csv", keep_rows=self.meta["episodes"])
         self.tb = _tensorboard(self.out / "tb")
         every = cfg.checkpoint_every
@@ -190,7 +195,11 @@ class _Run:
             return True
         return False
 
-    def finish(self, learner, carry, env, params) -> dict:
+    def finish(self, learner, carry, env, params, progress: ProgressFn | None = None) -> dict:
+        """summary.json. Wall times: ``wall_seconds`` is the training loop alone (no compilation; the
+        steps per second use it), ``compile_seconds`` the compilation of the learner, and
+        ``wall_seconds_total`` everything ``train`` spent: building the env, compiling, training and
+        the final evaluation, over every session of a resumed run."""
         cfg = self.cfg
         wall = time.perf_counter() - self.t_start
         if self.tb is not None:
@@ -198,13 +207,20 @@ class _Run:
         summary = {
             "algo": cfg.algo, "task": cfg.task, "layout": cfg.layout, "seed": cfg.seed,
             "episodes": len(self.writer), "env_steps": self.meta["env_steps"], "wall_seconds": round(wall, 2),
+            "compile_seconds": round(self.meta.get("compile_seconds", 0.0), 2),
             "env_steps_per_second": round(self.meta["env_steps"] / max(wall, 1e-9), 1),
             "window": cfg.window, **window_rates(self.writer.rows, cfg.window),
             "device": jax.devices()[0].platform,
         }
+        t_eval = time.perf_counter()
         if cfg.eval_episodes > 0:
+            if progress is not None:
+                progress({"phase": "evaluating", "episodes": cfg.eval_episodes})
             summary["eval"] = evaluate(learner, learner.policy(carry), env, params, cfg.eval_episodes,
                                        jax.random.PRNGKey(cfg.seed + 10_000))
+        total = (wall + self.meta.get("compile_seconds", 0.0) + self.meta.get("setup_seconds", 0.0)
+                 + time.perf_counter() - t_eval)
+        summary["wall_seconds_total"] = round(total, 2)
         atomic_write_json(self.out / "summary.json", summary)
         return summary
 
@@ -219,14 +235,15 @@ def train(
     newest usable checkpoint (``d2spo.checkpoint``), or from the start if the run was stopped
     before its first. ``stop_after_chunks`` simulates an interruption (used by the resume test).
     """
+    t_enter = time.perf_counter()
     out = Path(out)
     built = build(cfg)  # a config that cannot be built is refused before anything is written
     with RunLock(out):
-        return _train_locked(cfg, out, built, resume, progress, stop_after_chunks)
+        return _train_locked(cfg, out, built, resume, progress, stop_after_chunks, t_enter)
 
 
 def _train_locked(cfg: TrainConfig, out: Path, built, resume: bool, progress: ProgressFn | None,
-                  stop_after_chunks: int | None) -> dict | None:
+                  stop_after_chunks: int | None, t_enter: float) -> dict | None:
     env, params, learner = built
     _prepare_dir(out, cfg, resume)
     checkpoints = Checkpoints(out, run_fingerprint(out))
@@ -237,12 +254,14 @@ def _train_locked(cfg: TrainConfig, out: Path, built, resume: bool, progress: Pr
         carry, meta = checkpoints.load(jax.eval_shape(learner.init, key))
         checkpoints.tidy()
         carry = jax.tree_util.tree_map(jnp.asarray, carry)
-    else:
+    t_compile = _compiling([progress], [meta], cfg)
+    if not (resume and meta is not None):
         if resume:
             warnings.warn(f"{out}: no checkpoint was written before it stopped; training from the first episode",
                           RunDirWarning, stacklevel=3)
         carry = jax.jit(learner.init)(key)
-    run = _Run(cfg, out, meta, checkpoints)
+    overhead = _compiled(chunk, carry, t_enter, t_compile, [progress], [meta], cfg)
+    run = _Run(cfg, out, meta, checkpoints, overhead)
     chunks_this_call = 0
     while not run.done:
         carry, log = chunk(carry)
@@ -252,7 +271,28 @@ def _train_locked(cfg: TrainConfig, out: Path, built, resume: bool, progress: Pr
         if stop_after_chunks is not None and chunks_this_call >= stop_after_chunks:
             run.save(learner, carry, force=True)
             return None
-    return run.finish(learner, carry, env, params)
+    return run.finish(learner, carry, env, params, progress)
+
+
+def _compiling(progress: list[ProgressFn | None], metas: list[dict | None], cfg: TrainConfig) -> float:
+    """Tell the progress callbacks (one per run) that compilation starts; returns the time it does."""
+    for fn, meta in zip(progress, metas):
+        if fn is not None:
+            fn({"phase": "compiling", "episodes": (meta or {}).get("episodes", 0), "total": cfg.episodes})
+    return time.perf_counter()
+
+
+def _compiled(chunk, carry, t_enter: float, t_compile: float, progress: list[ProgressFn | None],
+              metas: list[dict | None], cfg: TrainConfig) -> dict:
+    """Compile ``chunk`` ahead of its first call (the calls reuse the compilation), so that its time
+    is known and shown; returns the overhead times for ``_Run``."""
+    chunk.lower(carry).compile()
+    now = time.perf_counter()
+    for fn, meta in zip(progress, metas):
+        if fn is not None:
+            fn({"phase": "compiled", "compile_seconds": now - t_compile, "episodes": (meta or {}).get("episodes", 0),
+                "total": cfg.episodes})
+    return {"compile_seconds": now - t_compile, "setup_seconds": t_compile - t_enter}
 
 
 def _seed_slice(tree, i: int):
@@ -295,16 +335,17 @@ def train_seeds(
     for c in cfgs[1:]:
         if dict(config_to_dict(c), seed=None) != base:
             raise ConfigError("seed", "train_seeds: the configs may differ only in their seed")
+    t_enter = time.perf_counter()
     outs = [Path(o) for o in outs]
     built = build(cfgs[0])
     with contextlib.ExitStack() as locks:
         for out in outs:
             locks.enter_context(RunLock(out))
-        return _train_seeds_locked(cfgs, outs, built, progress, stop_after_chunks)
+        return _train_seeds_locked(cfgs, outs, built, progress, stop_after_chunks, t_enter)
 
 
 def _train_seeds_locked(cfgs: list[TrainConfig], outs: list[Path], built, progress: list[ProgressFn | None] | None,
-                        stop_after_chunks: int | None) -> list[dict] | None:
+                        stop_after_chunks: int | None, t_enter: float) -> list[dict] | None:
     env, params, learner = built
     group = group_dir(outs)
     resume = has_checkpoint(group)
@@ -314,21 +355,24 @@ def _train_seeds_locked(cfgs: list[TrainConfig], outs: list[Path], built, progre
     checkpoints = Checkpoints(group, fingerprint(prints))
     keys = jnp.stack([jax.random.PRNGKey(c.seed) for c in cfgs])
     chunk = jax.jit(jax.vmap(learner.chunk), donate_argnums=0)
+    progress = progress or [None] * len(cfgs)
     if resume:
         remove_tmp_files(group)
         carry, gmeta = checkpoints.load(jax.eval_shape(jax.vmap(learner.init), keys))
         checkpoints.tidy()
         carry = jax.tree_util.tree_map(jnp.asarray, carry)
         metas = gmeta["runs"]
+        t_compile = _compiling(progress, metas, cfgs[0])
     else:
         group.mkdir(parents=True, exist_ok=True)
-        carry = jax.jit(jax.vmap(learner.init))(keys)
         metas = [None] * len(cfgs)
+        t_compile = _compiling(progress, metas, cfgs[0])
+        carry = jax.jit(jax.vmap(learner.init))(keys)
+    overhead = _compiled(chunk, carry, t_enter, t_compile, progress, metas, cfgs[0])
     summaries: list[dict | None] = [read_json(o / "summary.json", "summary") if (o / "summary.json").is_file()
                                     else None for o in outs]
-    runs = [None if s_ is not None else _Run(c, o, m, Checkpoints(o, p))
+    runs = [None if s_ is not None else _Run(c, o, m, Checkpoints(o, p), overhead)
             for c, o, m, s_, p in zip(cfgs, outs, metas, summaries, prints)]
-    progress = progress or [None] * len(cfgs)
     chunks_this_call = 0
     while any(s_ is None for s_ in summaries):
         carry, log = chunk(carry)
@@ -342,7 +386,7 @@ def _train_seeds_locked(cfgs: list[TrainConfig], outs: list[Path], built, progre
             mine = _take_seed(carry, jnp.int32(i))
             saved |= run.save(learner, mine)
             if run.done:
-                summaries[i] = run.finish(learner, mine, env, params)
+                summaries[i] = run.finish(learner, mine, env, params, progress[i])
         chunks_this_call += 1
         interrupted = stop_after_chunks is not None and chunks_this_call >= stop_after_chunks
         if saved or interrupted:

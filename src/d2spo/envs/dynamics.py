@@ -21,8 +21,10 @@ size and sensor, and a ``layout_scale`` applied to the layout's geometry.
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import jax.numpy as jnp
 from flax import struct
@@ -79,6 +81,61 @@ PRESETS: dict[str, Preset] = {
         actuator_tau=0.15, v_gain=0.9, omega_gain=0.9, slip=0.1, noise_xy=0.003, noise_theta=0.02,
     ),
 }
+
+
+DYNAMICS_FIELDS = ("dt", "v_max", "omega_max", "actuator_tau", "v_gain", "omega_gain", "slip", "noise_xy",
+                   "noise_theta")
+"""The ``EnvConfig`` fields that make up the robot's motion: what a dynamics file gives (all of them)."""
+
+_POSITIVE = ("dt", "v_max", "omega_max", "v_gain", "omega_gain")
+
+
+def check_value(name: str, value, where: str = "") -> float:
+    """``value`` as a float if it is valid for the dynamics field ``name``; ConfigError naming the
+    field otherwise (``where`` is added to the message, e.g. the file it came from)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ConfigError(name, f"expected a finite number, got {value!r}{where}")
+    if name == "slip" and not 0 <= value < 1:
+        raise ConfigError(name, f"must be in [0, 1), got {value}{where}")
+    if value < 0 or (value == 0 and name in _POSITIVE):
+        raise ConfigError(name, f"must be {'positive' if name in _POSITIVE else 'non-negative'}, got {value}{where}")
+    return float(value)
+
+
+def load_dynamics(path: str | Path) -> dict[str, float]:
+    """The dynamics in a JSON file: an object with every field of ``DYNAMICS_FIELDS`` (and optional
+    ``name`` and ``description`` strings), as ``{field: value}``, ready for ``EnvConfig(**values)``.
+    Every mistake (unreadable, not UTF-8, malformed JSON, unknown or missing key, wrong type,
+    out-of-range value) raises ConfigError naming ``dynamics`` or ``dynamics.FIELD``."""
+    path = Path(path)
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except OSError as e:
+        raise ConfigError("dynamics", f"cannot read {path}: {e.strerror}") from None
+    except UnicodeDecodeError as e:
+        raise ConfigError("dynamics", f"{path}: not UTF-8 text (byte {e.start})") from None
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise ConfigError("dynamics", f"{path}: malformed JSON: {e.msg} (line {e.lineno}, column {e.colno})") from None
+    if not isinstance(data, dict):
+        raise ConfigError("dynamics", f"{path}: expected a JSON object, got {type(data).__name__}")
+    unknown = sorted(set(data) - set(DYNAMICS_FIELDS) - {"name", "description"})
+    if unknown:
+        raise ConfigError("dynamics", f"{path}: unknown keys {unknown}; the fields are {list(DYNAMICS_FIELDS)}")
+    for key in ("name", "description"):
+        if key in data and not isinstance(data[key], str):
+            raise ConfigError(f"dynamics.{key}", f"expected a string, got {data[key]!r} (in {path})")
+    values = {}
+    for name in DYNAMICS_FIELDS:
+        if name not in data:
+            raise ConfigError(f"dynamics.{name}", f"missing (in {path}); a dynamics file gives every field of "
+                              f"{list(DYNAMICS_FIELDS)}")
+        try:
+            values[name] = check_value(name, data[name], f" (in {path})")
+        except ConfigError as e:
+            raise ConfigError(f"dynamics.{name}", str(e).split(": ", 1)[1]) from None
+    return values
 
 
 def get_preset(name: str) -> Preset:

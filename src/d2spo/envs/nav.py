@@ -423,6 +423,16 @@ def _area_bits(layout: Layout, aps: tuple[str, ...]) -> np.ndarray:
     return bits
 
 
+def checked_layout(cfg: EnvConfig) -> tuple[EnvConfig, Layout]:
+    """The resolved config and its layout, scaled and checked for this robot (no task needed):
+    what ``make_env`` checks before it reads the task. Raises ConfigError."""
+    cfg = cfg.resolved()
+    layout = layouts.load(cfg.layout).scaled(cfg.layout_scale)
+    layouts.validate(layout)
+    layouts.check_robot_fits(layout, cfg.robot_radius, cfg.start_jitter_xy)
+    return cfg, layout
+
+
 def make_env(cfg: EnvConfig, task: Any = "phi1") -> tuple[Env, EnvParams]:
     """The environment and its parameters for a config and a task.
 
@@ -431,11 +441,7 @@ def make_env(cfg: EnvConfig, task: Any = "phi1") -> tuple[Env, EnvParams]:
     returns). The automaton's distances use only the letters this layout can produce
     (``layouts.feasible_letters``). Raises ConfigError on a bad config, layout or an impossible task.
     """
-    cfg = cfg.resolved()
-    layout = layouts.load(cfg.layout).scaled(cfg.layout_scale)
-    layouts.validate(layout)
-    layouts.check_robot_fits(layout, cfg.robot_radius, cfg.start_jitter_xy)
-
+    cfg, layout = checked_layout(cfg)
     if isinstance(task, str):
         from d2spo.ltl import task_formula, translate
 

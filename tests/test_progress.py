@@ -1,0 +1,70 @@
+"""The console side of training: a live bar on a terminal that keeps the episode count and the ETA at
+80 columns, plain periodic lines in a log, and the compilation visible in both."""
+
+from __future__ import annotations
+
+import io
+
+from rich.console import Console
+
+from d2spo import progress
+
+
+def chunk(episodes: int, wall: float) -> dict:
+    return {"episodes": episodes, "total": 1000, "env_steps": 10 * episodes, "wall_seconds": wall,
+            "safety_rate": 0.9, "completion_rate": 0.25, "completion_rate_relaxed": 0.5}
+
+
+def test_bar_keeps_count_and_eta_at_80_columns():
+    console = Console(file=io.StringIO(), width=80, force_terminal=True, color_system=None)
+    display = progress.progress_display(console, show=True)
+    assert isinstance(display, progress._Bars)
+    clock = [0.0]
+    display.bar.get_time = lambda: clock[0]
+    on_event = display.add("tlgrl (!A2 U A1) & F A…", 1000)
+
+    def screen() -> list[str]:
+        console.file = io.StringIO()
+        console.print(display.bar.get_renderable())
+        return console.file.getvalue().splitlines()
+
+    on_event({"phase": "compiling", "episodes": 0, "total": 1000})
+    top, below = screen()
+    assert "0/1000 episodes" in top and "compiling" in below
+    on_event({"phase": "compiled", "compile_seconds": 12.0, "episodes": 0, "total": 1000})
+    clock[0] = 20.0
+    on_event(chunk(100, 8.0))
+    clock[0] = 30.0
+    on_event(chunk(200, 18.0))  # 10 episodes/s: 800 left -> 80 s
+    top, below = screen()
+    assert len(top) <= 80 and "200/1000 episodes" in top and "eta 0:01:20" in top, top
+    assert "safe 90.0%" in below and "done 25.0%" in below
+
+
+def test_plain_lines_when_not_a_terminal(monkeypatch):
+    out = io.StringIO()
+    display = progress.progress_display(Console(file=out, force_terminal=False), show=True)
+    assert isinstance(display, progress._Lines)
+    clock = [0.0]
+    monkeypatch.setattr(progress.time, "perf_counter", lambda: clock[0])
+    on_event = display.add("tlgrl relaxed", 1000)
+    on_event({"phase": "compiling", "episodes": 0, "total": 1000})
+    clock[0] = 12.0
+    on_event({"phase": "compiled", "compile_seconds": 12.0, "episodes": 0, "total": 1000})
+    for t, n in ((22.0, 100), (40.0, 280), (52.0, 400), (70.0, 580), (112.0, 1000)):
+        clock[0] = t
+        on_event(chunk(n, t - 12.0))
+    on_event({"phase": "evaluating", "episodes": 100})
+    lines = out.getvalue().splitlines()
+    assert lines[0] == "tlgrl relaxed: compiling the learner (once per run)…"
+    assert lines[1] == "tlgrl relaxed: compiled in 12.0 s; training 1000 episodes"
+    # the first chunk, then a line once 30 s have passed since the last one (not at 40 s or 70 s), and the last
+    assert [ln.split(": ")[1].split()[0] for ln in lines[2:5]] == ["100/1000", "400/1000", "1000/1000"]
+    assert "0:00:22, eta 0:01:30, 10.0 ep/s" in lines[2]  # 10 ep/s since compiled: 900 left
+    assert lines[5] == "tlgrl relaxed: evaluating the final policy (100 episodes)…" and len(lines) == 6
+
+
+def test_no_progress_prints_nothing():
+    display = progress.progress_display(Console(file=io.StringIO()), show=False)
+    with display:
+        assert display.add("x", 10) is None
