@@ -71,11 +71,11 @@ def gae(reward, val, done, last_val):
     return adv, adv + val
 
 
-def optimizer(lr: float = 1e-3):
+def optimizer(lr: float = 3e-3):
     return optax.chain(optax.clip_by_global_norm(0.5), optax.adam(lr))
 
 
-def update(params, opt_state, batch, key, tx, epochs: int = 4, minibatches: int = 4):
+def update(params, opt_state, batch, key, tx, epochs: int = 8, minibatches: int = 4):
     """Clipped-surrogate PPO epochs over a flat batch (obs, action, logp, adv, ret, mask)."""
     n = batch["mask"].shape[0]
 
