@@ -7,6 +7,8 @@ PureJaxRL scripts do.
 
 from __future__ import annotations
 
+import itertools
+
 import jax
 import jax.numpy as jnp
 import optax
@@ -16,7 +18,7 @@ GAMMA, LAMBDA, CLIP = 0.99, 0.95, 0.2
 
 def _mlp_init(key, sizes, last_scale):
     layers = []
-    for i, (n_in, n_out) in enumerate(zip(sizes[:-1], sizes[1:])):
+    for i, (n_in, n_out) in enumerate(itertools.pairwise(sizes)):
         key, k = jax.random.split(key)
         scale = last_scale if i == len(sizes) - 2 else 1.0
         layers.append((scale * jax.random.normal(k, (n_in, n_out)) / jnp.sqrt(n_in), jnp.zeros(n_out)))

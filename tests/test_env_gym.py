@@ -7,6 +7,7 @@ from __future__ import annotations
 import warnings
 from functools import partial
 
+import _ppo
 import gymnasium as gym
 import jax
 import jax.numpy as jnp
@@ -15,7 +16,6 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 from gymnasium.vector import AutoresetMode
 
-import _ppo
 import d2spo.envs  # noqa: F401  registers d2spo/Nav-v0
 from d2spo.envs import CostTuple, VectorCostTuple
 from d2spo.envs.gym_env import EPISODE_STATS, NavEnv
@@ -29,8 +29,8 @@ def test_gymnasium_env_checker_passes_without_a_warning():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         check_env(env.unwrapped)  # spaces, seeding, determinism, the five values, rendering
-    obs, info = env.reset(seed=0)
-    obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+    env.reset(seed=0)
+    _, reward, _, _, info = env.step(env.action_space.sample())
     assert isinstance(reward, float) and info["cost"] in (0.0, 1.0) and "episode" not in info
     frame = env.render()
     assert frame.dtype == np.uint8 and frame.ndim == 3 and frame.shape[2] == 3
@@ -58,12 +58,12 @@ def test_vector_env_same_step_mode_and_the_six_value_wrappers():
     envs = VectorCostTuple(envs)
     envs.reset(seed=0)
     for _ in range(3):
-        obs, reward, cost, terminated, truncated, info = envs.step(np.ones((4, 2), np.float32))
+        obs, _, cost, _, truncated, info = envs.step(np.ones((4, 2), np.float32))
     assert np.array_equal(cost, info["cost"]) and truncated.all()
     assert np.array_equal(info["_final_obs"], truncated) and not np.allclose(info["final_obs"], obs)
     env = CostTuple(gym.make("d2spo/Nav-v0", **SMALL))
     env.reset(seed=0)
-    obs, reward, cost, terminated, truncated, info = env.step(np.zeros(2, np.float32))
+    _, reward, cost, _, _, info = env.step(np.zeros(2, np.float32))
     assert cost == info["cost"] == 0.0 and isinstance(reward, float)
 
 
@@ -74,7 +74,7 @@ def test_gymnasium_wrappers_single_and_vector():
     env.reset(seed=0)
     returns = []
     for _ in range(2):
-        obs, reward, terminated, truncated, info = env.step(np.ones(2, np.float32))
+        _, reward, _, truncated, info = env.step(np.ones(2, np.float32))
         returns.append(reward)
     assert truncated and info["episode"]["l"] == 2 and info["episode"]["r"] == pytest.approx(sum(returns), abs=1e-5)
     assert EPISODE_STATS not in info  # our own limit (3) was not reached: TimeLimit cut the episode
@@ -86,7 +86,7 @@ def test_gymnasium_wrappers_single_and_vector():
     envs = gym.wrappers.vector.TransformObservation(envs, lambda o: np.clip(o, -5, 5))
     envs.reset(seed=0)
     for _ in range(3):
-        obs, reward, terminated, truncated, info = envs.step(np.ones((3, 2), np.float32))
+        obs, _, _, truncated, info = envs.step(np.ones((3, 2), np.float32))
     assert truncated.all() and np.abs(obs).max() <= 5
     np.testing.assert_array_equal(info["episode"]["l"], 3)
     np.testing.assert_allclose(info["episode"]["r"], info[EPISODE_STATS]["ep_return"], rtol=1e-5)
@@ -103,7 +103,7 @@ def test_observations_stay_inside_the_declared_bounds_through_collisions():
     envs.action_space.seed(1)
     collisions = 0
     for _ in range(60):
-        obs, reward, terminated, truncated, info = envs.step(envs.action_space.sample())
+        obs, _, _, _, info = envs.step(envs.action_space.sample())
         collisions += int(info["collided"].sum())
         for o in (obs, info["final_obs"][info["_final_obs"]]):
             assert np.all((o >= space.low) & (o <= space.high))

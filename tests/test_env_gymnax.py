@@ -3,13 +3,13 @@ info, gymnax's own wrappers under vmap + scan, and a PureJaxRL-style PPO that le
 
 from __future__ import annotations
 
+import _ppo
 import jax
 import jax.numpy as jnp
 import numpy as np
 from gymnax.environments import spaces
 from gymnax.wrappers.purerl import FlattenObservationWrapper, LogWrapper
 
-import _ppo
 from d2spo.envs import EnvConfig, make_env
 from d2spo.envs.gymnax_env import GymnaxNav
 
@@ -18,12 +18,12 @@ def test_gymnax_order_cost_in_info_and_the_functional_env_underneath():
     env, params = GymnaxNav.make(task="relaxed", layout="relaxed", max_steps=4)
     assert isinstance(env.observation_space(params), spaces.Box) and env.num_actions == 2
     obs, state = jax.jit(env.reset)(jax.random.key(0), params)
-    ref_state, ref_obs = make_env(EnvConfig(layout="relaxed", max_steps=4), "relaxed")[0].reset(jax.random.key(0), params)
-    np.testing.assert_array_equal(obs, ref_obs)
+    _, ref_obs = make_env(EnvConfig(layout="relaxed", max_steps=4), "relaxed")[0].reset(jax.random.key(0), params)
+    np.testing.assert_allclose(obs, ref_obs, rtol=1e-6, atol=1e-6)  # jitted vs op by op
     assert bool(env.observation_space(params).contains(obs))
     step = jax.jit(env.step)
     for _ in range(4):
-        obs, state, reward, terminated, truncated, info = step(jax.random.key(1), state, jnp.ones(2), params)
+        obs, state, _, terminated, truncated, info = step(jax.random.key(1), state, jnp.ones(2), params)
         assert {"cost", "final_observation", "discount", "collided", "completed"} <= set(info)
         assert float(info["cost"]) == float(info["collided"])
     assert bool(truncated) and not bool(terminated) and int(state.t) == 0  # reset in the same step

@@ -4,7 +4,13 @@ Importing this package registers the Gymnasium id ``d2spo/Nav-v0`` (see ``gym_en
 """
 
 from d2spo.envs import layouts
-from d2spo.envs.gym_env import CostTuple, NavEnv, NavVectorEnv, VectorCostTuple, register
+from d2spo.envs.gym_env import (
+    CostTuple,
+    NavEnv,
+    NavVectorEnv,
+    VectorCostTuple,
+    register,
+)
 from d2spo.envs.layouts import Layout
 from d2spo.envs.nav import Env, EnvConfig, EnvParams, EnvState, make_env
 

@@ -28,7 +28,7 @@ import os
 import sys
 from dataclasses import fields, replace
 from functools import lru_cache, partial
-from typing import Any, NamedTuple
+from typing import Any, ClassVar, NamedTuple
 
 import gymnasium
 import jax
@@ -132,7 +132,7 @@ class NavEnv(gymnasium.Env):
     """One navigation environment with Gymnasium's single-env contract: after ``terminated`` or
     ``truncated``, ``step`` has returned the episode's last observation and the caller resets."""
 
-    metadata = {"render_modes": ["rgb_array", "human"] if _has_display() else ["rgb_array"], "render_fps": 10}
+    metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array", "human"] if _has_display() else ["rgb_array"], "render_fps": 10}
 
     def __init__(self, task: Any = "phi1", config: EnvConfig | None = None, render_mode: str | None = None,
                  **overrides):
@@ -214,7 +214,7 @@ class NavVectorEnv(VectorEnv):
     ``make_vec(..., max_episode_steps=N)`` passes) sets ``EnvConfig.max_steps``.
     """
 
-    metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": ["rgb_array"], "render_fps": 10}
+    metadata: ClassVar[dict[str, Any]] = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": ["rgb_array"], "render_fps": 10}
 
     def __init__(self, num_envs: int = 1, task: Any = "phi1", config: EnvConfig | None = None,
                  autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP, render_mode: str | None = None,
