@@ -1,13 +1,20 @@
 # `make demo` and `make test` each set everything up from a fresh clone, then run.
+# Any Python >= 3.11: `make test PYTHON=python3.13` (a venv of another version is rebuilt).
 PYTHON ?= $(shell command -v python3.11 || command -v python3)
-VENV   := .venv
+PYEXE  := $(shell .ci/find-python $(PYTHON))
+PYVER  := $(shell $(PYEXE) -c 'import sys; print("%d.%d" % sys.version_info[:2])' 2>/dev/null)
+VENV   ?= .venv
 PY     := $(VENV)/bin/python
-STAMP  := $(VENV)/.installed-stamp
+STAMP  := $(VENV)/.installed-$(PYVER)
 
-.PHONY: install demo test test-fast bench clean
+.PHONY: install demo test test-fast smoke bench clean
 
 $(STAMP): pyproject.toml constraints.txt
-	$(PYTHON) -m venv $(VENV)
+	@test -n "$(PYVER)" || { echo "make: no working '$(PYTHON)' on this machine" >&2; exit 2; }
+	@if [ -x $(PY) ] && ! $(PY) -c 'import sys; sys.exit(f"{sys.version_info[0]}.{sys.version_info[1]}" != "$(PYVER)")'; \
+	  then echo "$(VENV) is another Python's: rebuilding it with $(PYVER)"; rm -rf $(VENV); fi
+	rm -f $(VENV)/.installed-*
+	$(PYEXE) -m venv $(VENV)
 	$(PY) -m pip install --quiet --disable-pip-version-check --upgrade "pip>=24"
 	$(PY) -m pip install --quiet --disable-pip-version-check -c constraints.txt -e ".[test,cluster]"
 	touch $(STAMP)
@@ -20,8 +27,16 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest -n 2 --durations=10 tests
 
+# What .ci/run runs on each other Python version: import, a few fast tests, a 50-episode train.
+smoke: $(STAMP)
+	$(PY) -c "import d2spo, d2spo.envs, sys; print('d2spo imports on Python', sys.version.split()[0])"
+	$(PY) -m pytest -x tests/test_ltl_parser.py tests/test_env_geometry.py \
+	  tests/test_env_gym.py::test_gymnasium_env_checker_passes_without_a_warning
+	rm -rf $(VENV)/smoke_run
+	$(VENV)/bin/d2spo train --task relaxed --layout relaxed --episodes 50 --eval-episodes 10 --out $(VENV)/smoke_run
+
 bench: $(STAMP)
 	$(PY) bench/env_throughput.py
 
 clean:
-	rm -rf $(VENV) demo_out .pytest_cache .hypothesis
+	rm -rf $(VENV) .venv-3.* demo_out .pytest_cache .hypothesis

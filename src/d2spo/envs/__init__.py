@@ -4,10 +4,19 @@ Importing this package registers the Gymnasium id ``d2spo/Nav-v0`` (see ``gym_en
 """
 
 from d2spo.envs import layouts
-from d2spo.envs.gym_env import NavEnv, NavVectorEnv, register
+from d2spo.envs.gym_env import (
+    CostTuple,
+    NavEnv,
+    NavVectorEnv,
+    VectorCostTuple,
+    register,
+)
 from d2spo.envs.layouts import Layout
 from d2spo.envs.nav import Env, EnvConfig, EnvParams, EnvState, make_env
 
 register()
 
-__all__ = ["Env", "EnvConfig", "EnvParams", "EnvState", "Layout", "NavEnv", "NavVectorEnv", "layouts", "make_env"]
+__all__ = [
+    "CostTuple", "Env", "EnvConfig", "EnvParams", "EnvState", "Layout", "NavEnv", "NavVectorEnv", "VectorCostTuple",
+    "layouts", "make_env",
+]

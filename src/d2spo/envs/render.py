@@ -18,6 +18,7 @@ from d2spo.envs.layouts import Layout
 OBSTACLE_COLOR = "black"
 AREA_COLOR = "tab:green"
 START_COLOR = "tab:blue"
+ROBOT_COLOR = "tab:red"
 
 
 def draw_layout(
@@ -88,3 +89,37 @@ def save_layout_png(
                           f"{n} obstacle{'s' * (n != 1)}, {len(layout.areas)} areas", fontsize=10)
     add_legend(ax)
     fig.savefig(str(path), dpi=dpi)
+
+    for xy in trajectories or ():
+        draw_trajectory(ax, xy)
+    fig.savefig(str(path), dpi=dpi, bbox_inches="tight")
+
+
+class FrameRenderer:
+    """RGB frames of the robot in a layout, for Gymnasium's ``render_mode="rgb_array"``.
+
+    The layout is drawn once; each frame moves the robot disk, its heading and its sensing circle.
+    """
+
+    def __init__(self, layout: Layout, robot_radius: float, sensing_radius: float, pixels: int = 400):
+        self.fig = Figure(figsize=(4, 4), dpi=pixels / 4)
+        self.canvas = FigureCanvasAgg(self.fig)
+        self.ax = self.fig.add_subplot()
+        draw_layout(layout, self.ax, show_sensing=False)
+        self.body = Circle((0.0, 0.0), robot_radius, facecolor=ROBOT_COLOR, edgecolor=ROBOT_COLOR, zorder=4)
+        self.sensing = Circle((0.0, 0.0), sensing_radius, fill=False, edgecolor=ROBOT_COLOR, linestyle="--",
+                              alpha=0.6, zorder=4)
+        self.ax.add_patch(self.body)
+        self.ax.add_patch(self.sensing)
+        (self.heading,) = self.ax.plot([], [], "-", color="white", linewidth=1.5, zorder=5)
+        self.robot_radius = robot_radius
+
+    def __call__(self, pose, title: str = "") -> np.ndarray:
+        """uint8 [height, width, 3]: the layout with the robot at ``pose`` = (x, y, theta)."""
+        x, y, theta = (float(v) for v in pose)
+        self.body.center = self.sensing.center = (x, y)
+        r = self.robot_radius
+        self.heading.set_data([x, x + r * np.cos(theta)], [y, y + r * np.sin(theta)])
+        self.ax.set_title(title)
+        self.canvas.draw()
+        return np.asarray(self.canvas.buffer_rgba())[..., :3].copy()
