@@ -19,6 +19,7 @@ from typing import Annotated, Union
 
 import tyro
 
+from d2spo.certify import CertifyConfig
 from d2spo.config import TrainConfig
 from d2spo.errors import ConfigError, LTLSyntaxError, NaNError, RunDirWarning, UserError
 
@@ -324,6 +325,88 @@ class ReportCmd:
         return 0
 
 
+# ------------------------------------------------------------------------------------ certify
+@dataclasses.dataclass
+class CertifyCmd:
+    """Check Propositions 1-2 (the learned CBF) on a trained d2spo/sl run; writes RUN/certify.json and
+    RUN/certify.png. With --repair, trains h and π_Ω on the counterexamples into a new run directory."""
+
+    run_dir: tyro.conf.Positional[Path]
+    """A run directory written by `d2spo train --algo d2spo` (or sl)."""
+    check: Annotated[CertifyConfig, tyro.conf.arg(name="")] = dataclasses.field(default_factory=CertifyConfig)
+    repair: bool = False
+    """Add the counterexamples to the datasets and train h and π_Ω until the certified fraction stops rising."""
+    out: Path | None = None
+    """With --repair: the new run directory (default: RUN-repaired)."""
+    rounds: int = 6
+    """With --repair: at most this many rounds of (certify, add counterexamples, train)."""
+    calls: int = 100
+    """With --repair: UPDATE(Ω, Θ) calls of Algorithm 1 per round (each `cbf.updates_per_iter` steps)."""
+    copies: int = 4
+    """With --repair: copies of each counterexample added to the datasets."""
+
+    def run(self) -> int:
+        from rich.console import Console
+
+        console = Console()
+        if self.repair:
+            from d2spo.repair import repair_run
+
+            if self.rounds < 1 or self.calls < 1 or self.copies < 1:
+                raise UserError("--rounds, --calls and --copies must be ≥ 1")
+            out = self.out or self.run_dir.with_name(self.run_dir.name + "-repaired")
+
+            def show(r: dict) -> None:
+                console.print(f"round {r['round']}: certified ℒ {100 * r['certified_L']:.2f}%, "
+                              f"D {100 * r['certified_D']:.2f}%, violated grid points: "
+                              f"{r['grid_L_violated']} (Prop. 1), {r['grid_D_violated']} (Prop. 2)")
+
+            res = repair_run(self.run_dir, out, self.check, self.rounds, self.calls, self.copies, progress=show)
+            _print_certify(console, res["after"])
+            print(f"wrote the repaired run {out} (certify.json, certify.png, checkpoint)")
+            return 0
+        from d2spo.certify import certify_run, load_cbf_run, write_outputs
+
+        self.check.check()
+        run = load_cbf_run(self.run_dir)
+        summary, nets = certify_run(self.run_dir, self.check, run=run)
+        j, p = write_outputs(self.run_dir, run, self.check, summary, nets)
+        _print_certify(console, summary)
+        print(f"wrote {j} and {p}")
+        return 0
+
+
+def _print_certify(console, s: dict) -> None:
+    from rich.table import Table
+
+    t = Table(title=f"{s['run']}: Propositions 1-2 ({s['seconds']:.0f} s)")
+    for name in ("net", "proposition", "points", "certified", "not certified", "violated", "worst margin", "worst value"):
+        t.add_column(name, justify="left" if name in ("net", "proposition") else "right")
+    rows = (("X_L", "1: h < 0", "max_h", "h"), ("grid ℒ + contact", "1: h < 0", "max_h", "h"),
+            ("P_exp (X_s)", "2: e ≥ 0", "min_e", "e"), ("grid D", "2: e ≥ 0", "min_e", "e"))
+    for (label, prop, worst, sym), key in zip(rows, ("X_L", "grid_L", "P_exp", "grid_D")):
+        n = s["nets"][key]
+        if not n["points"]:
+            t.add_row(label, prop, "0", "", "", "", "", "")
+            continue
+        t.add_row(label, prop, str(n["points"]), f"{100 * n['certified']:.2f}%", f"{100 * n['not_certified']:.2f}%",
+                  f"{100 * n['violated']:.2f}%", f"{n['worst_margin']:.3g}", f"{sym} = {n[worst]:.3g}",
+                  style="red" if n["violated"] > 0 else None)
+    console.print(t)
+    r = s["residual"]
+    console.print(f"model residual on {r['transitions']} held-out transitions: |Δh| ≤ ρ_h = {r['rho_h']:.4g} "
+                  f"(quantile {r['quantile']:g}; features: median {r['features_m']['p50']:.3g} m, "
+                  f"max {r['features_m']['max']:.3g} m)")
+    for key, sym in (("L", "h"), ("D", "e")):
+        bad = [c for c in s["counterexamples"][key] if c["counterexample"]]
+        if bad:
+            c = bad[0]
+            console.print(f"counterexample ({'ℒ' if key == 'L' else 'D'}): pose {c['pose']} with {sym} = {c[sym]:.3g}"
+                          f" ({len(bad)} of the worst {len(s['counterexamples'][key])} found)")
+        else:
+            console.print(f"gradient search in {'ℒ' if key == 'L' else 'D'}: no counterexample found")
+
+
 Commands = Union[
     Annotated[TrainCmd, tyro.conf.subcommand("train")],
     Annotated[EvalCmd, tyro.conf.subcommand("eval")],
@@ -332,6 +415,7 @@ Commands = Union[
     Annotated[DemoCmd, tyro.conf.subcommand("demo")],
     Annotated[ReproduceCmd, tyro.conf.subcommand("reproduce")],
     Annotated[ReportCmd, tyro.conf.subcommand("report")],
+    Annotated[CertifyCmd, tyro.conf.subcommand("certify")],
 ]
 
 _BOX = re.compile(r"[╭╮╰╯│─]+")

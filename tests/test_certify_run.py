@@ -1,0 +1,101 @@
+"""`d2spo certify` on run directories: a barrier shifted up is reported violated (down: certified in
+ℒ), and bad input gets one line and exit status 2."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import subprocess
+import sys
+
+import jax
+import numpy as np
+import pytest
+
+from d2spo import cli
+from d2spo.config import TrainConfig, config_to_dict
+from d2spo.envs import EnvConfig
+from d2spo.runio import atomic_write_json, save_checkpoint
+from d2spo.safety.cbf import CBFConfig
+
+TINY_CBF = CBFConfig(hidden=(8,), policy_hidden=(8,), nominal_hidden=(8,), transitions_capacity=64,
+                     p_exp_capacity=64, unsafe_capacity=64, batch_size=8)
+
+
+def _tiny_cfg(algo: str = "d2spo") -> TrainConfig:
+    cfg = TrainConfig(algo=algo, task="phi1", episodes=4, num_envs=2, env=EnvConfig(layout="paper", max_steps=8),
+                      cbf=TINY_CBF)
+    cfg = dataclasses.replace(cfg, d2spo=dataclasses.replace(cfg.d2spo, pretrain=False),
+                              td3=dataclasses.replace(cfg.td3, buffer_size=64, hidden=(8,)))
+    return cfg.check()
+
+
+def _write_run(path, cfg: TrainConfig, carry=None) -> None:
+    path.mkdir(parents=True)
+    atomic_write_json(path / "config.json", config_to_dict(cfg))
+    if carry is not None:
+        save_checkpoint(path, carry, {"episodes": 0, "env_steps": 0, "chunks": 0, "wall_seconds": 0.0})
+
+
+@pytest.fixture(scope="module")
+def untrained_run(tmp_path_factory):
+    """A d2spo run directory whose checkpoint is the learner's initial state (no training)."""
+    from d2spo.train import build
+
+    cfg = _tiny_cfg()
+    _, _, learner = build(cfg)
+    carry = jax.jit(learner.init)(jax.random.PRNGKey(0))
+    path = tmp_path_factory.mktemp("certify") / "run"
+    _write_run(path, cfg, carry)
+    return path
+
+
+def _shifted(run, c: float):
+    """The run with h_Θ's output bias shifted by c."""
+    cbf = run.carry.safety.cbf
+    last = max((k for k in cbf["params"] if k.startswith("Dense_")), key=lambda k: int(k.split("_")[1]))
+    new = jax.tree_util.tree_map(lambda a: a, cbf)
+    new["params"][last]["bias"] = cbf["params"][last]["bias"] + c
+    return run._replace(carry=run.carry.replace(safety=run.carry.safety.replace(cbf=new)))
+
+
+def test_h_shifted_up_is_reported_violated_and_shifted_down_certified(untrained_run):
+    from d2spo.certify import CertifyConfig, certify_run, load_cbf_run
+
+    ccfg = CertifyConfig(grid_step=0.25, headings=2, residual_episodes=2)
+    run = load_cbf_run(untrained_run)
+    up, _ = certify_run(untrained_run, ccfg, run=_shifted(run, 20.0), search=False)
+    assert up["nets"]["grid_L"]["points"] > 0 and up["nets"]["grid_L"]["violated"] == 1.0
+    assert up["grid_L_violated"] == up["nets"]["grid_L"]["points"]
+    down, _ = certify_run(untrained_run, ccfg, run=_shifted(run, -20.0), search=False)
+    assert down["nets"]["grid_L"]["certified"] == 1.0
+    assert down["nets"]["grid_D"]["violated"] == 1.0  # e ≈ α(−20) < 0 wherever the robot is free
+    json.dumps(up)  # the summary is what certify.json holds
+
+
+def _one_error_line(capsys, args) -> str:
+    assert cli.main(args) == 2
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(err) == 1 and err[0].startswith("d2spo: error: "), err
+    return err[0]
+
+
+def test_bad_input_gets_one_line_and_exit_2(tmp_path, capsys, untrained_run):
+    assert "no such run directory" in _one_error_line(capsys, ["certify", str(tmp_path / "nothing")])
+    _write_run(tmp_path / "tlgrl", _tiny_cfg("tlgrl"))
+    assert "no learned CBF" in _one_error_line(capsys, ["certify", str(tmp_path / "tlgrl")])
+    _write_run(tmp_path / "nockpt", _tiny_cfg())
+    assert "no checkpoint" in _one_error_line(capsys, ["certify", str(tmp_path / "nockpt")])
+    foreign = tmp_path / "foreign"
+    _write_run(foreign, _tiny_cfg(), carry={"something": np.zeros(3)})
+    assert "checkpoint" in _one_error_line(capsys, ["certify", str(foreign)])
+    assert "eps_safe" in _one_error_line(capsys, ["certify", str(untrained_run), "--eps-safe", "0"])
+    assert "eps_unsafe" in _one_error_line(capsys, ["certify", str(untrained_run), "--repair", "--eps-unsafe", "-1",
+                                                    "--out", str(tmp_path / "r")])
+
+
+def test_bad_epsilon_through_the_command_line_has_no_traceback(untrained_run):
+    res = subprocess.run([sys.executable, "-m", "d2spo.cli", "certify", str(untrained_run), "--eps-unsafe", "0"],
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2 and "Traceback" not in res.stderr
+    assert [ln for ln in res.stderr.splitlines() if ln.strip()] == ["d2spo: error: eps_unsafe: must be > 0, got 0.0"]
