@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from d2spo.envs import dynamics, geodesic, geometry, layouts, sensors
+from d2spo.envs import dynamics, geodesic, geometry, layouts, sensors, state_fields
 from d2spo.envs.dynamics import DynamicsParams
 from d2spo.envs.geometry import Geometry
 from d2spo.envs.layouts import Layout
@@ -39,10 +39,15 @@ from d2spo.ltl.labelling import LABEL_MODES, next_state
 from d2spo.ltl.reward import (
     RewardConfig,
     potential,
+    potential_from_near,
     progress_areas,
     progress_reward,
     shaping_term,
 )
+
+PER_STATE = "geodesic-per-state"
+SHAPING_METRICS = ("geodesic", "euclidean", PER_STATE)
+"""Values of ``RewardConfig.shaping_metric``; ``PER_STATE`` reads ``envs.state_fields``."""
 
 
 @dataclass(frozen=True)
@@ -128,9 +133,9 @@ class EnvConfig:
             raise ConfigError("label_radius", f"must be positive, got {self.label_radius}")
         if self.reward.mode not in ("progress", "sparse"):
             raise ConfigError("reward.mode", f"unknown mode {self.reward.mode!r}; choose 'progress' or 'sparse'")
-        if self.reward.shaping_metric not in ("geodesic", "euclidean"):
+        if self.reward.shaping_metric not in SHAPING_METRICS:
             raise ConfigError("reward.shaping_metric", f"unknown metric {self.reward.shaping_metric!r}; "
-                              "choose 'geodesic' or 'euclidean'")
+                              f"choose one of {list(SHAPING_METRICS)}")
         c = self.reward.shaping_clearance
         if c is not None and not (math.isfinite(c) and c >= 0):
             raise ConfigError("reward.shaping_clearance", f"must be >= 0, got {c}")
@@ -168,7 +173,11 @@ class EnvParams:
     """int32 []: episode length limit."""
     geodesic: jnp.ndarray
     """float32 [N, ny, nx]: path length through free space from each grid node to each area's centre
-    (``envs.geodesic``; the shaping potential's distance)."""
+    (``envs.geodesic``; the shaping potential's distance; [N, 1, 1] zeros unless the metric is 'geodesic')."""
+    state_field: jnp.ndarray
+    """float32 [Q, ny, nx]: per automaton state, path length to the areas that make progress round
+    those that reject the task (``envs.state_fields``; [Q, 1, 1] zeros unless the metric is
+    'geodesic-per-state')."""
     n_rays: int = struct.field(pytree_node=False, default=16)
     """Number of lidar rays K (static: it sets the observation size)."""
     event: bool = struct.field(pytree_node=False, default=True)
@@ -357,7 +366,15 @@ class Env:
         q_next = next_state(aut, state.q, letter, state.letter, params.event)
         q_true_next = next_state(aut, state.q_true, letter_true, state.letter_true, params.event)
         reward = progress_reward(aut, state.q, q_next, params.reward, collided)
-        if params.reward.mode == "progress" and params.reward.shaping != 0.0:
+        if params.reward.mode == "progress" and params.reward.shaping != 0.0 and \
+                params.reward.shaping_metric == PER_STATE:
+            diag = jnp.linalg.norm(params.geom.arena_hi - params.geom.arena_lo)
+            near = geodesic.lookup(params.state_field, state.pose[:2], index=state.q)
+            near_next = geodesic.lookup(params.state_field, pose[:2], index=q_next)
+            phi = potential_from_near(aut, state.q, near, diag)
+            phi_next = potential_from_near(aut, q_next, near_next, diag)
+            reward = reward + shaping_term(phi, phi_next, params.reward)
+        elif params.reward.mode == "progress" and params.reward.shaping != 0.0:
             diag = jnp.linalg.norm(params.geom.arena_hi - params.geom.arena_lo)
             dist = self._center_distance(state.pose[:2], params)
             dist_next = self._center_distance(pose[:2], params)
@@ -465,6 +482,15 @@ def make_env(cfg: EnvConfig, task: Any = "phi1") -> tuple[Env, EnvParams]:
         raise ConfigError("task", f"{task if isinstance(task, str) else 'the task'} cannot be completed in "
                           f"layout {layout.name!r}{hint}")
 
+    n_states = int(arrays.delta.shape[0])
+    per_state = cfg.reward.shaping_metric == PER_STATE
+    clearance = cfg.robot_radius if cfg.reward.shaping_clearance is None else cfg.reward.shaping_clearance
+    if per_state:
+        name = task if isinstance(task, str) else "the task"
+        state_fields.check_task(automaton, layout, cfg.label_mode, cfg.robot_radius, repr(name))
+        field = state_fields.state_fields(automaton, layout, cfg.label_mode, clearance).field
+    else:
+        field = np.zeros((n_states, 1, 1), np.float32)
     n_areas = len(layout.areas)
     f32 = lambda v: jnp.asarray(v, jnp.float32)
     area_radius = np.array([a.radius for a in layout.areas], np.float32).reshape(n_areas)
@@ -493,13 +519,13 @@ def make_env(cfg: EnvConfig, task: Any = "phi1") -> tuple[Env, EnvParams]:
         max_steps=jnp.asarray(cfg.max_steps, jnp.int32),
         geodesic=f32(geodesic.distance_fields(
             layout.arena, [o.lo for o in layout.obstacles], [o.hi for o in layout.obstacles],
-            [a.center for a in layout.areas], area_radius,
-            cfg.robot_radius if cfg.reward.shaping_clearance is None else cfg.reward.shaping_clearance)
+            [a.center for a in layout.areas], area_radius, clearance)
             if cfg.reward.shaping_metric == "geodesic" else np.zeros((n_areas, 1, 1), np.float32)),
+        state_field=f32(field),
         n_rays=cfg.n_rays,
         event=cfg.label_mode == "event",
         collision_terminates=cfg.collision_terminates,
         reward=cfg.reward,
     )
-    env = Env(layout, aps, int(arrays.delta.shape[0]), cfg)
+    env = Env(layout, aps, n_states, cfg)
     return env, params
