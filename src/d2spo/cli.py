@@ -40,12 +40,17 @@ class LtlCmd:
     """Restrict distances to letters that can occur on this layout (name or JSON file)."""
     label_mode: str = "event"
     """Labelling the distances assume: 'event' (no empty letter) or 'step'."""
+    plot: Path | None = None
+    """With --layout: draw per automaton state its shaping distance field (--shaping-metric
+    geodesic-per-state) with its target and forbidden areas into this PNG, then check the task can be done."""
 
     def run(self) -> int:
         from d2spo.ltl import task_formula, translate
 
         if self.json and self.dot:
             raise UserError("--json and --dot are exclusive; choose one")
+        if self.plot is not None and self.layout is None:
+            raise UserError("--plot needs --layout")
         aut = translate(task_formula(self.formula))
         feasible = None
         if self.layout is not None:
@@ -58,6 +63,11 @@ class LtlCmd:
             print(aut.to_dot())
         else:
             print(aut.pretty(feasible))
+        if self.plot is not None:
+            from d2spo.envs.state_fields import plot_state_fields
+
+            plot_state_fields(aut, self.formula, self.layout, self.label_mode, self.plot)
+            print(f"wrote {self.plot}")
         return 0
 
 

@@ -218,6 +218,10 @@ def check_task(aut: Automaton, layout: Layout, label_mode: str, robot_radius: fl
     if missing:
         raise ConfigError("task", f"{name}: proposition {missing[0]!r} names no area of layout {layout.name!r} "
                           f"(its areas: {', '.join(layout.area_names)})")
+    distance = aut.distances(layouts.feasible_letters(layout, aut.aps, label_mode))
+    if distance[aut.initial] is None:
+        raise ConfigError("task", f"{name} cannot be completed on layout {layout.name!r}: no sequence of the "
+                          "letters it can produce (areas entered alone, or together where they overlap) does it")
     event = label_mode == "event"
     resolution = min(0.05, max(layout.arena) / 100.0)
     free, centres = layouts.free_grid(layout, robot_radius, resolution)
@@ -253,15 +257,30 @@ def check_task(aut: Automaton, layout: Layout, label_mode: str, robot_radius: fl
         reached |= new
     if reached[sorted(aut.accepting)].any():
         return
-    distance = aut.distances(layouts.feasible_letters(layout, aut.aps, label_mode))
     live = [q for q in range(aut.n_states) if reached[q].any() and q in open_states.nonzero()[0]
             and distance[q] is not None]
     if not live:
-        raise ConfigError("task", f"{name} cannot be completed on layout {layout.name!r}: every letter the robot "
-                          "can produce from the start rejects it")
+        raise ConfigError("task", f"{name} cannot be completed on layout {layout.name!r}: the first area the robot "
+                          "can enter from the start rejects it")
     q = min(live, key=lambda s: (distance[s], s))
     sf = state_fields(aut, layout, label_mode, 0.0)
     goal = " or ".join(sf.targets[q]) or "an area that makes progress"
     why = f" without entering {', '.join(sf.forbidden[q])} (forbidden there)" if sf.forbidden[q] else ""
     raise ConfigError("task", f"{name} cannot be completed on layout {layout.name!r}: in automaton state {q} "
                       f"({aut.state_formulas[q]}) a robot of radius {robot_radius:g} m cannot reach {goal}{why}")
+
+
+def plot_state_fields(aut: Automaton, name: str, layout_name: str, label_mode: str, path) -> None:
+    """Draw the fields of ``aut`` on a layout as the default environment config computes them (robot
+    radius, shaping clearance) into the PNG ``path``; then ``check_task`` (ConfigError if the task
+    cannot be done; the picture shows why)."""
+    from d2spo.envs.nav import EnvConfig
+    from d2spo.envs.render import save_state_fields_png
+
+    cfg = EnvConfig(layout=layout_name, label_mode=label_mode).resolved()
+    layout = layouts.load(layout_name).scaled(cfg.layout_scale)
+    clearance = cfg.robot_radius if cfg.reward.shaping_clearance is None else cfg.reward.shaping_clearance
+    sf = state_fields(aut, layout, label_mode, clearance)
+    distance = aut.distances(layouts.feasible_letters(layout, aut.aps, label_mode))
+    save_state_fields_png(layout, aut, sf, path, distance)
+    check_task(aut, layout, label_mode, cfg.robot_radius, repr(name))
