@@ -206,6 +206,65 @@ def state_fields(aut: Automaton, layout: Layout, label_mode: str, clearance: flo
     return _CACHE[key]
 
 
+def _reachable(delta: np.ndarray, letters: np.ndarray, free: np.ndarray, start: tuple[int, int, int], event: bool,
+               absorbing: list[int]) -> list[bool]:
+    """Per automaton state, whether the robot can be in it: a search over (state, grid cell).
+
+    In state q the robot moves freely through the cells whose letter is not read (event labelling:
+    the empty letter and the letter of the cell it stands in) or leaves q where it is (delta[q, a] == q);
+    so each state's cells are one flood fill (scipy), and every move across the fill's border into
+    a cell whose letter leads elsewhere seeds that state there.
+    """
+    n_states = delta.shape[0]
+    four = ndimage.generate_binary_structure(2, 1)
+    stays = (delta[:, letters] == np.arange(n_states)[:, None, None]) & free  # [Q, ny, nx]
+    if event:
+        stays |= (letters == 0) & free
+    seeds = np.zeros((n_states,) + letters.shape, bool)
+    reached = np.zeros_like(seeds)
+    regions = np.zeros(letters.shape, np.int64)  # connected cells of one non-empty letter
+    for a in np.unique(letters[free & (letters != 0)]):
+        lab, _ = ndimage.label(free & (letters == a), four)
+        regions = np.where(lab > 0, lab + regions.max(), regions)
+    q0, iy, ix = start
+    seeds[q0, iy, ix] = True
+    todo = [q0]
+    while todo:
+        q = todo.pop()
+        if q in absorbing:
+            reached[q] |= seeds[q]
+            continue
+        mask = stays[q].copy()
+        if event:  # the areas it stands in when it enters q: it may move inside them without a read
+            mask |= np.isin(regions, np.unique(regions[seeds[q] & (regions > 0)]))
+        else:  # a seed on a cell whose letter leads elsewhere moves on at the next step
+            moved = seeds[q] & ~stays[q]
+            for y, x in zip(*np.nonzero(moved), strict=True):
+                t = delta[q, letters[y, x]]
+                if not seeds[t, y, x]:
+                    seeds[t, y, x] = True
+                    todo.append(t)
+        fill = ndimage.binary_propagation(seeds[q] & mask, four, mask) | seeds[q]
+        new = fill & ~reached[q]
+        reached[q] |= fill
+        if not new.any():
+            continue
+        for dy, dx in _SHIFTS4:  # moves from the fill into a cell whose letter is read and leads elsewhere
+            src = np.roll(new, (dy, dx), axis=(0, 1))
+            if dy:
+                src[0 if dy > 0 else -1, :] = False
+            if dx:
+                src[:, 0 if dx > 0 else -1] = False
+            prev = np.roll(letters, (dy, dx), axis=(0, 1))
+            reads = (letters != prev) & (letters != 0) if event else np.ones_like(src)
+            ys, xs = np.nonzero(src & free & reads)
+            t = delta[q, letters[ys, xs]]
+            fresh = (t != q) & ~seeds[t, ys, xs]
+            seeds[t[fresh], ys[fresh], xs[fresh]] = True
+            todo.extend(int(u) for u in np.unique(t[fresh]) if u not in todo)
+    return [bool(r.any()) for r in reached]
+
+
 def check_task(aut: Automaton, layout: Layout, label_mode: str, robot_radius: float, name: str) -> None:
     """ConfigError unless a robot of ``robot_radius`` can drive from the start to an accepting state.
 
@@ -232,33 +291,12 @@ def check_task(aut: Automaton, layout: Layout, label_mode: str, robot_radius: fl
     ix = min(int(layout.start[0] / resolution), nx - 1)
     first = letters[iy, ix]
     q0 = delta[aut.initial, first] if (first != 0 or not event) else aut.initial
-    reached = np.zeros((aut.n_states, ny * nx), bool)
-    reached[q0, iy * nx + ix] = True
-    frontier = reached.copy()
+    reached = _reachable(delta, letters, free, (q0, iy, ix), event, sorted(aut.accepting | aut.rejecting))
     open_states = np.ones(aut.n_states, bool)
     open_states[sorted(aut.accepting | aut.rejecting)] = False
-    free, lab = free.ravel(), letters.ravel()
-    pairs = [(s, d) for s, d, _ in _pairs(ny, nx, _SHIFTS4)]
-    pairs = [(s[free[s] & free[d]], d[free[s] & free[d]]) for s, d in pairs]
-    while not reached[sorted(aut.accepting)].any():
-        frontier &= open_states[:, None]
-        if not frontier.any():
-            break
-        new = np.zeros_like(reached)
-        for src, dst in pairs:
-            qi, k = np.nonzero(frontier[:, src])
-            s, d = src[k], dst[k]
-            reads = ((lab[d] != lab[s]) & (lab[d] != 0)) if event else np.ones(k.shape, bool)
-            new[np.where(reads, delta[qi, lab[d]], qi), d] = True
-        if not event:  # standing still reads the letter again
-            qi, c = np.nonzero(frontier)
-            new[delta[qi, lab[c]], c] = True
-        frontier = new & ~reached
-        reached |= new
-    if reached[sorted(aut.accepting)].any():
+    if any(reached[q] for q in aut.accepting):
         return
-    live = [q for q in range(aut.n_states) if reached[q].any() and q in open_states.nonzero()[0]
-            and distance[q] is not None]
+    live = [q for q in range(aut.n_states) if reached[q] and open_states[q] and distance[q] is not None]
     if not live:
         raise ConfigError("task", f"{name} cannot be completed on layout {layout.name!r}: the first area the robot "
                           "can enter from the start rejects it")
