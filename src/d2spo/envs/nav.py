@@ -480,7 +480,8 @@ def make_env(cfg: EnvConfig, task: Any = "phi1") -> tuple[Env, EnvParams]:
         missing = sorted(set(aps) - set(layout.area_names))
         hint = f" (propositions with no area, always false: {missing})" if missing else ""
         raise ConfigError("task", f"{task if isinstance(task, str) else 'the task'} cannot be completed in "
-                          f"layout {layout.name!r}{hint}")
+                          f"layout {layout.name!r}{hint}: no sequence of the letters it can produce (areas "
+                          "entered alone, or together where they overlap) does it")
 
     n_states = int(arrays.delta.shape[0])
     per_state = cfg.reward.shaping_metric == PER_STATE
