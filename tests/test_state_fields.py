@@ -151,3 +151,17 @@ def test_per_state_potential_in_the_env_reads_the_state_field():
     diag = math.hypot(5.0, 5.0)
     # no automaton move: -c_n plus the shaping of the field of state 0
     assert float(r) == pytest.approx(-0.01 + 10.0 * (before - after) / diag, abs=1e-4)
+
+
+def test_cli_plots_the_fields_and_refuses_a_bad_task_before_training(tmp_path, capsys):
+    from d2spo import cli
+
+    png = tmp_path / "fields.png"
+    assert cli.main(["ltl", "never-a4", "--layout", "paper", "--plot", str(png)]) == 0
+    assert png.stat().st_size > 10_000
+    capsys.readouterr()
+    rc = cli.main(["train", "--task", "!A9 U A1", "--shaping-metric", "geodesic-per-state",
+                   "--out", str(tmp_path / "run"), "--no-progress"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "'A9' names no area of layout 'paper'" in err[0]
+    assert not (tmp_path / "run" / "episodes.csv").exists()
