@@ -163,7 +163,7 @@ def _compute(aut: Automaton, layout: Layout, event: bool, clearance: float, spac
     distance = aut.distances(layouts.feasible_letters(layout, aps, "event" if event else "step"))
     roles = letter_roles(aut, distance, event)
     w, h = layout.arena
-    nx, ny = int(round(w / spacing)) + 1, int(round(h / spacing)) + 1
+    nx, ny = round(w / spacing) + 1, round(h / spacing) + 1
     xs, ys = np.linspace(0.0, w, nx), np.linspace(0.0, h, ny)
     px, py = np.meshgrid(xs, ys)
     letters = _letters_at(np.stack([px, py], -1), layout, aps)
