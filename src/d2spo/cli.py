@@ -56,6 +56,9 @@ class LtlCmd:
     """Distances over every letter, as if all areas could hold at once (e.g. {A1, A2, A3} in one step)."""
     label_mode: str = "event"
     """Labelling the distances assume: 'event' (no empty letter) or 'step'."""
+    plot: Path | None = None
+    """With --layout: draw per automaton state its shaping distance field (--shaping-metric
+    geodesic-per-state) with its target and forbidden areas into this PNG, then check the task can be done."""
 
     def run(self) -> int:
         from d2spo.ltl import task_formula, translate
@@ -64,6 +67,8 @@ class LtlCmd:
             raise UserError("--json and --dot are exclusive; choose one")
         if self.layout is not None and self.all_letters:
             raise UserError("--layout and --all-letters are exclusive; choose one")
+        if self.plot is not None and self.layout is None:
+            raise UserError("--plot needs --layout")
         aut = translate(task_formula(self.formula))
         if self.all_letters:
             feasible, letters = None, "every letter (all areas may hold at once)"
@@ -84,6 +89,11 @@ class LtlCmd:
         else:
             print(aut.pretty(feasible))
             print(f"distance: area visits (letters) still needed to accept, over {letters}")
+        if self.plot is not None:
+            from d2spo.envs.state_fields import plot_state_fields
+
+            plot_state_fields(aut, self.formula, self.layout, self.label_mode, self.plot)
+            print(f"wrote {self.plot}")
         return 0
 
 

@@ -33,7 +33,7 @@ about 18 s on a 2-core CPU. The sweeps grow with the number of nodes times the g
 40 m arena took 283 s, 200 m minutes and over 6 GB), so a larger arena is refused up front."""
 
 
-def _clearance(xs: np.ndarray, ys: np.ndarray, box_lo: np.ndarray, box_hi: np.ndarray, arena: tuple) -> np.ndarray:
+def clearance(xs: np.ndarray, ys: np.ndarray, box_lo: np.ndarray, box_hi: np.ndarray, arena: tuple) -> np.ndarray:
     """Distance from each node to the nearest obstacle box or wall (0 inside a box)."""
     px, py = np.meshgrid(xs, ys)  # [ny, nx]
     walls = np.minimum.reduce([px, py, arena[0] - px, arena[1] - py])
@@ -54,7 +54,7 @@ def _fields(arena: tuple, boxes: tuple, areas: tuple, robot_radius: float, spaci
     ys = np.linspace(0.0, arena[1], ny)
     box_lo = np.array([b[0] for b in boxes], float).reshape(-1, 2)
     box_hi = np.array([b[1] for b in boxes], float).reshape(-1, 2)
-    blocked = _clearance(xs, ys, box_lo, box_hi, arena) < robot_radius
+    blocked = clearance(xs, ys, box_lo, box_hi, arena) < robot_radius
     mult = np.where(blocked, blocked_cost, 1.0)
     px, py = np.meshgrid(xs, ys)
     shifts = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0)]
@@ -101,16 +101,20 @@ def distance_fields(arena, box_lo, box_hi, area_center, area_radius, robot_radiu
     return _fields(arena, boxes, areas, float(robot_radius), float(spacing), float(blocked_cost))
 
 
-def lookup(fields: jnp.ndarray, xy: jnp.ndarray, spacing: float = SPACING) -> jnp.ndarray:
-    """Bilinear interpolation of every field at the point xy: [N]. Points outside are clamped to the grid."""
+def lookup(fields: jnp.ndarray, xy: jnp.ndarray, spacing: float = SPACING, index=slice(None)) -> jnp.ndarray:
+    """Bilinear interpolation of every field at the point xy: [N]. Points outside are clamped to the grid.
+
+    ``index`` (an int32 scalar) interpolates the single field ``fields[index]`` instead (a scalar),
+    reading four grid values, not four per field.
+    """
     ny, nx = fields.shape[-2], fields.shape[-1]
     fx = jnp.clip(xy[0] / spacing, 0.0, nx - 1.0)
     fy = jnp.clip(xy[1] / spacing, 0.0, ny - 1.0)
     x0 = jnp.clip(jnp.floor(fx).astype(jnp.int32), 0, nx - 2)
     y0 = jnp.clip(jnp.floor(fy).astype(jnp.int32), 0, ny - 2)
     tx, ty = fx - x0, fy - y0
-    f00 = fields[:, y0, x0]
-    f01 = fields[:, y0, x0 + 1]
-    f10 = fields[:, y0 + 1, x0]
-    f11 = fields[:, y0 + 1, x0 + 1]
+    f00 = fields[index, y0, x0]
+    f01 = fields[index, y0, x0 + 1]
+    f10 = fields[index, y0 + 1, x0]
+    f11 = fields[index, y0 + 1, x0 + 1]
     return (1 - ty) * ((1 - tx) * f00 + tx * f01) + ty * ((1 - tx) * f10 + tx * f11)

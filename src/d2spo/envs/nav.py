@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from d2spo.envs import dynamics, geodesic, geometry, layouts, sensors
+from d2spo.envs import dynamics, geodesic, geometry, layouts, sensors, state_fields
 from d2spo.envs.dynamics import DynamicsParams
 from d2spo.envs.geometry import Geometry
 from d2spo.envs.layouts import Layout
@@ -38,12 +38,17 @@ from d2spo.fields import check_choice, check_fields
 from d2spo.ltl.automaton import UNREACHABLE, AutomatonArrays
 from d2spo.ltl.labelling import LABEL_MODES, next_state
 from d2spo.ltl.reward import (
+    SHAPING_METRICS,
     RewardConfig,
     potential,
+    potential_from_near,
     progress_areas,
     progress_reward,
     shaping_term,
 )
+
+PER_STATE = SHAPING_METRICS[2]
+"""The shaping metric that reads one field per automaton state (``envs.state_fields``)."""
 
 
 @dataclass(frozen=True)
@@ -154,7 +159,11 @@ class EnvParams:
     """int32 []: episode length limit."""
     geodesic: jnp.ndarray
     """float32 [N, ny, nx]: path length through free space from each grid node to each area's centre
-    (``envs.geodesic``; the shaping potential's distance)."""
+    (``envs.geodesic``; the shaping potential's distance; [N, 1, 1] zeros unless the metric is 'geodesic')."""
+    state_field: jnp.ndarray
+    """float32 [Q, ny, nx]: per automaton state, path length to the areas that make progress round
+    those that reject the task (``envs.state_fields``; [Q, 1, 1] zeros unless the metric is
+    'geodesic-per-state')."""
     n_rays: int = struct.field(pytree_node=False, default=16)
     """Number of lidar rays K (static: it sets the observation size)."""
     event: bool = struct.field(pytree_node=False, default=True)
@@ -343,7 +352,15 @@ class Env:
         q_next = next_state(aut, state.q, letter, state.letter, params.event)
         q_true_next = next_state(aut, state.q_true, letter_true, state.letter_true, params.event)
         reward = progress_reward(aut, state.q, q_next, params.reward, collided)
-        if params.reward.mode == "progress" and params.reward.shaping != 0.0:
+        if params.reward.mode == "progress" and params.reward.shaping != 0.0 and \
+                params.reward.shaping_metric == PER_STATE:
+            diag = jnp.linalg.norm(params.geom.arena_hi - params.geom.arena_lo)
+            near = geodesic.lookup(params.state_field, state.pose[:2], index=state.q)
+            near_next = geodesic.lookup(params.state_field, pose[:2], index=q_next)
+            phi = potential_from_near(aut, state.q, near, diag)
+            phi_next = potential_from_near(aut, q_next, near_next, diag)
+            reward = reward + shaping_term(phi, phi_next, params.reward)
+        elif params.reward.mode == "progress" and params.reward.shaping != 0.0:
             diag = jnp.linalg.norm(params.geom.arena_hi - params.geom.arena_lo)
             dist = self._center_distance(state.pose[:2], params)
             dist_next = self._center_distance(pose[:2], params)
@@ -455,8 +472,18 @@ def make_env(cfg: EnvConfig, task: Any = "phi1") -> tuple[Env, EnvParams]:
         missing = sorted(set(aps) - set(layout.area_names))
         hint = f" (propositions with no area, always false: {missing})" if missing else ""
         raise ConfigError("task", f"{task if isinstance(task, str) else 'the task'} cannot be completed in "
-                          f"layout {layout.name!r}{hint}")
+                          f"layout {layout.name!r}{hint}: no sequence of the letters it can produce (areas "
+                          "entered alone, or together where they overlap) does it")
 
+    n_states = int(arrays.delta.shape[0])
+    per_state = cfg.reward.shaping_metric == PER_STATE
+    clearance = cfg.robot_radius if cfg.reward.shaping_clearance is None else cfg.reward.shaping_clearance
+    if per_state:
+        name = task if isinstance(task, str) else "the task"
+        state_fields.check_task(automaton, layout, cfg.label_mode, cfg.robot_radius, repr(name))
+        field = state_fields.state_fields(automaton, layout, cfg.label_mode, clearance).field
+    else:
+        field = np.zeros((n_states, 1, 1), np.float32)
     n_areas = len(layout.areas)
     f32 = lambda v: jnp.asarray(v, jnp.float32)
     area_radius = np.array([a.radius for a in layout.areas], np.float32).reshape(n_areas)
@@ -485,13 +512,13 @@ def make_env(cfg: EnvConfig, task: Any = "phi1") -> tuple[Env, EnvParams]:
         max_steps=jnp.asarray(cfg.max_steps, jnp.int32),
         geodesic=f32(geodesic.distance_fields(
             layout.arena, [o.lo for o in layout.obstacles], [o.hi for o in layout.obstacles],
-            [a.center for a in layout.areas], area_radius,
-            cfg.robot_radius if cfg.reward.shaping_clearance is None else cfg.reward.shaping_clearance)
+            [a.center for a in layout.areas], area_radius, clearance)
             if cfg.reward.shaping_metric == "geodesic" else np.zeros((n_areas, 1, 1), np.float32)),
+        state_field=f32(field),
         n_rays=cfg.n_rays,
         event=cfg.label_mode == "event",
         collision_terminates=cfg.collision_terminates,
         reward=cfg.reward,
     )
-    env = Env(layout, aps, int(arrays.delta.shape[0]), cfg)
+    env = Env(layout, aps, n_states, cfg)
     return env, params

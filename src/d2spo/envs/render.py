@@ -123,3 +123,47 @@ class FrameRenderer:
         self.ax.set_title(title)
         self.canvas.draw()
         return np.asarray(self.canvas.buffer_rgba())[..., :3].copy()
+
+
+def save_state_fields_png(layout: Layout, aut, fields, path: str | Path, distance=None, dpi: int = 90) -> None:
+    """One panel per automaton state that still has a target: the shaping distance field
+    (``envs.state_fields.StateFields``) with its target nodes (green) and forbidden nodes (red).
+
+    ``aut`` is the ``Automaton``; ``distance`` its distances on this layout (shown in the titles).
+    """
+    states = [q for q in range(aut.n_states) if fields.target_cells[q].any()]
+    cols = min(len(states), 3) or 1
+    rows = max(1, -(-len(states) // cols))
+    fig = Figure(figsize=(4.2 * cols, 4.4 * rows))
+    FigureCanvasAgg(fig)
+    w, h = layout.arena
+    for k, q in enumerate(states):
+        ax = fig.add_subplot(rows, cols, k + 1)
+        f = fields.field[q]
+        vmax = float(np.percentile(f, 90))
+        im = ax.imshow(f, origin="lower", extent=(0, w, 0, h), cmap="viridis", vmin=0.0, vmax=vmax)
+        ax.contour(np.linspace(0, w, f.shape[1]), np.linspace(0, h, f.shape[0]), f,
+                   levels=np.arange(0.5, vmax, 0.5), colors="white", linewidths=0.4, alpha=0.6)
+        for mask, color in ((fields.target_cells[q], "tab:green"), (fields.forbidden_cells[q], "tab:red")):
+            if mask.any():
+                ax.contourf(np.linspace(0, w, mask.shape[1]), np.linspace(0, h, mask.shape[0]), mask.astype(float),
+                            levels=[0.5, 1.5], colors=[color], alpha=0.75)
+        for o in layout.obstacles:
+            ax.add_patch(Rectangle(tuple(o.lo), 2 * o.half_extents[0], 2 * o.half_extents[1], color=OBSTACLE_COLOR))
+        for a in layout.areas:
+            ax.add_patch(Circle(a.center, a.radius, fill=False, edgecolor="white", linewidth=0.8))
+            ax.annotate(a.name, a.center, ha="center", va="center", fontsize=8, weight="bold", color="white")
+        ax.plot([layout.start[0]], [layout.start[1]], "o", color=START_COLOR, markersize=5)
+        d = "" if distance is None else f", {distance[q]} to go"
+        formula = aut.state_formulas[q]
+        formula = formula if len(formula) <= 42 else formula[:40] + "…"
+        ax.set_title(f"state {q}{d}: to {' '.join(fields.targets[q]) or '-'}, "
+                     f"not {' '.join(fields.forbidden[q]) or '-'}\n{formula}", fontsize=8)
+        ax.set_xlim(0, w)
+        ax.set_ylim(0, h)
+        ax.set_aspect("equal")
+        fig.colorbar(im, ax=ax, fraction=0.046, pad=0.02, label="distance (m)")
+    fig.suptitle(f"shaping distance per automaton state on {layout.name} (green: target, red: forbidden)",
+                 fontsize=9)
+    fig.tight_layout()
+    fig.savefig(str(path), dpi=dpi)

@@ -9,6 +9,9 @@ import jax.numpy as jnp
 from d2spo.fields import check_choice, check_fields
 from d2spo.ltl.automaton import UNREACHABLE, AutomatonArrays
 
+SHAPING_METRICS = ("geodesic", "euclidean", "geodesic-per-state")
+"""Values of ``RewardConfig.shaping_metric``; the last reads ``envs.state_fields``."""
+
 
 @dataclass(frozen=True)
 class RewardConfig:
@@ -36,7 +39,10 @@ class RewardConfig:
     to find even a single area; docs/ltl.md)."""
     shaping_metric: str = "geodesic"
     """'geodesic': distance along the shortest obstacle-free path (``envs.geodesic``, from the
-    layout's map); 'euclidean': straight line, which leads into obstacles lying on the line."""
+    layout's map); 'euclidean': straight line, which leads into obstacles lying on the line;
+    'geodesic-per-state': one field per automaton state, the path to the areas whose entry makes
+    progress that also goes round the areas whose entry would reject the task or undo progress
+    (``envs.state_fields``); it also checks, before training, that the task can be done on the layout."""
     shaping_clearance: float | None = 0.3
     """With the geodesic metric: path nodes closer than this to an obstacle or a wall cost
     ``envs.geodesic.BLOCKED_COST`` times their length, so the shortest path keeps this clearance
@@ -57,7 +63,7 @@ class RewardConfig:
                                    "shaping_clearance"),
                      fraction=("shaping_gamma",))
         check_choice(self, "mode", ("progress", "sparse"), "reward")
-        check_choice(self, "shaping_metric", ("geodesic", "euclidean"), "reward")
+        check_choice(self, "shaping_metric", SHAPING_METRICS, "reward")
 
 
 def progress_reward(
@@ -104,6 +110,14 @@ def potential(
     gap = jnp.maximum(center_dist - radius, 0.0)  # [N]
     near = jnp.min(jnp.where(advance[q], gap, jnp.inf))
     near = jnp.where(jnp.isfinite(near), near, 0.0)
+    return potential_from_near(aut, q, near, scale)
+
+
+def potential_from_near(aut: AutomatonArrays, q: jnp.ndarray, near: jnp.ndarray, scale: jnp.ndarray | float
+                        ) -> jnp.ndarray:
+    """Phi(s, q) = -(distance(q) * scale + near) / scale, 0 at acceptance, where ``near`` is the
+    robot's distance to what makes progress from q (``potential``, or the field of state q with
+    ``shaping_metric="geodesic-per-state"``, ``envs.state_fields``)."""
     finite = aut.distance < UNREACHABLE
     worst = jnp.max(jnp.where(finite, aut.distance, 0)) + 1  # a dead automaton counts one step further
     steps = jnp.where(finite[q], aut.distance[q], worst).astype(jnp.float32)

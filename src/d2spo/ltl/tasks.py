@@ -1,4 +1,4 @@
-"""The paper's LTL tasks (Sec. V), by name. docs/ltl.md shows and explains their automata."""
+"""Named LTL tasks: the paper's (Sec. V) and a suite of examples. docs/ltl.md explains each."""
 
 from __future__ import annotations
 
@@ -12,8 +12,36 @@ TASKS: dict[str, str] = {
     "phi2": "((A1 & X A3) | (A3 & X A1)) & X (F (A4 & X (F A2)))",
     # The relaxed task of Sec. V-B: visit A1, then A2 (two areas).
     "relaxed": "(!A2 U A1) & F A2",
+    # --- the example suite (SUITE below) ---
+    # A1, then A2, then A3; other visits in between are allowed.
+    "tour3": "F (A1 & F (A2 & F A3))",
+    # A1, A2, A3, A4 in this order; other visits in between are allowed.
+    "tour4": "F (A1 & F (A2 & F (A3 & F A4)))",
+    # A1, A2, A3, A4 in this order, and no area before its turn.
+    "strict4": "(!A2 & !A3 & !A4) U (A1 & ((!A3 & !A4) U (A2 & (!A4 U (A3 & F A4)))))",
+    # A1, A2 and A3, in any order.
+    "any-order3": "F A1 & F A2 & F A3",
+    # Avoid A4 until A2 is reached, then A3 (A4 lies on the straight route from the start to A2).
+    "avoid-until": "!A4 U (A2 & F A3)",
+    # A1, then A3, never entering A4 (A4 lies on the straight route from A1 to A3). "G !A4 & F ..."
+    # has no good prefix (it can always still fail), so "never" is "not before the task is done".
+    "never-a4": "!A4 U (A1 & (!A4 U A3))",
+    # A1 or A3 (either), then A2.
+    "either-then": "F ((A1 | A3) & F A2)",
+    # A3 at some time, and A1 with A2 as the very next task area entered (so no A3 in between).
+    "next-pair": "F (A1 & X A2) & F A3",
+    # A3, next A4, next A1: three areas entered back to back.
+    "next-chain": "F (A3 & X (A4 & X A1))",
+    # A1, then A4, then back to A1 (the robot must leave A1 and enter it again).
+    "return": "F (A1 & F (A4 & F A1))",
+    # A1 and A2 at the same time: impossible where the two areas do not overlap (rejected before training).
+    "a1-and-a2": "F (A1 & A2)",
 }
 """Task name -> formula in the syntax of ``d2spo.ltl.parse``."""
+
+SUITE: tuple[str, ...] = ("tour3", "tour4", "strict4", "any-order3", "avoid-until", "never-a4", "either-then",
+                          "next-pair", "next-chain", "return", "a1-and-a2")
+"""The example tasks (bench/task_suite.py trains each on ``paper``); ``a1-and-a2`` cannot be done there."""
 
 
 def task_formula(name_or_formula: str) -> str:

@@ -1,0 +1,167 @@
+"""The shaping distance per automaton state (envs/state_fields.py) and the task-on-layout check."""
+
+from __future__ import annotations
+
+import hashlib
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from d2spo.envs import EnvConfig, geodesic, layouts, make_env, state_fields
+from d2spo.errors import ConfigError
+from d2spo.ltl import task_formula, translate
+from d2spo.ltl.reward import RewardConfig
+from d2spo.ltl.tasks import SUITE
+
+PAPER = layouts.load("paper")
+
+
+def _split(task: str, layout=PAPER) -> dict[int, tuple[tuple[str, ...], tuple[str, ...]]]:
+    sf = state_fields.state_fields(translate(task_formula(task)), layout, "event", 0.3)
+    return {q: (t, f) for q, (t, f) in enumerate(zip(sf.targets, sf.forbidden, strict=True))}
+
+
+def test_phi1_targets_and_forbidden_areas():
+    # docs/ltl.md's table: 0 start, 1 A1 visited, 3 A1 and A2 visited, 2 rejecting, 4 accepting
+    assert _split("phi1") == {
+        0: (("A1",), ("A2", "A3")),  # A2 or A3 first rejects
+        1: (("A2",), ("A3",)),  # A1 again changes nothing; A3 before A2 rejects
+        2: ((), ()),
+        3: (("A3",), ()),
+        4: ((), ()),
+    }
+
+
+def test_phi2_targets_and_forbidden_areas_under_event_labelling():
+    # 0 start; 2 A1 read (A3 must be the next letter); 3 A3 read (A1 next); 4 both at once;
+    # 5 F (A4 & X F A2); 6 F A2; 1 rejecting; 7 accepting. The first letter must hold A1 or A3,
+    # the second the other one: every other area entered then rejects, A1 again included.
+    assert _split("phi2") == {
+        0: (("A1", "A3"), ("A2", "A4")),
+        1: ((), ()),
+        2: (("A3",), ("A1", "A2", "A4")),
+        3: (("A1",), ("A2", "A3", "A4")),
+        4: (("A1", "A3"), ("A2", "A4")),
+        5: (("A4",), ()),  # A1, A2, A3 leave F (A4 & X F A2) as it is
+        6: (("A2",), ()),
+        7: ((), ()),
+    }
+
+
+def test_avoid_until_targets_and_forbidden_areas():
+    # !A4 U (A2 & F A3): 0 start (A4 rejects, A1 and A3 change nothing), 1 = F A3
+    split = _split("avoid-until")
+    assert split[0] == (("A2",), ("A4",))
+    assert split[1] == (("A3",), ())
+
+
+def test_a_letter_that_moves_farther_from_acceptance_is_forbidden():
+    # next-chain F (A3 & X (A4 & X A1)): after A3, entering A1 instead of A4 starts over
+    split = _split("next-chain")
+    assert split[1] == (("A4",), ("A1",))
+
+
+CORRIDOR = layouts.from_json({
+    "name": "corridor", "arena": [4.0, 2.0], "start": [0.5, 1.0, 0.0], "obstacles": [],
+    "areas": [{"name": "A1", "center": [3.5, 1.0], "radius": 0.3},
+              {"name": "A2", "center": [2.0, 1.0], "radius": 0.5}],
+})
+
+
+def test_the_field_goes_round_a_forbidden_area_and_not_round_a_neutral_one():
+    lay = CORRIDOR
+    start = jnp.array(lay.start[:2], jnp.float32)
+    straight = 3.0 - 0.3  # to A1's disk along the corridor's axis, through A2; no obstacles
+    avoid = state_fields.state_fields(translate("!A2 U A1"), lay, "event", 0.3)
+    plain = state_fields.state_fields(translate("F A1"), lay, "event", 0.3)  # A2 is no proposition
+    assert avoid.forbidden[0] == ("A2",) and plain.forbidden[0] == ()
+    around = float(geodesic.lookup(jnp.asarray(avoid.field), start, index=0))
+    through = float(geodesic.lookup(jnp.asarray(plain.field), start, index=0))
+    assert through == pytest.approx(straight, abs=0.05)
+    # round A2 with 0.3 m to spare: at least the arc of radius 0.8 instead of its chord 1.6
+    assert around > straight + 0.8 * (math.pi - 2) - 0.1
+
+
+def test_a_robot_inside_a_forbidden_area_it_just_entered_may_leave_it():
+    # phi2 state 2 (A1 read): A1 is forbidden (entering it again rejects), but leaving costs nothing
+    sf = state_fields.state_fields(translate(task_formula("phi2")), PAPER, "event", 0.3)
+    fields = jnp.asarray(sf.field)
+    centre = float(geodesic.lookup(fields, jnp.array([4.35, 0.8]), index=2))
+    rim = float(geodesic.lookup(fields, jnp.array([4.05, 0.95]), index=2))
+    assert centre < rim + 0.4  # no penalty for crossing A1 from inside
+    # from A1 the path to A3 goes round A4: longer than the obstacle-only path through A4 (5.5 m)
+    assert centre > 5.9
+
+
+def test_suite_tasks_pass_the_check_on_paper_and_the_impossible_one_does_not():
+    for name in SUITE:
+        aut = translate(task_formula(name))
+        if name == "a1-and-a2":
+            with pytest.raises(ConfigError, match="cannot be completed"):
+                state_fields.check_task(aut, PAPER, "event", 0.15, name)
+        else:
+            state_fields.check_task(aut, PAPER, "event", 0.15, name)
+    assert len(SUITE) >= 10
+
+
+def test_check_rejects_a_forbidden_area_that_cuts_every_path_and_an_unknown_proposition():
+    cut = layouts.from_json({
+        "name": "cut", "arena": [4.0, 1.0], "start": [0.5, 0.5, 0.0], "obstacles": [],
+        "areas": [{"name": "A1", "center": [3.5, 0.5], "radius": 0.3},
+                  {"name": "A2", "center": [2.0, 0.5], "radius": 0.45}],
+    })
+    with pytest.raises(ConfigError, match=r"state 0 .*cannot reach A1 without entering A2"):
+        state_fields.check_task(translate("!A2 U A1"), cut, "event", 0.15, "t")
+    state_fields.check_task(translate("F A2 & F A1"), cut, "event", 0.15, "t")  # crossing A2 is fine here
+    with pytest.raises(ConfigError, match="'A9' names no area"):
+        make_env(EnvConfig(layout="paper", reward=RewardConfig(shaping_metric="geodesic-per-state")),
+                 task="!A9 U A1")
+
+
+def test_default_reward_is_bit_identical_to_before_the_per_state_option():
+    """Rewards of a fixed rollout (phi2 on paper, relaxed labelling radius 1 m, default metric)
+    as computed by commit f20c02d, before envs/state_fields.py existed."""
+    env, params = make_env(EnvConfig(layout="paper", label_radius=1.0), task="phi2")
+    n = 2
+    state, _ = env.reset_batch(jax.random.PRNGKey(3), params, n)
+    step = jax.jit(env.step_batch)
+    out = []
+    for t in range(40):
+        a = jnp.stack([jnp.full((n,), 0.8), jnp.sin(0.13 * t + jnp.arange(n, dtype=jnp.float32))], -1)
+        state, _, r, _, _, _ = step(jax.random.PRNGKey(100 + t), state, a, params)
+        out.append(np.asarray(r))
+    r = np.stack(out).astype(np.float32)
+    assert float(r.sum()) == -47.613834381103516
+    assert hashlib.sha256(r.tobytes()).hexdigest()[:16] == "623a5c6d62e700dd"
+
+
+def test_per_state_potential_in_the_env_reads_the_state_field():
+    cfg = EnvConfig(layout="paper", preset="ideal", start_jitter_xy=0.0, start_jitter_theta=0.0,
+                    reward=RewardConfig(shaping_metric="geodesic-per-state"))
+    env, params = make_env(cfg, task="avoid-until")
+    assert params.state_field.shape == (4, 101, 101)
+    state, _ = env.reset(jax.random.PRNGKey(0), params)
+    state, _, r, _, _, info = env.step(jax.random.PRNGKey(1), state, jnp.array([1.0, 0.0]), params)
+    f = params.state_field
+    before = float(geodesic.lookup(f, info["pose"][:2], index=0))
+    after = float(geodesic.lookup(f, info["next_pose"][:2], index=0))
+    diag = math.hypot(5.0, 5.0)
+    # no automaton move: -c_n plus the shaping of the field of state 0
+    assert float(r) == pytest.approx(-0.01 + 10.0 * (before - after) / diag, abs=1e-4)
+
+
+def test_cli_plots_the_fields_and_refuses_a_bad_task_before_training(tmp_path, capsys):
+    from d2spo import cli
+
+    png = tmp_path / "fields.png"
+    assert cli.main(["ltl", "never-a4", "--layout", "paper", "--plot", str(png)]) == 0
+    assert png.stat().st_size > 10_000
+    capsys.readouterr()
+    rc = cli.main(["train", "--task", "!A9 U A1", "--shaping-metric", "geodesic-per-state",
+                   "--out", str(tmp_path / "run"), "--no-progress"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "'A9' names no area of layout 'paper'" in err[0]
+    assert not (tmp_path / "run" / "episodes.csv").exists()
