@@ -25,6 +25,7 @@ demo: $(STAMP)
 	$(VENV)/bin/d2spo demo --out demo_out
 
 test: $(STAMP)
+	$(VENV)/bin/ruff check src tests bench examples
 	$(PY) -m pytest -n 2 --durations=10 tests
 
 # What .ci/run runs on each other Python version: import, a few fast tests, a 50-episode train.

@@ -13,9 +13,10 @@ import numpy as np
 import pytest
 
 from d2spo import cli
+from d2spo.checkpoint import Checkpoints, run_fingerprint
 from d2spo.config import TrainConfig, config_to_dict
 from d2spo.envs import EnvConfig
-from d2spo.runio import atomic_write_json, save_checkpoint
+from d2spo.runio import atomic_write_json
 from d2spo.safety.cbf import CBFConfig
 
 TINY_CBF = CBFConfig(hidden=(8,), policy_hidden=(8,), nominal_hidden=(8,), transitions_capacity=64,
@@ -34,7 +35,7 @@ def _write_run(path, cfg: TrainConfig, carry=None) -> None:
     path.mkdir(parents=True)
     atomic_write_json(path / "config.json", config_to_dict(cfg))
     if carry is not None:
-        save_checkpoint(path, carry, {"episodes": 0, "env_steps": 0, "chunks": 0, "wall_seconds": 0.0})
+        Checkpoints(path, run_fingerprint(path)).save(carry, {"episodes": 0, "env_steps": 0, "chunks": 0, "wall_seconds": 0.0})
 
 
 @pytest.fixture(scope="module")

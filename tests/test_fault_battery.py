@@ -172,9 +172,9 @@ def tiny_run(tmp_path_factory):
     import jax
 
     from d2spo.algos.td3 import TD3Config
+    from d2spo.checkpoint import Checkpoints, run_fingerprint
     from d2spo.config import TrainConfig, config_to_dict
     from d2spo.envs import EnvConfig
-    from d2spo.checkpoint import Checkpoints, run_fingerprint
 
     cfg = TrainConfig(algo="tlgrl", task="relaxed", episodes=2, num_envs=2, chunk_steps=20, eval_episodes=0,
                       env=EnvConfig(layout="relaxed", max_steps=20),
