@@ -12,3 +12,11 @@ import d2spo  # noqa: F401  (sets XLA flags before the first computation starts 
 _CACHE = Path(os.environ.get("D2SPO_TEST_JAX_CACHE", Path(__file__).resolve().parent.parent / ".pytest_cache" / "jax"))
 jax.config.update("jax_compilation_cache_dir", str(_CACHE))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+
+# Property tests draw the same examples on every run (CI included), so a green tree stays green;
+# `HYPOTHESIS_PROFILE=explore pytest ...` draws fresh ones to hunt for new counterexamples.
+from hypothesis import settings  # noqa: E402
+
+settings.register_profile("ci", derandomize=True)
+settings.register_profile("explore", derandomize=False)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
