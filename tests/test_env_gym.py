@@ -7,12 +7,15 @@ from __future__ import annotations
 import warnings
 from functools import partial
 
+import pytest
+
+# Beside safety-gymnasium (which pins gymnasium 0.28.1) d2spo runs without its Gymnasium front end.
+gym = pytest.importorskip("gymnasium", minversion="1.1", reason="d2spo's Gymnasium front end needs gymnasium>=1.1")
+
 import _ppo
-import gymnasium as gym
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pytest
 from gymnasium.utils.env_checker import check_env
 from gymnasium.vector import AutoresetMode
 

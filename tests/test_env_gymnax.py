@@ -3,15 +3,37 @@ info, gymnax's own wrappers under vmap + scan, and a PureJaxRL-style PPO that le
 
 from __future__ import annotations
 
+import importlib
+import sys
+
 import _ppo
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from gymnax.environments import spaces
 from gymnax.wrappers.purerl import FlattenObservationWrapper, LogWrapper
 
+import d2spo
 from d2spo.envs import EnvConfig, make_env
 from d2spo.envs.gymnax_env import GymnaxNav
+
+
+def test_the_functional_envs_need_no_gymnasium_and_the_gymnasium_ones_say_what_to_install(monkeypatch):
+    """gymnasium is optional (d2spo[gym]): d2spo.envs imports without it (or beside an older one)."""
+    for name in [n for n in sys.modules if n == "d2spo.envs" or n.startswith("d2spo.envs.")]:
+        monkeypatch.delitem(sys.modules, name)  # monkeypatch puts the modules back afterwards
+    before = d2spo.envs
+    monkeypatch.setattr(d2spo, "envs", before)
+    monkeypatch.setitem(sys.modules, "gymnasium", None)  # `import gymnasium` now fails
+    envs = importlib.import_module("d2spo.envs")
+    assert envs is not before and "d2spo.envs.gym_env" not in sys.modules
+    env, params = importlib.import_module("d2spo.envs.gymnax_env").GymnaxNav.make(task="F A1", layout="open")
+    assert env.num_actions == 2 and env.env.config.layout == "open"
+    with pytest.raises(ImportError, match=r"needs gymnasium>=1\.1 \('d2spo\[gym\]'\)"):
+        envs.NavVectorEnv
+    with pytest.raises(ImportError, match=r"needs gymnasium>=1\.1"):
+        from d2spo.envs import NavEnv  # noqa: F401
 
 
 def test_gymnax_order_cost_in_info_and_the_functional_env_underneath():

@@ -5,6 +5,9 @@
   jit-compiled call steps every sub-environment);
 * ``CostTuple`` / ``VectorCostTuple``: wrappers returning Safety-Gymnasium's six values.
 
+gymnasium is an optional dependency (``pip install 'd2spo[gym]'``, gymnasium >= 1.1, < 2): importing
+this module without it, or beside an older one, raises an ImportError saying so.
+
 ``step`` returns Gymnasium's five values ``(obs, reward, terminated, truncated, info)`` with the
 cost in ``info["cost"]`` (what Safety-Gymnasium's ``SafetyGymnasium2Gymnasium`` produces, and what
 the safe-RL libraries read). The environment's own episode statistics are in
@@ -26,37 +29,37 @@ from __future__ import annotations
 
 import os
 import sys
-from dataclasses import fields, replace
 from functools import lru_cache, partial
+from importlib.metadata import PackageNotFoundError, version
 from typing import Any, ClassVar, NamedTuple
 
-import gymnasium
 import jax
 import jax.numpy as jnp
 import numpy as np
-from gymnasium.vector import AutoresetMode, VectorEnv, VectorWrapper
 
+try:
+    import gymnasium
+    from gymnasium.vector import AutoresetMode, VectorEnv, VectorWrapper
+except ImportError as missing:  # gymnasium is an optional dependency (d2spo[gym])
+    try:
+        found = f"gymnasium {version('gymnasium')} is installed"
+    except PackageNotFoundError:
+        found = "gymnasium is not installed"
+    raise ImportError(f"d2spo's Gymnasium front end needs gymnasium>=1.1 ('d2spo[gym]') and {found}; "
+                      "the functional env (d2spo.envs.make_env) and the gymnax-style env "
+                      "(d2spo.envs.gymnax_env) need no gymnasium", name="gymnasium") from missing
+
+from d2spo.envs.front_end import ENV_ID, env_config
 from d2spo.envs.nav import Env, EnvConfig, EnvParams, make_env
 from d2spo.envs.render import FrameRenderer
 from d2spo.envs.spaces import observation_bounds
 from d2spo.errors import ConfigError
 
-ENV_ID = "d2spo/Nav-v0"
 EPISODE_STATS = "episode_stats"
 """The info key of the environment's own episode statistics (``info["episode"]`` is Gymnasium's)."""
 
 _INFO_KEYS = ("collided", "completed", "completed_relaxed", "q", "q_next")
 _EPISODE_KEYS = ("ep_return", "ep_cost", "ep_length", "ep_collided", "ep_completed", "ep_completed_relaxed")
-
-
-def env_config(config: EnvConfig | None, overrides: dict[str, Any]) -> EnvConfig:
-    """``config`` (or the default) with keyword overrides, e.g. ``layout="relaxed"``."""
-    config = config or EnvConfig()
-    known = {f.name for f in fields(EnvConfig)}
-    for name in overrides:
-        if name not in known:
-            raise ConfigError(name, f"not an EnvConfig field; known fields: {sorted(known)}")
-    return replace(config, **overrides)
 
 
 def _step_masked(env: Env, key, state, actions, params, autoreset):
