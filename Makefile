@@ -7,7 +7,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-$(PYVER)
 
-.PHONY: install demo test test-fast smoke bench clean
+.PHONY: install demo test test-fast smoke bench clean coinstall-check
 
 $(STAMP): pyproject.toml constraints.txt
 	@test -n "$(PYVER)" || { echo "make: no working '$(PYTHON)' on this machine" >&2; exit 2; }
@@ -36,8 +36,12 @@ smoke: $(STAMP)
 	rm -rf $(VENV)/smoke_run
 	$(VENV)/bin/d2spo train --task relaxed --layout relaxed --episodes 50 --eval-episodes 10 --out $(VENV)/smoke_run
 
+# d2spo beside safety-gymnasium 1.0.0 in one throwaway venv (needs PyPI; docs/env.md says what it shows).
+coinstall-check:
+	.ci/coinstall-safety-gymnasium
+
 bench: $(STAMP)
 	$(PY) bench/env_throughput.py
 
 clean:
-	rm -rf $(VENV) .venv-3.* demo_out .pytest_cache .hypothesis
+	rm -rf $(VENV) .venv-3.* .venv-coinstall demo_out .pytest_cache .hypothesis
