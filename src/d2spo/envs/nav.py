@@ -485,6 +485,8 @@ def make_env(cfg: EnvConfig, task: Any = "phi1") -> tuple[Env, EnvParams]:
     if per_state:
         name = task if isinstance(task, str) else "the task"
         state_fields.check_task(automaton, layout, cfg.label_mode, cfg.robot_radius, repr(name))
+        state_fields.check_time(automaton, layout, cfg.label_mode, cfg.robot_radius, cfg.max_steps, cfg.dt,
+                                cfg.v_max * cfg.v_gain, repr(name))
         field = state_fields.state_fields(automaton, layout, cfg.label_mode, clearance).field
     else:
         field = np.zeros((n_states, 1, 1), np.float32)
