@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from d2spo.envs import geometry, layouts, sensors
@@ -113,6 +113,11 @@ def test_collision_on_the_boundary_counts():
        st.lists(st.booleans(), min_size=8, max_size=8))
 def test_lidar_matches_independent_ray_cast(x, y, theta, mask):
     pose = np.array([x, y, theta], np.float32)
+    # Degenerate: a centre on the line of a box's face (e.g. (3.0, 2.0) with the face y = 2.0) sends an
+    # axis-aligned ray along that face, grazing its corner 1e-16 m away in float64 and missing it in
+    # float32; hit or miss is then a rounding convention, not a property of the sensor.
+    faces = np.array([[o.lo, o.hi] for o in LAYOUT.obstacles], np.float64)  # [M, 2, 2]
+    assume(np.all(np.abs(faces[:, :, 0] - pose[0]) > 1e-4) and np.all(np.abs(faces[:, :, 1] - pose[1]) > 1e-4))
     got = np.asarray(_lidar(pose, jnp.asarray(mask)))
     want = np_lidar(pose.astype(np.float64), mask)
     assert got.shape == (K,)

@@ -237,7 +237,7 @@ def test_letters_match_letter_from_membership():
     ap_area = jnp.asarray([env.layout.area_names.index(ap) if ap in env.layout.area_names else -1 for ap in env.aps])
     xy = jax.random.uniform(jax.random.key(0), (500, 2), maxval=5.0)
     xy = jnp.concatenate([xy, jnp.asarray([a.center for a in env.layout.areas])])
-    ours = jax.vmap(lambda p: env._letters(p, params)[1])(xy)
+    ours = jax.vmap(lambda p: env._letters(p, params.aut.initial, params)[1])(xy)
     inside = jnp.linalg.norm(xy[:, None, :] - params.area_center[None], axis=-1) <= params.area_radius
     ref = jax.vmap(letter_from_membership, in_axes=(0, None))(inside, ap_area)
     np.testing.assert_array_equal(np.asarray(ours), np.asarray(ref))

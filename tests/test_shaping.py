@@ -123,3 +123,23 @@ def test_paper_relaxed_disks_start_wide_and_end_true():
     assert np.allclose(end, np.asarray(params.area_radius), atol=1e-3)
     uncapped = AnnealConfig(separate=False)
     assert np.allclose(np.asarray(annealed_params(params, jnp.int32(0), uncapped, k2).label_radius), 3.5, atol=1e-3)
+
+
+def test_relax_targets_keeps_forbidden_areas_at_their_true_radius():
+    # "!A2 U A1": in the initial state A1 is the target and entering A2 rejects the task.
+    env, params = make_env(EnvConfig(layout="paper"), "!A2 U A1")
+    aps = env.aps
+    bit = {a: 1 << aps.index(a) for a in aps}
+    k2 = AnnealConfig().rate(20000)
+    relaxed_all = annealed_params(params, jnp.int32(0), AnnealConfig(), k2)
+    relaxed_targets = annealed_params(params, jnp.int32(0), AnnealConfig(relax="targets"), k2)
+    q0 = params.aut.initial
+    centre = {a.name: np.asarray(a.center, np.float32) for a in env.layout.areas}
+    off = np.array([0.0, -0.8], np.float32)  # 0.8 m from the centre: outside the true disk, inside the relaxed
+    near_a2, near_a1 = jnp.asarray(centre["A2"] + off), jnp.asarray(centre["A1"] + np.array([-0.8, 0], np.float32))
+    assert int(env._letters(near_a2, q0, relaxed_all)[0]) == bit["A2"]  # the paper's rule: A2 "entered"
+    assert int(env._letters(near_a2, q0, relaxed_targets)[0]) == 0  # forbidden A2 keeps its true radius
+    assert int(env._letters(near_a1, q0, relaxed_targets)[0]) == bit["A1"]  # the target A1 is relaxed
+    assert int(env._letters(near_a1, q0, relaxed_targets)[1]) == 0  # true labelling unchanged
+    with pytest.raises(Exception, match="anneal.relax"):
+        AnnealConfig(relax="forbidden")

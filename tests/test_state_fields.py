@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -11,7 +12,7 @@ import numpy as np
 import pytest
 
 from d2spo.envs import EnvConfig, geodesic, layouts, make_env, state_fields
-from d2spo.errors import ConfigError
+from d2spo.errors import ConfigError, TaskWarning
 from d2spo.ltl import task_formula, translate
 from d2spo.ltl.reward import RewardConfig
 from d2spo.ltl.tasks import SUITE
@@ -165,3 +166,41 @@ def test_cli_plots_the_fields_and_refuses_a_bad_task_before_training(tmp_path, c
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and "'A9' names no area of layout 'paper'" in err[0]
     assert not (tmp_path / "run" / "episodes.csv").exists()
+
+
+def test_route_length_is_the_shortest_drive_and_goes_round_what_rejects():
+    lay = CORRIDOR
+    # "F A1" (A2 is no proposition): straight along the axis to A1's disk; the grid's cells are
+    # 5 cm and the route starts from the start cell's centre
+    straight = state_fields.route_length(translate("F A1"), lay, "event", 0.15)
+    assert straight == pytest.approx(3.0 - 0.3, abs=0.1)
+    # "!A2 U A1" must keep its centre out of A2's disk (radius 0.5 m): tangent, arc, tangent to
+    # A1's disk, 2.89 m on the continuous plane (at most 8.2% more on the grid)
+    around = state_fields.route_length(translate("!A2 U A1"), lay, "event", 0.15)
+    arc = math.sqrt(1.5**2 - 0.25) + math.sqrt(1.2**2 - 0.25) + 0.5 * (math.pi - math.acos(0.5 / 1.5)
+                                                                       - math.acos(0.5 / 1.2))
+    assert arc - 0.05 < around < arc * state_fields.OCTILE_EXCESS
+    # A1, then A2, then A1 again: to A1's disk (through A2, neutral then), back to A2's rim (2.5 m)
+    # and on to A1's rim (3.2 m) again: 2.7 + 0.7 + 0.7 m
+    back = state_fields.route_length(translate("F (A1 & X F (A2 & X F A1))"), lay, "event", 0.15)
+    assert 4.1 - 0.05 < back < 4.1 + 0.15
+    assert state_fields.route_length(translate(task_formula("a1-and-a2")), PAPER, "event", 0.15) == math.inf
+
+
+def test_check_time_refuses_a_task_that_cannot_fit_in_an_episode_and_warns_when_tight():
+    aut = translate(task_formula("phi2"))
+    length = state_fields.route_length(aut, PAPER, "event", 0.15)
+    steps = length / (0.1 * 1.0)
+    with pytest.raises(ConfigError, match=r"max_steps: 'phi2' cannot be completed .* within"):
+        state_fields.check_time(aut, PAPER, "event", 0.15, int(steps / state_fields.OCTILE_EXCESS) - 1, 0.1, 1.0,
+                                "'phi2'")
+    with pytest.warns(TaskWarning):  # the grid's route may be longer than the continuous one: not refused
+        state_fields.check_time(aut, PAPER, "event", 0.15, int(steps / state_fields.OCTILE_EXCESS) + 1, 0.1, 1.0,
+                                "'phi2'")
+    with pytest.warns(TaskWarning, match="shortest route"):
+        state_fields.check_time(aut, PAPER, "event", 0.15, int(steps / state_fields.TIGHT_FRACTION) - 1, 0.1, 1.0,
+                                "'phi2'")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        state_fields.check_time(aut, PAPER, "event", 0.15, int(steps / state_fields.TIGHT_FRACTION) + 1, 0.1, 1.0,
+                                "'phi2'")

@@ -21,7 +21,7 @@ import tyro
 
 from d2spo.certify import CertifyConfig
 from d2spo.config import TrainConfig
-from d2spo.errors import ConfigError, LTLSyntaxError, NaNError, RunDirWarning, UserError
+from d2spo.errors import ConfigError, D2SPOWarning, LTLSyntaxError, NaNError, UserError
 
 
 def _stderr(msg: str) -> None:
@@ -29,8 +29,8 @@ def _stderr(msg: str) -> None:
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    """``warnings.showwarning`` for the CLI: a RunDirWarning is one line on stderr."""
-    if issubclass(category, RunDirWarning):
+    """``warnings.showwarning`` for the CLI: a D2SPOWarning is one line on stderr."""
+    if issubclass(category, D2SPOWarning):
         print(f"d2spo: warning: {message}", file=sys.stderr)
     else:
         _PLAIN_SHOWWARNING(message, category, filename, lineno, file, line)
@@ -505,7 +505,7 @@ def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else list(argv)
     try:
         with warnings.catch_warnings():
-            warnings.simplefilter("always", RunDirWarning)
+            warnings.simplefilter("always", D2SPOWarning)
             warnings.showwarning = _show_warning
             return int(parse(args).run() or 0)
     except LTLSyntaxError as e:

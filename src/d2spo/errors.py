@@ -36,6 +36,15 @@ class NaNError(RuntimeError):
     """Training produced a non-finite value. Raised instead of training through it."""
 
 
-class RunDirWarning(UserWarning):
+class D2SPOWarning(UserWarning):
+    """Something the user should know but that does not stop the command; the CLI shows each as one
+    ``d2spo: warning:`` line on stderr."""
+
+
+class TaskWarning(D2SPOWarning):
+    """The task can be done on the layout, but its shortest route uses most of the episode's steps."""
+
+
+class RunDirWarning(D2SPOWarning):
     """Something in a run directory was repaired or skipped (e.g. a damaged checkpoint replaced by
     the previous one). The CLI shows it as one line on stderr."""

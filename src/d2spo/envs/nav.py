@@ -139,6 +139,9 @@ class EnvParams:
     """float32 [N]: true area radii; drive ``q_true`` and ``completed``."""
     label_radius: jnp.ndarray
     """float32 [N]: relaxed labelling radii; drive ``q``, the reward and termination (annealed)."""
+    relax_mask: jnp.ndarray
+    """bool [Q, N]: in automaton state q, area i is labelled with its relaxed radius (else the true
+    one). All true, unless ``AnnealConfig.relax == "targets"`` (``ltl.anneal.annealed_params``)."""
     area_bits: jnp.ndarray
     advance: jnp.ndarray
     """bool [Q, N]: entering area i from automaton state q makes progress (for reward shaping)."""
@@ -288,12 +291,13 @@ class Env:
     # ------------------------------------------------------------------------------ labelling
 
     @staticmethod
-    def _letters(xy: jnp.ndarray, params: EnvParams) -> tuple[jnp.ndarray, jnp.ndarray]:
-        """Letters at position xy under relaxed and true labelling."""
+    def _letters(xy: jnp.ndarray, q: jnp.ndarray, params: EnvParams) -> tuple[jnp.ndarray, jnp.ndarray]:
+        """Letters at position xy under relaxed labelling (in automaton state q) and true labelling."""
         dx = params.area_center[:, 0] - xy[0]
         dy = params.area_center[:, 1] - xy[1]
         d2 = dx * dx + dy * dy  # [N]; written out, a reduction over the axis of size 2 is slow on CPU
-        relaxed = jnp.sum(jnp.where(d2 <= params.label_radius**2, params.area_bits, 0))
+        radius = jnp.where(params.relax_mask[q], params.label_radius, params.area_radius)
+        relaxed = jnp.sum(jnp.where(d2 <= radius**2, params.area_bits, 0))
         true = jnp.sum(jnp.where(d2 <= params.area_radius**2, params.area_bits, 0))
         return relaxed.astype(jnp.int32), true.astype(jnp.int32)
 
@@ -303,9 +307,9 @@ class Env:
         """A fresh episode's state from three uniforms in [-1, 1] (the start jitter)."""
         pose = params.start + params.start_jitter * u
         pose = jnp.stack([pose[0], pose[1], dynamics.wrap_angle(pose[2])])
-        letter, letter_true = self._letters(pose[:2], params)
         zero = jnp.zeros((), jnp.int32)
         q0 = params.aut.initial.astype(jnp.int32)
+        letter, letter_true = self._letters(pose[:2], q0, params)
         state = EnvState(
             pose=pose,
             vel=jnp.zeros((2,), jnp.float32),
@@ -348,7 +352,7 @@ class Env:
             vel_next = jnp.where(collided, 0.0, vel)
         cost = collided.astype(jnp.float32)
 
-        letter, letter_true = self._letters(pose[:2], params)
+        letter, letter_true = self._letters(pose[:2], state.q, params)
         q_next = next_state(aut, state.q, letter, state.letter, params.event)
         q_true_next = next_state(aut, state.q_true, letter_true, state.letter_true, params.event)
         reward = progress_reward(aut, state.q, q_next, params.reward, collided)
@@ -481,6 +485,8 @@ def make_env(cfg: EnvConfig, task: Any = "phi1") -> tuple[Env, EnvParams]:
     if per_state:
         name = task if isinstance(task, str) else "the task"
         state_fields.check_task(automaton, layout, cfg.label_mode, cfg.robot_radius, repr(name))
+        state_fields.check_time(automaton, layout, cfg.label_mode, cfg.robot_radius, cfg.max_steps, cfg.dt,
+                                cfg.v_max * cfg.v_gain, repr(name))
         field = state_fields.state_fields(automaton, layout, cfg.label_mode, clearance).field
     else:
         field = np.zeros((n_states, 1, 1), np.float32)
@@ -498,6 +504,7 @@ def make_env(cfg: EnvConfig, task: Any = "phi1") -> tuple[Env, EnvParams]:
         area_center=f32(np.array([a.center for a in layout.areas]).reshape(n_areas, 2)),
         area_radius=f32(area_radius),
         label_radius=f32(label_radius),
+        relax_mask=jnp.ones((n_states, n_areas), bool),
         area_bits=jnp.asarray(_area_bits(layout, aps)),
         advance=progress_areas(arrays, _area_bits(layout, aps)),
         aut=arrays,

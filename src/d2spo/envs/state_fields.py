@@ -33,6 +33,7 @@ names no area, a letter the layout cannot produce, or forbidden areas that cut e
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,7 +42,7 @@ from scipy.sparse import csgraph
 
 from d2spo.envs import geodesic, layouts
 from d2spo.envs.layouts import Layout
-from d2spo.errors import ConfigError
+from d2spo.errors import ConfigError, TaskWarning
 from d2spo.ltl.automaton import UNREACHABLE, Automaton
 
 NEUTRAL, TARGET, FORBIDDEN = 0, 1, 2
@@ -322,3 +323,83 @@ def plot_state_fields(aut: Automaton, name: str, layout_name: str, label_mode: s
     distance = aut.distances(layouts.feasible_letters(layout, aut.aps, label_mode))
     save_state_fields_png(layout, aut, sf, path, distance)
     check_task(aut, layout, label_mode, cfg.robot_radius, repr(name))
+
+
+TIGHT_FRACTION = 0.6
+"""``check_time`` warns when the shortest route needs more than this fraction of the episode's steps
+at full speed. A trained policy drives more than the shortest route: on `paper` D²SPO's phi1
+episodes take a median of 123 steps for a 10.1 m route (1.22x)."""
+
+
+def check_time(aut: Automaton, layout: Layout, label_mode: str, robot_radius: float, max_steps: int, dt: float,
+               v_max: float, name: str) -> None:
+    """ConfigError when no route completes the task within ``max_steps`` steps at ``v_max``; a
+    ``TaskWarning`` when the shortest route needs more than ``TIGHT_FRACTION`` of them."""
+    key = (*_key(aut, layout), label_mode, float(robot_radius))
+    if key not in _ROUTES:
+        _ROUTES[key] = route_length(aut, layout, label_mode, robot_radius)
+    length = _ROUTES[key]
+    need = length / (v_max * dt)
+    budget = f"{max_steps} steps of {dt:g} s at {v_max:g} m/s"
+    if need / OCTILE_EXCESS > max_steps:  # refuse only what no continuous route could do
+        raise ConfigError("max_steps", f"{name} cannot be completed on layout {layout.name!r} within {budget}: its "
+                          f"shortest route is {length:.1f} m ({math.ceil(need)} steps at full speed)")
+    if need > TIGHT_FRACTION * max_steps:
+        warnings.warn(TaskWarning(
+            f"{name}: the shortest route on layout {layout.name!r} is {length:.1f} m, {math.ceil(need)} of the "
+            f"{max_steps} steps at full speed ({need / max_steps:.0%}); a policy that drives about 1.2x the shortest "
+            "route may run out of time (--max-steps raises the limit)"), stacklevel=3)
+
+
+_ROUTES: dict = {}
+OCTILE_EXCESS = math.sqrt(4 - 2 * math.sqrt(2))
+"""The most an 8-neighbour grid path exceeds the straight segment it follows (1.082, at 22.5°)."""
+
+
+def route_length(aut: Automaton, layout: Layout, label_mode: str, robot_radius: float) -> float:
+    """Length (m) of the shortest grid route from the start that completes the task. A robot of
+    ``robot_radius`` drives at least ``route_length / OCTILE_EXCESS`` (the grid's 8 directions make a
+    route up to 8.2% longer than the continuous one; turning and braking only add to the drive).
+
+    Dijkstra over (automaton state, grid cell): 8-neighbour moves between free cells of
+    ``layouts.free_grid`` (a diagonal move also needs its two 4-neighbours free), letters read as the
+    environment reads them, rejecting states excluded. ``inf`` when no route exists.
+    """
+    event = label_mode == "event"
+    resolution = min(0.05, max(layout.arena) / 100.0)
+    free, centres = layouts.free_grid(layout, robot_radius, resolution)
+    letters = _letters_at(centres, layout, aut.aps)
+    ny, nx = free.shape
+    n_states = aut.n_states
+    delta = np.asarray(aut.delta, np.int64).reshape(n_states, aut.n_letters)
+    dead = np.zeros(n_states, bool)
+    dead[sorted(aut.accepting | aut.rejecting)] = True
+    cell = np.arange(ny * nx).reshape(ny, nx)
+    rows, cols, weights = [], [], []
+    for dy, dx in _SHIFTS8:
+        ys, xs = np.nonzero(free)
+        ty, tx = ys + dy, xs + dx
+        ok = (ty >= 0) & (ty < ny) & (tx >= 0) & (tx < nx)
+        ys, xs, ty, tx = ys[ok], xs[ok], ty[ok], tx[ok]
+        ok = free[ty, tx]
+        if dy and dx:  # no corner cutting
+            ok &= free[ys + dy, xs] & free[ys, xs + dx]
+        ys, xs, ty, tx = ys[ok], xs[ok], ty[ok], tx[ok]
+        a, b = letters[ys, xs], letters[ty, tx]
+        reads = (b != a) & (b != 0) if event else np.ones_like(b, bool)
+        for q in np.nonzero(~dead)[0]:
+            t = np.where(reads, delta[q, b], q)
+            keep = ~np.isin(t, sorted(aut.rejecting))
+            rows.append(q * ny * nx + cell[ys[keep], xs[keep]])
+            cols.append(t[keep] * ny * nx + cell[ty[keep], tx[keep]])
+            weights.append(np.full(int(keep.sum()), resolution * math.hypot(dy, dx)))
+    n = n_states * ny * nx
+    graph = sparse.csr_matrix((np.concatenate(weights), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n))
+    iy = min(int(layout.start[1] / resolution), ny - 1)
+    ix = min(int(layout.start[0] / resolution), nx - 1)
+    first = letters[iy, ix]
+    q0 = int(delta[aut.initial, first]) if (first != 0 or not event) else aut.initial
+    if q0 in aut.accepting:
+        return 0.0
+    dist = csgraph.dijkstra(graph, indices=q0 * ny * nx + cell[iy, ix])
+    return float(min(dist[q * ny * nx:(q + 1) * ny * nx].min() for q in aut.accepting)) if aut.accepting else math.inf

@@ -14,7 +14,11 @@ from dataclasses import dataclass
 import jax
 import jax.numpy as jnp
 
-from d2spo.fields import check_fields
+from d2spo.fields import check_choice, check_fields
+
+RELAX_MODES = ("all", "targets")
+"""Which areas the annealed radius relaxes: every area, or in each automaton state only the areas
+whose entry makes progress (``AnnealConfig.relax``)."""
 
 
 @dataclass(frozen=True)
@@ -37,9 +41,16 @@ class AnnealConfig:
     initial disks (3.5 m) overlap, every area is 'reached' at once and ordered tasks such as phi1 are
     rejected on the first step. False: the paper's rule as written."""
 
+    relax: str = "all"
+    """Which areas are relaxed: "all" (the paper's rule), or "targets": in each automaton state only the
+    areas whose entry makes progress; an area whose entry would reject the task (or regress) keeps its
+    true radius. Not in the paper: with "all", a relaxed forbidden area blocks the way, e.g. phi2's A4
+    (at the centre of `paper`, relaxed to 1.26 m) closes the passage the robot must take from A1 to A3."""
+
     def __post_init__(self) -> None:
         check_fields(self, "anneal", nullable=("k2", "d_bar"), positive=("k1", "d_bar"), non_negative=("k2",),
                      rate=("until",), flag=("enabled", "separate"))
+        check_choice(self, "relax", RELAX_MODES, "anneal")
 
     def rate(self, total_episodes: int) -> float:
         """k2: explicit, or ln(1/k1) / (until * episodes) so that k1 e^(k2 I) reaches 1 at I = until * episodes."""
@@ -76,4 +87,7 @@ def label_radius(area_radius: jax.Array, episodes: jax.Array, cfg: AnnealConfig,
 def annealed_params(params, episodes: jax.Array, cfg: AnnealConfig, k2: float):
     """Env params whose labelling radius is the annealed one after ``episodes`` finished episodes."""
     cap = separation_cap(params.area_center, params.area_radius) if cfg.separate else None
-    return params.replace(label_radius=label_radius(params.area_radius, episodes, cfg, k2, cap))
+    radius = label_radius(params.area_radius, episodes, cfg, k2, cap)
+    if cfg.relax == "targets":
+        return params.replace(label_radius=radius, relax_mask=params.advance)
+    return params.replace(label_radius=radius)
