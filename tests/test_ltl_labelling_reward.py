@@ -7,17 +7,8 @@ import jax.numpy as jnp
 import pytest
 
 from d2spo.ltl import TASKS, UNREACHABLE, translate
-from d2spo.ltl.labelling import letter_from_membership, next_state
+from d2spo.ltl.labelling import next_state
 from d2spo.ltl.reward import RewardConfig, progress_reward
-
-
-def test_letter_from_membership():
-    inside = jnp.array([True, False, True])
-    # AP 0 -> area 0, AP 1 -> area 2, AP 2 -> no such area (always false), AP 3 -> area 1.
-    ap_area = jnp.array([0, 2, -1, 1], dtype=jnp.int32)
-    assert int(letter_from_membership(inside, ap_area)) == 0b0011
-    assert int(letter_from_membership(jnp.array([False, True, False]), ap_area)) == 0b1000
-    assert int(letter_from_membership(jnp.array([True, True, True]), ap_area)) == 0b1011
 
 
 def _run(aut_arrays, letters, event):
