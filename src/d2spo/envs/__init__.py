@@ -4,6 +4,7 @@ Importing this package registers the Gymnasium id ``d2spo/Nav-v0`` (see ``gym_en
 """
 
 from d2spo.envs import layouts
+from d2spo.envs.env_config import EnvConfig
 from d2spo.envs.gym_env import (
     CostTuple,
     NavEnv,
@@ -12,7 +13,7 @@ from d2spo.envs.gym_env import (
     register,
 )
 from d2spo.envs.layouts import Layout
-from d2spo.envs.nav import Env, EnvConfig, EnvParams, EnvState, make_env
+from d2spo.envs.nav import Env, EnvParams, EnvState, make_env
 
 register()
 

@@ -36,7 +36,8 @@ import jax.numpy as jnp
 import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv, VectorWrapper
 
-from d2spo.envs.nav import Env, EnvConfig, EnvParams, make_env
+from d2spo.envs.env_config import EnvConfig
+from d2spo.envs.nav import Env, EnvParams, make_env
 from d2spo.envs.render import FrameRenderer
 from d2spo.envs.spaces import observation_bounds
 from d2spo.errors import ConfigError
