@@ -165,3 +165,33 @@ def test_unrolled_and_reduced_ray_casts_are_identical():
         return jax.jit(jax.vmap(lambda z: sensors.lidar(z, GEOM, mask, K, H, unroll=unroll)))(poses)
 
     np.testing.assert_array_equal(np.asarray(scan(True)), np.asarray(scan(False)))
+
+
+def test_cbf_input_is_the_scan_and_the_nearest_sensed_obstacle():
+    """x = b(z, O_s): the lidar ranges, then the clearance to the sensed boxes and the walls,
+    clipped at H (numpy reference); no ray reads less than it; the observation gives the same x."""
+    rng = np.random.default_rng(0)
+    n, m = 32, len(LAYOUT.obstacles)
+    mask = np.arange(m) % 2 == 0  # every other box sensed
+    poses = np.column_stack([rng.uniform(0.2, 4.8, (n, 2)), rng.uniform(-math.pi, math.pi, n)]).astype(np.float32)
+    xy = 2.0 * poses[:, :2] / np.asarray(LAYOUT.arena, np.float32) - 1.0
+
+    @jax.jit
+    def both(poses, masks, xy):
+        x = jax.vmap(lambda p, s: sensors.cbf_input(p, s, GEOM.arena_lo, GEOM.arena_hi, K, H))(
+            poses, sensors.sensed_obstacles(GEOM, masks))
+        obs = jnp.concatenate([x[:, :K] / H, xy, jnp.zeros((n, 3))], axis=1)  # lidar / H, x, y in [-1, 1], ...
+        return x, jax.vmap(lambda p: sensors.lidar(p, GEOM, masks[0], K, H))(poses), obs
+
+    x, scan, _ = both(jnp.asarray(poses), jnp.asarray(np.broadcast_to(mask, (n, m))), jnp.asarray(xy))
+    x, scan = np.asarray(x), np.asarray(scan)
+    np.testing.assert_array_equal(x[:, :K], scan)
+    for p, row in zip(poses, x, strict=True):
+        walls = min(p[0], p[1], LAYOUT.arena[0] - p[0], LAYOUT.arena[1] - p[1])
+        near = min([walls] + [np_box_distance(p[:2], o.lo, o.hi) for o, s in zip(LAYOUT.obstacles, mask) if s])
+        assert row[K] == pytest.approx(min(max(near, 0.0), H), abs=1e-5)
+    assert np.all(x[:, :K].min(axis=1) >= x[:, K] - 1e-5)
+    # from an observation, every obstacle sensed
+    x_all, _, obs = both(jnp.asarray(poses), jnp.ones((n, m), bool), jnp.asarray(xy))
+    from_obs = sensors.cbf_input_from_obs(obs, GEOM, slice(0, K), slice(K, K + 4), H)
+    np.testing.assert_allclose(np.asarray(from_obs), np.asarray(x_all), atol=1e-5)

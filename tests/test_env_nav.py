@@ -12,7 +12,6 @@ import pytest
 
 from d2spo.envs import EnvConfig, geometry, make_env, sensors
 from d2spo.ltl.automaton import UNREACHABLE, AutomatonArrays
-from d2spo.ltl.labelling import letter_from_membership
 from d2spo.ltl.reward import RewardConfig
 
 NO_SHAPING = RewardConfig(shaping=0.0)
@@ -230,6 +229,25 @@ def test_event_labelling_lets_the_robot_linger_step_labelling_does_not():
         for _ in range(2):
             state, _, _, _, done, info = step(jax.random.key(0), state, STOP, params)
         assert bool(params.aut.rejecting[info["q_next"]]) == rejected and bool(done) == rejected
+
+
+def letter_from_membership(inside: jnp.ndarray, ap_area: jnp.ndarray) -> jnp.ndarray:
+    """Reference for the env's letters, written per proposition (the env works per area): the
+    letter (bit i <=> AP i holds) from membership ``inside`` [N_areas] and ``ap_area`` [n_aps], the
+    area index of AP i or -1 when no area carries its name (the AP is then always false)."""
+    valid = ap_area >= 0
+    held = jnp.where(valid, inside[jnp.clip(ap_area, 0, None)], False)
+    bits = jnp.left_shift(jnp.int32(1), jnp.arange(ap_area.shape[0], dtype=jnp.int32))
+    return jnp.sum(jnp.where(held, bits, 0)).astype(jnp.int32)
+
+
+def test_letter_from_membership():
+    inside = jnp.array([True, False, True])
+    # AP 0 -> area 0, AP 1 -> area 2, AP 2 -> no such area (always false), AP 3 -> area 1.
+    ap_area = jnp.array([0, 2, -1, 1], dtype=jnp.int32)
+    assert int(letter_from_membership(inside, ap_area)) == 0b0011
+    assert int(letter_from_membership(jnp.array([False, True, False]), ap_area)) == 0b1000
+    assert int(letter_from_membership(jnp.array([True, True, True]), ap_area)) == 0b1011
 
 
 def test_letters_match_letter_from_membership():

@@ -220,7 +220,7 @@ def test_a_long_ordered_task_is_refused_naming_the_limit(monkeypatch):
     import importlib
     import time
 
-    from d2spo.ltl.translate import AutomatonTooLarge, translate
+    from d2spo.ltl import AutomatonTooLarge, translate
 
     tr_mod = importlib.import_module("d2spo.ltl.translate")  # d2spo.ltl.translate is also the function
 

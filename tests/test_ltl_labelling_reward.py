@@ -6,18 +6,10 @@ import jax
 import jax.numpy as jnp
 import pytest
 
+from d2spo.errors import ConfigError
 from d2spo.ltl import TASKS, UNREACHABLE, translate
-from d2spo.ltl.labelling import letter_from_membership, next_state
-from d2spo.ltl.reward import RewardConfig, progress_reward
-
-
-def test_letter_from_membership():
-    inside = jnp.array([True, False, True])
-    # AP 0 -> area 0, AP 1 -> area 2, AP 2 -> no such area (always false), AP 3 -> area 1.
-    ap_area = jnp.array([0, 2, -1, 1], dtype=jnp.int32)
-    assert int(letter_from_membership(inside, ap_area)) == 0b0011
-    assert int(letter_from_membership(jnp.array([False, True, False]), ap_area)) == 0b1000
-    assert int(letter_from_membership(jnp.array([True, True, True]), ap_area)) == 0b1011
+from d2spo.ltl.labelling import next_state
+from d2spo.ltl.reward import RewardConfig, progress_reward, step_reward
 
 
 def _run(aut_arrays, letters, event):
@@ -130,7 +122,30 @@ def test_reward_is_float32_and_vmaps():
     assert r.tolist() == [-0.5, 2.0, 10.0, -7.0]
 
 
-def test_unknown_reward_mode():
+def test_unknown_reward_mode_is_refused_by_the_config():
+    with pytest.raises(ConfigError, match="reward.mode"):
+        RewardConfig(mode="dense")
+
+
+def test_step_reward_adds_the_shaping_by_hand():
+    """Eq. (8) plus w (gamma Phi' - Phi), Phi = -(distance(q) scale + near) / scale, by hand."""
+    arr, q0, q1, acc, rej = _relaxed()  # distance(q0) = 2, distance(q1) = 1
+    cfg = RewardConfig(c_n=0.5, c_p=2.0, shaping=2.0, shaping_gamma=0.5)
+    measured = lambda near, near_next: lambda: (jnp.float32(near), jnp.float32(near_next), jnp.float32(5.0))
+    step = jax.jit(lambda q, t, hit, near, near_next: step_reward(arr, q, t, hit, cfg, measured(near, near_next)))
+    # q0 -> q0, 1 m -> 0.5 m: -c_n + 2 (0.5 (-(10 + 0.5) / 5) - (-(10 + 1) / 5)) = -0.5 + 2 (-1.05 + 2.2)
+    assert float(step(q0, q0, False, 1.0, 0.5)) == pytest.approx(-0.5 + 2.3, abs=1e-6)
+    # q0 -> q1 (closer) with a collision: c_p - c_collision + 2 (0.5 (-(5 + 0.2) / 5) + 2.2)
+    assert float(step(q0, q1, True, 1.0, 0.2)) == pytest.approx(2.0 - 10.0 + 2 * (-0.52 + 2.2), abs=1e-6)
+    # accepting: Phi' = 0, and r_goal
+    assert float(step(q1, acc, False, 0.3, 0.0)) == pytest.approx(10.0 + 2 * (0.0 + (5 + 0.3) / 5), abs=1e-6)
+
+
+def test_step_reward_measures_nothing_unshaped():
     arr, q0, q1, acc, rej = _relaxed()
-    with pytest.raises(ValueError, match="mode"):
-        reward(arr, q0, q1, RewardConfig(mode="dense"))
+
+    def no_measuring():
+        raise AssertionError("the shaping distances were measured")
+
+    for cfg in (RewardConfig(shaping=0.0), RewardConfig(mode="sparse")):
+        assert float(step_reward(arr, q0, q1, False, cfg, no_measuring)) == reward(arr, q0, q1, cfg)

@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 from d2spo.safety import bounds
 from d2spo.safety import certify as cert
-from d2spo.safety.cbf import CBFNet, class_k, scaled_features
+from d2spo.safety.cbf import CBFNet, class_k, network_input
 
 H, DT = 1.2, 0.1
 N_FEAT = 4  # a small stand-in for the lidar (3 rays + the nearest distance)
@@ -104,9 +104,9 @@ def test_a_valid_toy_barrier_is_certified_and_broken_ones_are_not():
     assert np.any(s1c == cert.NOT_CERTIFIED)
 
 
-def test_scaled_features_box_encloses_the_ball():
+def test_network_input_box_encloses_the_ball():
     x = jnp.array([0.5, 0.3, 0.9, 0.3])
     lo, hi = cert.feature_box(x, 0.05, H)
     pts = x + 0.05 * jax.random.uniform(jax.random.PRNGKey(0), (200, 4), minval=-1, maxval=1)
-    s = scaled_features(pts, H)
+    s = network_input(pts, H)
     assert np.all(np.asarray(s) >= np.asarray(lo) - 1e-7) and np.all(np.asarray(s) <= np.asarray(hi) + 1e-7)

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -39,6 +39,7 @@ from d2spo.algos.td3 import (
 )
 from d2spo.envs import geometry, sensors
 from d2spo.envs.geometry import Geometry
+from d2spo.envs.sensors import Sensed
 from d2spo.errors import ConfigError
 from d2spo.fields import check_fields
 from d2spo.ltl.anneal import AnnealConfig
@@ -87,14 +88,6 @@ class D2SPOConfig:
             raise ConfigError("d2spo.synthetic_box_half", f"must be two sizes 0 < lo <= hi, got {lo_hi!r}")
 
 
-class Sensed(NamedTuple):
-    """O_s: the obstacle boxes and which of them the robot senses at s(t)."""
-
-    box_lo: jax.Array
-    box_hi: jax.Array
-    mask: jax.Array
-
-
 @struct.dataclass
 class D2SPOCarry:
     key: jax.Array
@@ -134,29 +127,14 @@ class D2SPOLearner(TD3Learner):
     def arena_hi(self) -> jax.Array:
         return self.params.geom.arena_hi
 
-    # -- the sensor model b(z, O_s) as the CBF sees it -----------------------------------
+    # -- the sensor model x = b(z, O_s), envs/sensors.py, with this learner's arena, K and H ------
     def features(self, pose: jax.Array, ctx: Sensed) -> jax.Array:
-        """x = b(z, O_s): the K lidar ranges and the distance to the nearest sensed obstacle or wall.
-
-        The last entry is the paper's b (the distance from z to the closest obstacle in O_s); the
-        ranges tell h and π_Ω where the obstacles are. Both are clipped at H. min(x) is that
-        distance: a ray never hits closer than the nearest obstacle, while the nearest point of a
-        box corner can lie between two rays (16 rays overestimate it by up to 27%).
-        """
-        geom = Geometry(ctx.box_lo, ctx.box_hi, self.arena_lo, self.arena_hi)
-        scan = sensors.lidar(pose, geom, ctx.mask, self.env.n_rays, self.H)
-        return jnp.concatenate([scan, self._nearest(pose[:2], geom, ctx.mask)[None]])
-
-    def _nearest(self, xy: jax.Array, geom: Geometry, mask: jax.Array) -> jax.Array:
-        boxes = jnp.where(mask, geometry.box_signed_distance(xy, geom), self.H)
-        walls = geometry.arena_signed_distance(xy, geom)
-        return jnp.clip(jnp.min(jnp.concatenate([boxes, walls[None]])), 0.0, self.H)
+        """x = ``sensors.cbf_input(pose, ctx, ...)``: the ``features_fn`` the safety code is given."""
+        return sensors.cbf_input(pose, ctx, self.arena_lo, self.arena_hi, self.env.n_rays, self.H)
 
     def sensed(self, mask: jax.Array) -> Sensed:
-        lead = mask.shape[:-1]
-        g = self.params.geom
-        return Sensed(jnp.broadcast_to(g.box_lo, lead + g.box_lo.shape),
-                      jnp.broadcast_to(g.box_hi, lead + g.box_hi.shape), mask)
+        """O_s: this layout's obstacles with the sensed ``mask`` [..., M]."""
+        return sensors.sensed_obstacles(self.params.geom, mask)
 
     def synthetic_sample(self, key: jax.Array):
         """A hypothetical pose among random boxes in this arena (pre-training data, not the layout)."""
@@ -176,16 +154,8 @@ class D2SPOLearner(TD3Learner):
         return jnp.concatenate([pose_xy, theta[None]]), Sensed(box_lo, box_hi, mask)
 
     def x_of_obs(self, obs: jax.Array) -> jax.Array:
-        """x = b(z, O_s) from an observation: its lidar part (ranges beyond H read H either way) and
-        the nearest-obstacle distance at the pose the observation reports (obstacles beyond H
-        count as H, as unsensed ones do)."""
-        scan = obs[..., self.lidar] * self.H
-        p = obs[..., self.pose_slice]
-        xy = (p[..., :2] + 1.0) * 0.5 * (self.arena_hi - self.arena_lo) + self.arena_lo
-        geom = self.params.geom
-        everything = jnp.ones((self.n_obstacles,), bool)
-        near = jnp.vectorize(lambda q: self._nearest(q, geom, everything), signature="(2)->()")(xy)
-        return jnp.concatenate([scan, near[..., None]], axis=-1)
+        """x = ``sensors.cbf_input_from_obs(obs, ...)``: what π_Ω reads when acting."""
+        return sensors.cbf_input_from_obs(obs, self.params.geom, self.lidar, self.pose_slice, self.H)
 
     # -- init ----------------------------------------------------------------------------
     def init(self, key: jax.Array) -> D2SPOCarry:

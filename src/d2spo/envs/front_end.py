@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import fields, replace
 from typing import Any
 
-from d2spo.envs.nav import EnvConfig
+from d2spo.envs.env_config import EnvConfig
 from d2spo.errors import ConfigError
 
 ENV_ID = "d2spo/Nav-v0"

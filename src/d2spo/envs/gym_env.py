@@ -49,8 +49,9 @@ except ImportError as missing:  # gymnasium is an optional dependency (d2spo[gym
                       "the functional env (d2spo.envs.make_env) and the gymnax-style env "
                       "(d2spo.envs.gymnax_env) need no gymnasium", name="gymnasium") from missing
 
+from d2spo.envs.env_config import EnvConfig
 from d2spo.envs.front_end import ENV_ID, env_config
-from d2spo.envs.nav import Env, EnvConfig, EnvParams, make_env
+from d2spo.envs.nav import Env, EnvParams, make_env
 from d2spo.envs.render import FrameRenderer
 from d2spo.envs.spaces import observation_bounds
 from d2spo.errors import ConfigError

@@ -14,14 +14,14 @@ and ``step_batch`` vmap over environments.
 Per step: the action is clipped to [-1, 1]^2 and applied to the true dynamics (``dynamics.py``);
 cost is 1 when the robot disk touches an obstacle or leaves the arena; the automaton reads the
 letter of the new position twice, once with the relaxed labelling radius (state ``q``, which
-drives the reward of Eq. (8) and termination) and once with the true area radius (``q_true``,
-which drives ``completed``).
+drives the reward and termination) and once with the true area radius (``q_true``, which drives
+``completed``). The reward is ``ltl.reward.step_reward`` (Eq. (8) plus shaping); the env only
+measures the shaping's distances on the layout.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 import jax
@@ -31,100 +31,13 @@ from flax import struct
 
 from d2spo.envs import dynamics, geodesic, geometry, layouts, sensors, state_fields
 from d2spo.envs.dynamics import DynamicsParams
+from d2spo.envs.env_config import EnvConfig
 from d2spo.envs.geometry import Geometry
 from d2spo.envs.layouts import Layout
 from d2spo.errors import ConfigError
-from d2spo.fields import check_choice, check_fields
 from d2spo.ltl.automaton import UNREACHABLE, AutomatonArrays
-from d2spo.ltl.labelling import LABEL_MODES, next_state
-from d2spo.ltl.reward import (
-    SHAPING_METRICS,
-    RewardConfig,
-    potential,
-    potential_from_near,
-    progress_areas,
-    progress_reward,
-    shaping_term,
-)
-
-PER_STATE = SHAPING_METRICS[2]
-"""The shaping metric that reads one field per automaton state (``envs.state_fields``)."""
-
-
-@dataclass(frozen=True)
-class EnvConfig:
-    """Configuration of the navigation environment. Fields left at None take the preset's value."""
-
-    layout: str = "paper"
-    """Workspace: paper, relaxed, open, physical-1..physical-4, random, random:SEED, or a .json path."""
-    preset: str = "default"
-    """Robot and dynamics preset filling every field left unset: ideal, default or turtlebot."""
-    max_steps: int = 200
-    """Episode length limit (steps); reaching it truncates the episode."""
-    n_rays: int = 16
-    """Number K of lidar rays, evenly spaced over 360 degrees, ray 0 straight ahead."""
-    label_mode: str = "event"
-    """Labelling: 'event' (read a letter when the set of areas changes to a non-empty one) or 'step'."""
-    label_radius: float | None = None
-    """Initial relaxed labelling radius (m) of every area for the reward; None = the true radius."""
-    collision_terminates: bool = True
-    """End the episode on collision; if False the robot is stopped at its last free position."""
-    start_jitter_xy: float = 0.05
-    """Start position noise: uniform in [-j, j] on x and on y (m, after layout scaling)."""
-    start_jitter_theta: float = 0.1
-    """Start heading noise: uniform in [-j, j] (rad)."""
-    dt: float | None = None
-    """Control period (s). Preset: 0.1 (ideal, default), 0.2 (turtlebot)."""
-    v_max: float | None = None
-    """Largest linear speed (m/s); action[0] = 1 commands v_max. Preset: 1.0, turtlebot 0.22."""
-    omega_max: float | None = None
-    """Largest angular speed (rad/s); action[1] = 1 commands omega_max. Preset: 2.5, turtlebot 2.84."""
-    robot_radius: float | None = None
-    """Radius of the robot disk (m). Preset: 0.15, turtlebot 0.105."""
-    sensing_radius: float | None = None
-    """Sensing radius H (m): lidar range and the radius defining O_s. Preset: 1.2, turtlebot 3.5."""
-    layout_scale: float | None = None
-    """Factor applied to every length of the layout. Preset: 1.0, turtlebot 0.5."""
-    actuator_tau: float | None = None
-    """Time constant of the first-order actuator lag (s); 0 = none. Preset: 0, 0.08, 0.15."""
-    v_gain: float | None = None
-    """Realised / commanded linear speed (gain mismatch). Preset: 1.0, 0.95, 0.9."""
-    omega_gain: float | None = None
-    """Realised / commanded angular speed (gain mismatch). Preset: 1.0, 0.95, 0.9."""
-    slip: float | None = None
-    """Largest fraction of speed lost to wheel slip per step, drawn in [0, slip]. Preset: 0, 0.05, 0.1."""
-    noise_xy: float | None = None
-    """Std of the Gaussian process noise on x and on y per step (m). Preset: 0, 0.005, 0.003."""
-    noise_theta: float | None = None
-    """Std of the Gaussian process noise on theta per step (rad). Preset: 0, 0.01, 0.02."""
-    reward: RewardConfig = field(default_factory=RewardConfig)
-    """Constants of the TLGRL reward, Eq. (8)."""
-
-    def resolved(self) -> EnvConfig:
-        """This config with every None filled from the preset, checked; ConfigError names the field."""
-        preset = dynamics.get_preset(self.preset)
-        filled = {
-            f.name: getattr(preset, f.name)
-            for f in fields(dynamics.Preset)
-            if getattr(self, f.name) is None
-        }
-        return replace(self, **filled)  # checked again by __post_init__, now with no field unset
-
-    def __post_init__(self) -> None:
-        """Every field that is set; the preset's (None here) are checked once ``resolved`` fills them."""
-        dynamics.get_preset(self.preset)
-        preset_fields = ("dt", "v_max", "omega_max", "robot_radius", "sensing_radius", "layout_scale", "v_gain",
-                         "omega_gain", "actuator_tau", "noise_xy", "noise_theta", "slip")
-        check_fields(self, nullable=preset_fields + ("label_radius",),
-                     positive=("dt", "v_max", "omega_max", "robot_radius", "sensing_radius", "layout_scale",
-                               "v_gain", "omega_gain", "label_radius"),
-                     non_negative=("actuator_tau", "noise_xy", "noise_theta", "start_jitter_xy", "start_jitter_theta"),
-                     count=("max_steps", "n_rays"), flag=("collision_terminates",))
-        if self.slip is not None and not (isinstance(self.slip, (int, float)) and 0 <= self.slip < 1):
-            raise ConfigError("slip", f"must be in [0, 1), got {self.slip!r}")
-        check_choice(self, "label_mode", LABEL_MODES)
-        if not isinstance(self.layout, str):
-            raise ConfigError("layout", f"expected a layout name or a JSON path, got {self.layout!r}")
+from d2spo.ltl.labelling import next_state
+from d2spo.ltl.reward import PER_STATE, RewardConfig, distance_to_progress, progress_areas, step_reward
 
 
 @struct.dataclass
@@ -143,9 +56,9 @@ class EnvParams:
     """bool [Q, N]: in automaton state q, area i is labelled with its relaxed radius (else the true
     one). All true, unless ``AnnealConfig.relax == "targets"`` (``ltl.anneal.annealed_params``)."""
     area_bits: jnp.ndarray
+    """int32 [N]: the letter bits each area sets (bit i <=> automaton proposition aps[i])."""
     advance: jnp.ndarray
     """bool [Q, N]: entering area i from automaton state q makes progress (for reward shaping)."""
-    """int32 [N]: the letter bits each area sets (bit i <=> automaton proposition aps[i])."""
     aut: AutomatonArrays
     """The task automaton."""
     start: jnp.ndarray
@@ -263,12 +176,20 @@ class Env:
 
     # ------------------------------------------------------------------------- observation
 
-    def _center_distance(self, xy: jnp.ndarray, params: EnvParams) -> jnp.ndarray:
+    @staticmethod
+    def _center_distance(xy: jnp.ndarray, params: EnvParams) -> jnp.ndarray:
         """[N]: distance from xy to each area's centre, by the reward's shaping metric."""
         if params.reward.shaping_metric == "geodesic":
             return geodesic.lookup(params.geodesic, xy)
         rel = params.area_center - xy
         return jnp.sqrt(rel[:, 0] * rel[:, 0] + rel[:, 1] * rel[:, 1])
+
+    def _distance_to_progress(self, xy: jnp.ndarray, q: jnp.ndarray, params: EnvParams) -> jnp.ndarray:
+        """The reward shaping's distance from xy to what makes progress from automaton state q, by
+        its metric: the field of state q, or the nearest progress area (along free space or straight)."""
+        if params.reward.shaping_metric == PER_STATE:
+            return geodesic.lookup(params.state_field, xy, index=q)
+        return distance_to_progress(params.advance, q, self._center_distance(xy, params), params.label_radius)
 
     def observe(self, state: EnvState, params: EnvParams) -> jnp.ndarray:
         """The observation of ``state`` (see the class docstring for the layout)."""
@@ -355,22 +276,12 @@ class Env:
         letter, letter_true = self._letters(pose[:2], state.q, params)
         q_next = next_state(aut, state.q, letter, state.letter, params.event)
         q_true_next = next_state(aut, state.q_true, letter_true, state.letter_true, params.event)
-        reward = progress_reward(aut, state.q, q_next, params.reward, collided)
-        if params.reward.mode == "progress" and params.reward.shaping != 0.0 and \
-                params.reward.shaping_metric == PER_STATE:
+        def shaping_distances():  # what the reward's shaping measures, read only when it is on
             diag = jnp.linalg.norm(params.geom.arena_hi - params.geom.arena_lo)
-            near = geodesic.lookup(params.state_field, state.pose[:2], index=state.q)
-            near_next = geodesic.lookup(params.state_field, pose[:2], index=q_next)
-            phi = potential_from_near(aut, state.q, near, diag)
-            phi_next = potential_from_near(aut, q_next, near_next, diag)
-            reward = reward + shaping_term(phi, phi_next, params.reward)
-        elif params.reward.mode == "progress" and params.reward.shaping != 0.0:
-            diag = jnp.linalg.norm(params.geom.arena_hi - params.geom.arena_lo)
-            dist = self._center_distance(state.pose[:2], params)
-            dist_next = self._center_distance(pose[:2], params)
-            phi = potential(aut, params.advance, state.q, dist, params.label_radius, diag)
-            phi_next = potential(aut, params.advance, q_next, dist_next, params.label_radius, diag)
-            reward = reward + shaping_term(phi, phi_next, params.reward)
+            return (self._distance_to_progress(state.pose[:2], state.q, params),
+                    self._distance_to_progress(pose[:2], q_next, params), diag)
+
+        reward = step_reward(aut, state.q, q_next, collided, params.reward, shaping_distances)
 
         completed = aut.accepting[q_true_next]
         completed_relaxed = aut.accepting[q_next]
@@ -480,9 +391,8 @@ def make_env(cfg: EnvConfig, task: Any = "phi1") -> tuple[Env, EnvParams]:
                           "entered alone, or together where they overlap) does it")
 
     n_states = int(arrays.delta.shape[0])
-    per_state = cfg.reward.shaping_metric == PER_STATE
-    clearance = cfg.robot_radius if cfg.reward.shaping_clearance is None else cfg.reward.shaping_clearance
-    if per_state:
+    clearance = cfg.reward.clearance(cfg.robot_radius)
+    if cfg.reward.shaping_metric == PER_STATE:
         name = task if isinstance(task, str) else "the task"
         state_fields.check_task(automaton, layout, cfg.label_mode, cfg.robot_radius, repr(name))
         state_fields.check_time(automaton, layout, cfg.label_mode, cfg.robot_radius, cfg.max_steps, cfg.dt,

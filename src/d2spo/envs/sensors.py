@@ -1,4 +1,10 @@
-"""Limited sensing (Example 1): a lidar-like range scan, the sensor model b(z, O_s) of Sec. IV-A.
+"""Limited sensing (Example 1): the sensor model b(z, O_s) of Sec. IV-A, the CBF's input.
+
+``cbf_input(pose, sensed, ...)`` is x = b(z, O_s), what the learned CBF h and the executed policy
+π_Ω read: the K lidar ranges (``lidar``) and the distance to the nearest sensed obstacle or wall
+(``nearest_obstacle``, the paper's scalar b), all in metres and clipped to [0, H].
+``cbf_input_from_obs`` is the same x read off an observation (the lidar part of it, all obstacles
+within H sensed). The networks rescale x by 1/H (``safety.cbf.network_input``).
 
 The robot sees only what lies within its sensing radius H: obstacle boxes (restricted to the set
 O_s given as a mask) and the arena walls. Each of the K rays starts at the robot centre; ray k
@@ -13,10 +19,13 @@ pure function of the pose, differentiable almost everywhere.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
+from d2spo.envs import geometry
 from d2spo.envs.geometry import UNROLL_MAX, Geometry
 
 _EPS = 1e-9
@@ -86,3 +95,58 @@ def _box_range(lo, hi, inv_x, inv_y, visible, H):
     t_far = jnp.minimum(jnp.maximum(tx1, tx2), jnp.maximum(ty1, ty2))
     t_enter = jnp.maximum(t_near, 0.0)  # 0 when the robot centre is inside the box
     return jnp.where((t_far >= t_enter) & visible, t_enter, H)
+
+
+# ------------------------------------------------------------------ the CBF's input x = b(z, O_s)
+
+
+class Sensed(NamedTuple):
+    """O_s: obstacle boxes and which of them the robot senses (leading batch axes allowed)."""
+
+    box_lo: jax.Array
+    """float32 [..., M, 2]: lower corners."""
+    box_hi: jax.Array
+    """float32 [..., M, 2]: upper corners."""
+    mask: jax.Array
+    """bool [..., M]: sensed."""
+
+
+def sensed_obstacles(geom: Geometry, mask: jax.Array) -> Sensed:
+    """O_s among the layout's boxes: ``mask`` [..., M], the boxes broadcast to its leading axes."""
+    lead = mask.shape[:-1]
+    return Sensed(jnp.broadcast_to(geom.box_lo, lead + geom.box_lo.shape),
+                  jnp.broadcast_to(geom.box_hi, lead + geom.box_hi.shape), mask)
+
+
+def nearest_obstacle(xy: jax.Array, geom: Geometry, mask: jax.Array, H: jax.Array | float) -> jax.Array:
+    """The paper's b: distance from xy to the nearest obstacle of the mask or wall, clipped to [0, H]."""
+    boxes = jnp.where(mask, geometry.box_signed_distance(xy, geom), H)
+    walls = geometry.arena_signed_distance(xy, geom)
+    return jnp.clip(jnp.min(jnp.concatenate([boxes, walls[None]])), 0.0, H)
+
+
+def cbf_input(pose: jax.Array, sensed: Sensed, arena_lo: jax.Array, arena_hi: jax.Array, n_rays: int,
+              H: jax.Array | float) -> jax.Array:
+    """x = b(z, O_s) [K + 1]: the K lidar ranges and the distance to the nearest sensed obstacle or wall.
+
+    The last entry is the paper's b; the ranges tell h and π_Ω where the obstacles are. min(x) is
+    that distance: a ray never hits closer than the nearest obstacle, while the nearest point of a
+    box corner can lie between two rays (16 rays overestimate it by up to 27%). Pure and
+    differentiable in ``pose`` almost everywhere (Eq. (9)'s T_e differentiates through it).
+    """
+    geom = Geometry(sensed.box_lo, sensed.box_hi, arena_lo, arena_hi)
+    scan = lidar(pose, geom, sensed.mask, n_rays, H)
+    return jnp.concatenate([scan, nearest_obstacle(pose[:2], geom, sensed.mask, H)[None]])
+
+
+def cbf_input_from_obs(obs: jax.Array, geom: Geometry, lidar_part: slice, pose_part: slice,
+                       H: jax.Array | float) -> jax.Array:
+    """x = b(z, O_s) [..., K + 1] from observations [..., D] (``nav.Env.observation_slices``): their
+    lidar part times H (ranges beyond H read H either way) and the nearest-obstacle distance at the
+    position they report, every obstacle sensed (obstacles beyond H count as H, as unsensed ones do)."""
+    scan = obs[..., lidar_part] * H
+    p = obs[..., pose_part]
+    xy = (p[..., :2] + 1.0) * 0.5 * (geom.arena_hi - geom.arena_lo) + geom.arena_lo
+    everything = jnp.ones((geom.box_lo.shape[0],), bool)
+    near = jnp.vectorize(lambda q: nearest_obstacle(q, geom, everything, H), signature="(2)->()")(xy)
+    return jnp.concatenate([scan, near[..., None]], axis=-1)

@@ -313,12 +313,12 @@ def plot_state_fields(aut: Automaton, name: str, layout_name: str, label_mode: s
     """Draw the fields of ``aut`` on a layout as the default environment config computes them (robot
     radius, shaping clearance) into the PNG ``path``; then ``check_task`` (ConfigError if the task
     cannot be done; the picture shows why)."""
-    from d2spo.envs.nav import EnvConfig
+    from d2spo.envs.env_config import EnvConfig
     from d2spo.envs.render import save_state_fields_png
 
     cfg = EnvConfig(layout=layout_name, label_mode=label_mode).resolved()
     layout = layouts.load(layout_name).scaled(cfg.layout_scale)
-    clearance = cfg.robot_radius if cfg.reward.shaping_clearance is None else cfg.reward.shaping_clearance
+    clearance = cfg.reward.clearance(cfg.robot_radius)
     sf = state_fields(aut, layout, label_mode, clearance)
     distance = aut.distances(layouts.feasible_letters(layout, aut.aps, label_mode))
     save_state_fields_png(layout, aut, sf, path, distance)

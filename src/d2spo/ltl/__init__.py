@@ -1,10 +1,9 @@
 """LTL tasks: parsing, translation to a minimal deterministic automaton, labelling and reward."""
 
-from d2spo.ltl.automaton import UNREACHABLE, Automaton, AutomatonArrays
-from d2spo.ltl.formula import Formula
+from d2spo.ltl.automaton import UNREACHABLE, Automaton, AutomatonArrays, AutomatonTooLarge
 from d2spo.ltl.parser import parse
 from d2spo.ltl.tasks import TASKS, task_formula
-from d2spo.ltl.translate import AutomatonTooLarge, NeverCompletedWarning, translate
+from d2spo.ltl.translate import NeverCompletedWarning, translate
 
 __all__ = [
     "TASKS",
@@ -12,7 +11,6 @@ __all__ = [
     "Automaton",
     "AutomatonArrays",
     "AutomatonTooLarge",
-    "Formula",
     "NeverCompletedWarning",
     "parse",
     "task_formula",

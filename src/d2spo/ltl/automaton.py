@@ -16,8 +16,14 @@ from typing import NamedTuple
 
 import jax.numpy as jnp
 
+from d2spo.errors import UserError
+
 UNREACHABLE = 10**6
 """Distance of a state from which acceptance cannot be reached with feasible letters."""
+
+
+class AutomatonTooLarge(UserError):
+    """The automaton of a formula exceeds a size limit of the translator (``d2spo.ltl.translate``)."""
 
 
 class AutomatonArrays(NamedTuple):

@@ -19,18 +19,6 @@ from d2spo.ltl.automaton import AutomatonArrays
 LABEL_MODES = ("event", "step")
 
 
-def letter_from_membership(inside: jnp.ndarray, ap_area: jnp.ndarray) -> jnp.ndarray:
-    """Letter (int bitmask over the automaton's APs) from per-area membership.
-
-    inside: bool [N_areas]; ap_area: int32 [n_aps], the area index of AP i, or -1 when no area
-    carries that name (the AP is then always false).
-    """
-    valid = ap_area >= 0
-    held = jnp.where(valid, inside[jnp.clip(ap_area, 0, None)], False)
-    bits = jnp.left_shift(jnp.int32(1), jnp.arange(ap_area.shape[0], dtype=jnp.int32))
-    return jnp.sum(jnp.where(held, bits, 0)).astype(jnp.int32)
-
-
 def next_state(
     aut: AutomatonArrays, q: jnp.ndarray, letter: jnp.ndarray, prev_letter: jnp.ndarray, event: bool
 ) -> jnp.ndarray:

@@ -1,7 +1,13 @@
-"""TLGRL reward, Eq. (8) of the paper, computed from automaton progress."""
+"""The reward as trained: TLGRL's Eq. (8) from automaton progress, plus potential-based shaping.
+
+``step_reward`` is the one function the environment calls each step. The shaping's distances are
+measured by the environment (they need the layout: ``envs.geodesic``, ``envs.state_fields``) and
+combined here.
+"""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import jax.numpy as jnp
@@ -9,8 +15,10 @@ import jax.numpy as jnp
 from d2spo.fields import check_choice, check_fields
 from d2spo.ltl.automaton import UNREACHABLE, AutomatonArrays
 
-SHAPING_METRICS = ("geodesic", "euclidean", "geodesic-per-state")
-"""Values of ``RewardConfig.shaping_metric``; the last reads ``envs.state_fields``."""
+PER_STATE = "geodesic-per-state"
+"""The shaping metric that reads one distance field per automaton state (``envs.state_fields``)."""
+SHAPING_METRICS = ("geodesic", "euclidean", PER_STATE)
+"""Values of ``RewardConfig.shaping_metric``."""
 
 
 @dataclass(frozen=True)
@@ -65,6 +73,15 @@ class RewardConfig:
         check_choice(self, "mode", ("progress", "sparse"), "reward")
         check_choice(self, "shaping_metric", SHAPING_METRICS, "reward")
 
+    @property
+    def shaped(self) -> bool:
+        """Whether ``step_reward`` adds the shaping term (progress mode and shaping != 0)."""
+        return self.mode == "progress" and self.shaping != 0.0
+
+    def clearance(self, robot_radius: float) -> float:
+        """The shaping path's clearance (m): ``shaping_clearance``, or the robot radius if None."""
+        return robot_radius if self.shaping_clearance is None else self.shaping_clearance
+
 
 def progress_reward(
     aut: AutomatonArrays, q: jnp.ndarray, q_next: jnp.ndarray, cfg: RewardConfig, collided: jnp.ndarray | bool = False
@@ -79,8 +96,6 @@ def progress_reward(
     crash = jnp.where(collided, -cfg.c_collision, 0.0)
     if cfg.mode == "sparse":
         return (jnp.where(newly_accepting, cfg.r_goal, 0.0) + crash).astype(jnp.float32)
-    if cfg.mode != "progress":
-        raise ValueError(f"RewardConfig.mode: unknown mode {cfg.mode!r}")
     same = q_next == q
     closer = aut.distance[q_next] < aut.distance[q]
     newly_rejecting = aut.rejecting[q_next] & ~aut.rejecting[q]
@@ -97,27 +112,24 @@ def progress_areas(aut: AutomatonArrays, area_bits) -> jnp.ndarray:
     return (aut.distance[nxt] < aut.distance[:, None]) & (area_bits[None, :] != 0)
 
 
-def potential(
-    aut: AutomatonArrays, advance: jnp.ndarray, q: jnp.ndarray, center_dist: jnp.ndarray,
-    radius: jnp.ndarray, scale: jnp.ndarray | float,
-) -> jnp.ndarray:
-    """Phi(s, q) = -(distance(q) * scale + distance from the robot to the nearest progress area) / scale.
+def distance_to_progress(advance: jnp.ndarray, q: jnp.ndarray, center_dist: jnp.ndarray, radius: jnp.ndarray
+                         ) -> jnp.ndarray:
+    """The robot's distance to the nearest area whose entry makes progress from q (0 if none).
 
-    ``center_dist`` [N] is the robot's distance to each area's centre (straight or along free
-    space); the distance to an area is that minus its (labelling) radius, at least 0. ``scale``
-    (the arena's diagonal) makes one automaton step worth about any travel. 0 at acceptance.
+    ``advance`` is ``progress_areas``; ``center_dist`` [N] the robot's distance to each area's
+    centre (straight or along free space); the distance to an area is that minus its (labelling)
+    radius, at least 0.
     """
     gap = jnp.maximum(center_dist - radius, 0.0)  # [N]
     near = jnp.min(jnp.where(advance[q], gap, jnp.inf))
-    near = jnp.where(jnp.isfinite(near), near, 0.0)
-    return potential_from_near(aut, q, near, scale)
+    return jnp.where(jnp.isfinite(near), near, 0.0)
 
 
-def potential_from_near(aut: AutomatonArrays, q: jnp.ndarray, near: jnp.ndarray, scale: jnp.ndarray | float
-                        ) -> jnp.ndarray:
-    """Phi(s, q) = -(distance(q) * scale + near) / scale, 0 at acceptance, where ``near`` is the
-    robot's distance to what makes progress from q (``potential``, or the field of state q with
-    ``shaping_metric="geodesic-per-state"``, ``envs.state_fields``)."""
+def potential(aut: AutomatonArrays, q: jnp.ndarray, near: jnp.ndarray, scale: jnp.ndarray | float) -> jnp.ndarray:
+    """Phi(s, q) = -(distance(q) * scale + near) / scale, 0 at acceptance: minus the distance still
+    to travel, in units of ``scale`` (the arena's diagonal, so one automaton step is worth about
+    any travel). ``near`` is the robot's distance to what makes progress from q
+    (``distance_to_progress``, or the field of state q with ``shaping_metric="geodesic-per-state"``)."""
     finite = aut.distance < UNREACHABLE
     worst = jnp.max(jnp.where(finite, aut.distance, 0)) + 1  # a dead automaton counts one step further
     steps = jnp.where(finite[q], aut.distance[q], worst).astype(jnp.float32)
@@ -126,6 +138,25 @@ def potential_from_near(aut: AutomatonArrays, q: jnp.ndarray, near: jnp.ndarray,
 
 def shaping_term(phi: jnp.ndarray, phi_next: jnp.ndarray, cfg: RewardConfig) -> jnp.ndarray:
     """Potential-based shaping (Ng et al., 1999): w * (gamma * Phi(s') - Phi(s))."""
-    if cfg.mode != "progress" or cfg.shaping == 0.0:
-        return jnp.zeros_like(phi)
     return cfg.shaping * (cfg.shaping_gamma * phi_next - phi)
+
+
+ShapingDistances = Callable[[], tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]]
+"""Measures, when called, (near, near_next, scale): the robot's distance to what makes progress
+from q before the step and from q' after it, and the arena's diagonal."""
+
+
+def step_reward(aut: AutomatonArrays, q: jnp.ndarray, q_next: jnp.ndarray, collided: jnp.ndarray,
+                cfg: RewardConfig, distances: ShapingDistances) -> jnp.ndarray:
+    """The reward of one step as trained: Eq. (8) (``progress_reward``, with the collision
+    penalty), plus ``shaping_term`` of the potentials before and after the step when ``cfg.shaped``.
+
+    ``distances`` is called only then; the environment measures them with ``cfg.shaping_metric``.
+    """
+    reward = progress_reward(aut, q, q_next, cfg, collided)
+    if not cfg.shaped:
+        return reward
+    near, near_next, scale = distances()
+    phi = potential(aut, q, near, scale)
+    phi_next = potential(aut, q_next, near_next, scale)
+    return reward + shaping_term(phi, phi_next, cfg)

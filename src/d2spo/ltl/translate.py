@@ -8,8 +8,8 @@ The construction, in four steps (docs/ltl.md has the details and the argument fo
    ``W``, ``F``, ``G`` nodes). Reading a letter rewrites every atom by the one-step expansion laws
    (``a U b`` -> ``prog(b) | (prog(a) & a U b)``, ...). DNFs over a finite set of atoms, kept
    sorted, deduplicated and free of subsumed clauses, are finitely many, so progression stops.
-3. Exact status. Each new state is checked with a tableau satisfiability test (an on-the-fly
-   generalised Büchi automaton and an emptiness check): unsatisfiable clauses, and clauses that
+3. Exact status. Each new state is checked with a tableau satisfiability test (``ltl/tableau.py``:
+   an on-the-fly generalised Büchi automaton and an emptiness check): unsatisfiable clauses, and clauses that
    imply another clause, are dropped; if nothing is left the state is the rejecting state
    ``false``; if its negation is unsatisfiable it is the accepting state ``true``. This makes
    accepting/rejecting exact for every LTL formula, not only for the co-safe and safety fragments.
@@ -22,8 +22,7 @@ from __future__ import annotations
 import warnings
 from collections.abc import Iterable
 
-from d2spo.errors import UserError
-from d2spo.ltl.automaton import Automaton
+from d2spo.ltl.automaton import Automaton, AutomatonTooLarge
 from d2spo.ltl.formula import (
     FALSE,
     TRUE,
@@ -46,6 +45,7 @@ from d2spo.ltl.formula import (
     disjunction,
 )
 from d2spo.ltl.parser import parse
+from d2spo.ltl.tableau import Tableau
 
 MAX_APS = 12
 """Most atomic propositions a formula may use (the transition table has 2**len(aps) columns)."""
@@ -57,10 +57,6 @@ the formulas its branch has already processed (what that step copies). A bound o
 4 s on a 2-core CPU), so a formula whose check grows exponentially is refused instead of running
 for minutes: an ordered visit of 11 areas ``F(a & X F(b & X F(...))`` needs 8 million steps (3 s),
 12 areas are refused (15 took 184 s before this bound). The named tasks need at most 1100."""
-
-
-class AutomatonTooLarge(UserError):
-    """The automaton of a formula exceeds a size limit of the translator."""
 
 
 class NeverCompletedWarning(UserWarning):
@@ -272,151 +268,7 @@ class _Progression:
         return out
 
 
-# --- 3. Satisfiability by tableau ----------------------------------------------------------------
-
-
-class _Tableau:
-    """Satisfiability of sets of NNF formulas over infinite words.
-
-    A node is a set of formulas that must hold now. Expanding a node by the one-step laws gives
-    its branches: each branch is a consistent set of literals (the letter constraint, always
-    realisable when consistent), the set of formulas that must hold at the next position (the
-    successor node), and the eventualities (``U``/``F`` formulas) the branch postpones. An infinite
-    path is a model iff no eventuality is postponed forever, so a node is satisfiable iff it can
-    reach a strongly connected set of nodes whose internal edges, together, leave no eventuality
-    postponed on all of them (a generalised Büchi emptiness check).
-    """
-
-    def __init__(self, max_nodes: int, max_steps: int = 0):
-        self.max_nodes = max_nodes
-        self.steps_left = max_steps or MAX_TABLEAU_STEPS
-        self.edges: dict[frozenset, list[tuple[frozenset, frozenset]]] = {}
-        self.good: dict[frozenset, bool] = {}
-
-    def expand(self, node: frozenset) -> list[tuple[frozenset, frozenset]]:
-        """Branches of a node as (successor node, postponed eventualities)."""
-        found: set[tuple[frozenset, frozenset]] = set()
-        # A branch: (formulas to process, literals, next-step obligations, postponed, processed).
-        work = [(list(node), frozenset(), frozenset(), frozenset(), frozenset())]
-        while work:
-            todo, lits, nxt, post, done = work.pop()
-            alive = True
-            while todo and alive:
-                self.steps_left -= 1 + len(done)  # each step copies the branch's set of processed formulas
-                if self.steps_left < 0:
-                    raise AutomatonTooLarge(
-                        f"the satisfiability check needs more than MAX_TABLEAU_STEPS={MAX_TABLEAU_STEPS} tableau "
-                        "steps; simplify the formula (e.g. split a long ordered visit into shorter tasks)"
-                    )
-                f = todo.pop()
-                if f in done:
-                    continue
-                done = done | {f}
-                if isinstance(f, Const):
-                    alive = f.value
-                elif isinstance(f, Prop):
-                    alive = Not(f) not in lits
-                    lits = lits | {f}
-                elif isinstance(f, Not):
-                    alive = f.arg not in lits
-                    lits = lits | {f}
-                elif isinstance(f, And):
-                    todo += [f.left, f.right]
-                elif isinstance(f, Next):
-                    nxt = nxt | {f.arg}
-                elif isinstance(f, Always):
-                    todo.append(f.arg)
-                    nxt = nxt | {f}
-                else:  # a choice: work on the first option, queue the second
-                    if isinstance(f, Or):
-                        first, second = [f.left], [f.right]
-                        later = (nxt, post)
-                    elif isinstance(f, Eventually):
-                        first, second = [f.arg], []
-                        later = (nxt | {f}, post | {f})
-                    elif isinstance(f, Until):
-                        first, second = [f.right], [f.left]
-                        later = (nxt | {f}, post | {f})
-                    elif isinstance(f, WeakUntil):
-                        first, second = [f.right], [f.left]
-                        later = (nxt | {f}, post)
-                    elif isinstance(f, Release):
-                        first, second = [f.left, f.right], [f.right]
-                        later = (nxt | {f}, post)
-                    else:
-                        raise TypeError(f"not an NNF formula node: {f!r}")
-                    work.append((todo + second, lits, later[0], later[1], done))
-                    todo = todo + first
-            if alive:
-                found.add((frozenset(nxt), frozenset(post)))
-        return sorted(found, key=lambda e: (len(e[0]), len(e[1]), sorted(map(str, e[0]))))
-
-    def _successors(self, node: frozenset) -> list[tuple[frozenset, frozenset]]:
-        if node not in self.edges:
-            if len(self.edges) >= self.max_nodes:
-                raise AutomatonTooLarge(
-                    f"the satisfiability check needs more than {self.max_nodes} tableau nodes; "
-                    "simplify the formula"
-                )
-            self.edges[node] = self.expand(node)
-        return self.edges[node]
-
-    def satisfiable(self, node: frozenset) -> bool:
-        if node not in self.good:
-            self._solve(node)
-        return self.good[node]
-
-    def _solve(self, root: frozenset) -> None:
-        """Tarjan's SCC algorithm (iterative) from ``root``; fills ``self.good``."""
-        index: dict[frozenset, int] = {}
-        low: dict[frozenset, int] = {}
-        on_stack: set[frozenset] = set()
-        stack: list[frozenset] = []
-        calls = [(root, 0)]
-        while calls:
-            v, i = calls.pop()
-            if i == 0:
-                index[v] = low[v] = len(index)
-                stack.append(v)
-                on_stack.add(v)
-            succ = self._successors(v)
-            if i > 0:  # returned from succ[i - 1]
-                low[v] = min(low[v], low[succ[i - 1][0]])
-            while i < len(succ):
-                w = succ[i][0]
-                if w not in self.good and w not in index:
-                    calls.append((v, i + 1))
-                    calls.append((w, 0))
-                    break
-                if w in on_stack:
-                    low[v] = min(low[v], index[w])
-                i += 1
-            else:
-                if low[v] == index[v]:
-                    component = []
-                    while True:
-                        w = stack.pop()
-                        on_stack.discard(w)
-                        component.append(w)
-                        if w == v:
-                            break
-                    self._mark(set(component))
-
-    def _mark(self, component: set[frozenset]) -> None:
-        pending = None  # eventualities postponed on every internal edge so far
-        reaches_good = False
-        for v in component:
-            for w, post in self.edges[v]:
-                if w in component:
-                    pending = post if pending is None else pending & post
-                else:
-                    reaches_good = reaches_good or self.good[w]
-        fair_cycle = pending is not None and not pending
-        for v in component:
-            self.good[v] = reaches_good or fair_cycle
-
-
-# --- 4. Determinisation by progression, then minimisation ---------------------------------------
+# --- 3. Exact status (tableau.Tableau); 4. determinisation by progression, then minimisation -----------
 
 
 def _clause_order(c: Clause) -> tuple[int, list[str]]:
@@ -439,7 +291,7 @@ def translate(formula: Formula | str, max_states: int = 1000) -> Automaton:
     if len(aps) > MAX_APS:
         raise AutomatonTooLarge(f"the formula uses {len(aps)} propositions; at most {MAX_APS} are supported")
     prog = _Progression(aps)
-    tableau = _Tableau(MAX_TABLEAU_NODES)
+    tableau = Tableau(MAX_TABLEAU_NODES, MAX_TABLEAU_STEPS)
     canonical: dict[Dnf, Dnf] = {}
 
     def decide(d: Dnf) -> Dnf:

@@ -1,7 +1,9 @@
 """The learned CBF h_Θ and the loss of Eq. (9), Sec. IV-B/IV-D of the paper.
 
-h_Θ reads the sensor features x = b(z, O_s) (K lidar ranges clipped at H) and returns a scalar;
-{h ≥ 0} is the learned safe set. Every term of Eq. (9) is a small pure function below. All terms
+h_Θ reads the sensor features x = b(z, O_s) (``envs.sensors.cbf_input``: K lidar ranges and the
+nearest-obstacle distance, clipped at H), rescaled by ``network_input``, and returns a scalar;
+{h ≥ 0} is the learned safe set. The sensor reaches this package only as a ``features_fn(pose,
+context) -> x``. Every term of Eq. (9) is a small pure function below. All terms
 are *weighted means* over a batch instead of the paper's sums, so the λ's do not depend on the
 batch size; a weight of 0 marks padding (an empty buffer gives a term of exactly 0).
 
@@ -150,21 +152,23 @@ def p_exp_threshold(cfg: CBFConfig) -> float:
     return cfg.unsafe_max if cfg.te_in_band else cfg.d
 
 
-def scaled_features(x: jnp.ndarray, feature_scale: float) -> jnp.ndarray:
-    """Network input: x/H (in [0, 1]) with min(x)/H appended, the paper's scalar b (nearest obstacle)."""
+def network_input(x: jnp.ndarray, feature_scale: float) -> jnp.ndarray:
+    """What h_Θ and π_Ω read of x = b(z, O_s) (``envs.sensors.cbf_input``, metres): x/H, in [0, 1],
+    with min(x)/H appended. With x from ``cbf_input`` that is its last entry (the nearest-obstacle
+    distance) again, as no ray reads less; kept so that trained networks keep their input."""
     x = x / feature_scale
     return jnp.concatenate([x, jnp.min(x, axis=-1, keepdims=True)], axis=-1)
 
 
 class CBFNet(nn.Module):
-    """h_Θ(x): an MLP on `scaled_features(x, H)` -> scalar."""
+    """h_Θ(x): an MLP on `network_input(x, H)` -> scalar."""
 
     hidden: Sequence[int] = (64, 64)
     feature_scale: float = 1.0
 
     @nn.compact
     def __call__(self, x: jnp.ndarray) -> jnp.ndarray:
-        h = scaled_features(x, self.feature_scale)
+        h = network_input(x, self.feature_scale)
         for width in self.hidden:
             h = nn.tanh(nn.Dense(width)(h))
         return nn.Dense(1)(h)[..., 0]

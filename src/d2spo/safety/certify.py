@@ -1,7 +1,7 @@
 """Propositions 1 and 2 of the paper (Sec. IV-B), checked on the learned h_Θ at a net of points.
 
 h reads the sensor features x = b(z, O_s) ∈ R^n (ranges in metres, clipped at H) through
-`scaled_features`: s(x) = (x/H, min(x)/H). The ε-balls live in this **feature space**, in the ℓ∞
+`network_input`: s(x) = (x/H, min(x)/H). The ε-balls live in this **feature space**, in the ℓ∞
 norm: B_ε(x_i) = {x : |x_k − x_i,k| ≤ ε for every range k}. min is 1-Lipschitz in ℓ∞, so s maps
 the ball into the box [s(x_i − ε), s(x_i + ε)], on which `bounds` works.
 
@@ -37,7 +37,7 @@ import jax
 import jax.numpy as jnp
 
 from d2spo.safety import bounds
-from d2spo.safety.cbf import class_k, scaled_features
+from d2spo.safety.cbf import class_k, network_input
 
 CERTIFIED, NOT_CERTIFIED, VIOLATED = 0, 1, 2
 STATUS_NAMES = ("certified", "not certified", "violated")
@@ -68,7 +68,7 @@ class Prop2(NamedTuple):
 
 def feature_box(x: jnp.ndarray, r, scale: float):
     """The box in h's input space enclosing s(B_r(x)) (ℓ∞ ball of radius r around features x)."""
-    return scaled_features(x - r, scale), scaled_features(x + r, scale)
+    return network_input(x - r, scale), network_input(x + r, scale)
 
 
 def _argmin_candidates(lo: jnp.ndarray, hi: jnp.ndarray) -> jnp.ndarray:
@@ -87,7 +87,7 @@ def prop1_point(layers, x: jnp.ndarray, eps: float, scale: float) -> Prop1:
     lo, hi = feature_box(x, eps, scale)
     zs, (_, h_hi) = bounds.forward(layers, lo, hi)
     lip = bounds.sup_abs_l1(*bounds.gradient(layers, zs)) / scale  # ‖s(a) − s(b)‖∞ ≤ ‖a − b‖∞ / H
-    h = _h(layers, scaled_features(x, scale))
+    h = _h(layers, network_input(x, scale))
     margin = -h - lip * eps
     status = jnp.where(h >= 0, VIOLATED, jnp.where(margin > 0, CERTIFIED, NOT_CERTIFIED))
     return Prop1(h, lip, margin, h_hi, status)
@@ -109,7 +109,7 @@ def prop2_point(layers, x: jnp.ndarray, x_next: jnp.ndarray, rho, eps: float, sc
     single = (jnp.sum(j_here) == 1) & jnp.all(j_here == j_next)
     # Otherwise min(x + v') − min(x) also lies within 2ε + ρ of its value at the anchor (min is
     # 1-Lipschitz in ℓ∞): this part of the displacement moves with x, at most twice as fast.
-    d_c = scaled_features(x_next, scale) - scaled_features(x, scale)
+    d_c = network_input(x_next, scale) - network_input(x, scale)
     vj = jnp.sum(jnp.where(j_here, v, 0.0))
     wide = 2 * eps + rho
     m_lo = jnp.where(single, vj - rho, jnp.maximum(jnp.min(v) - rho, d_c[-1] * scale - wide))
@@ -132,8 +132,8 @@ def prop2_point(layers, x: jnp.ndarray, x_next: jnp.ndarray, rho, eps: float, sc
     dev = jnp.maximum(jnp.abs(d_lo - d_c), jnp.abs(d_hi - d_c))  # |δ_k − δ_c,k| over the displacement box
     residual_term = jnp.sum(jnp.maximum(jnp.abs(gn_lo), jnp.abs(gn_hi)) * dev) / dt + h_residual / dt
 
-    h = _h(layers, scaled_features(x, scale))
-    h_next = _h(layers, scaled_features(x_next, scale))
+    h = _h(layers, network_input(x, scale))
+    h_next = _h(layers, network_input(x_next, scale))
     e = (h_next - h) / dt + class_k(alpha, alpha_coef)(h)
     margin = e - residual_term - lip * eps
     status = jnp.where(e < 0, VIOLATED, jnp.where(margin >= 0, CERTIFIED, NOT_CERTIFIED))

@@ -32,8 +32,8 @@ from d2spo.safety.cbf import (
     CBFConfig,
     CBFNet,
     TeBatch,
+    network_input,
     p_exp_threshold,
-    scaled_features,
     total_loss,
 )
 from d2spo.safety.datasets import PretrainData, SafetyData, ring_sample, te_batch
@@ -53,7 +53,7 @@ class SafetyPolicy(nn.Module):
 
     @nn.compact
     def __call__(self, x: jnp.ndarray, u_rl: jnp.ndarray) -> jnp.ndarray:
-        h = jnp.concatenate([scaled_features(x, self.feature_scale), u_rl], axis=-1)
+        h = jnp.concatenate([network_input(x, self.feature_scale), u_rl], axis=-1)
         for width in self.hidden:
             h = nn.tanh(nn.Dense(width)(h))
         m = u_rl.shape[-1]
