@@ -7,14 +7,15 @@ import csv
 import jax
 import numpy as np
 
-from d2spo.train import build, evaluate, train
+from d2spo.rollout import evaluate_policy
+from d2spo.train import build, train
 
 
 def untrained_eval(cfg, episodes: int) -> dict:
     """Evaluation of the freshly initialised policy, on the same episodes ``train`` evaluates on."""
     env, params, learner = build(cfg)
     policy = learner.policy(jax.jit(learner.init)(jax.random.PRNGKey(cfg.seed)))
-    return evaluate(learner, policy, env, params, episodes, jax.random.PRNGKey(cfg.seed + 10_000))
+    return evaluate_policy(learner, policy, env, params, episodes, jax.random.PRNGKey(cfg.seed + 10_000))
 
 
 def assert_trains_without_nans_and_improves(cfg, run_dir) -> None:

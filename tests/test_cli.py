@@ -7,7 +7,7 @@ import sys
 
 import pytest
 
-from d2spo import cli
+from d2spo import cli, console
 
 
 def run_cli(*args: str) -> subprocess.CompletedProcess:
@@ -24,7 +24,7 @@ def test_tyro_box_condenses_to_one_line():
         "│ Argument helptext:     │\n"
         "╰────────────────────────╯\n"
     )
-    assert cli._tyro_error_line(box) == "Value error: Error parsing --n: bad"
+    assert console.tyro_error_line(box) == "Value error: Error parsing --n: bad"
 
 
 @pytest.mark.parametrize(

@@ -8,7 +8,7 @@ import pytest
 
 from d2spo.config import TrainConfig
 from d2spo.envs import EnvConfig
-from d2spo.evaluate import random_proposal_safety
+from d2spo.rollout import random_proposal_safety
 from d2spo.train import build
 
 
@@ -103,7 +103,7 @@ def test_one_compiled_rollout_serves_every_random_layout():
     import dataclasses
 
     from d2spo.evaluate import learner_on
-    from d2spo.train import make_rollout
+    from d2spo.rollout import make_rollout
 
     cfg = TrainConfig(algo="d2spo", task="phi1", episodes=10, num_envs=2)
     cfg = dataclasses.replace(cfg, d2spo=dataclasses.replace(cfg.d2spo, pretrain=False))

@@ -189,7 +189,7 @@ def test_seeds_vmapped_together_write_ordinary_runs_and_resume_exactly(tmp_path)
 
 def test_eval_rates_measure_the_distance_driven():
     """mean_distance sums the steps of each episode until its end (NaN poses after it)."""
-    from d2spo.train import rates
+    from d2spo.rollout import rates
 
     nan = float("nan")
     poses = np.array([[[0, 0, 0], [3, 4, 0], [3, 4, 1], [nan, nan, nan]],   # 5 m, then turning on the spot

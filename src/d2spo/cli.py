@@ -11,7 +11,6 @@ import contextlib
 import dataclasses
 import io
 import json
-import re
 import sys
 import warnings
 from pathlib import Path
@@ -21,22 +20,8 @@ import tyro
 
 from d2spo.certify import CertifyConfig
 from d2spo.config import TrainConfig
+from d2spo.console import error, show_warning, tyro_error_line
 from d2spo.errors import ConfigError, D2SPOWarning, LTLSyntaxError, NaNError, UserError
-
-
-def _stderr(msg: str) -> None:
-    print(f"d2spo: error: {msg}", file=sys.stderr)
-
-
-def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    """``warnings.showwarning`` for the CLI: a D2SPOWarning is one line on stderr."""
-    if issubclass(category, D2SPOWarning):
-        print(f"d2spo: warning: {message}", file=sys.stderr)
-    else:
-        _PLAIN_SHOWWARNING(message, category, filename, lineno, file, line)
-
-
-_PLAIN_SHOWWARNING = warnings.showwarning
 
 
 # --------------------------------------------------------------------------------------- ltl
@@ -234,9 +219,13 @@ class EvalCmd:
     dynamics_fields: Annotated[DynamicsFlags, tyro.conf.arg(name="")] = DynamicsFlags()
 
     def run(self) -> int:
-        from d2spo.evaluate import eval_command
+        from d2spo.console import print_evaluation
+        from d2spo.evaluate import evaluate_run, write_evaluation
 
-        return eval_command(self)
+        res = evaluate_run(self.run_dir, self.episodes, self.layout, self.dynamics, self.seed, self.layout_seeds,
+                           self.runtime_filter, self.filter_iters, self.filter_alpha, self.dynamics_fields.given())
+        print_evaluation(res, write_evaluation(self.run_dir, res), filter_asked=self.runtime_filter)
+        return 0
 
 
 @dataclasses.dataclass
@@ -358,6 +347,8 @@ class CertifyCmd:
     def run(self) -> int:
         from rich.console import Console
 
+        from d2spo.console import print_certify, print_repair_round
+
         console = Console()
         if self.repair:
             from d2spo.repair import repair_run
@@ -365,14 +356,9 @@ class CertifyCmd:
             if self.rounds < 1 or self.calls < 1 or self.copies < 1:
                 raise UserError("--rounds, --calls and --copies must be ≥ 1")
             out = self.out or self.run_dir.with_name(self.run_dir.name + "-repaired")
-
-            def show(r: dict) -> None:
-                console.print(f"round {r['round']}: certified ℒ {100 * r['certified_L']:.2f}%, "
-                              f"D {100 * r['certified_D']:.2f}%, violated grid points: "
-                              f"{r['grid_L_violated']} (Prop. 1), {r['grid_D_violated']} (Prop. 2)")
-
-            res = repair_run(self.run_dir, out, self.check, self.rounds, self.calls, self.copies, progress=show)
-            _print_certify(console, res["after"])
+            res = repair_run(self.run_dir, out, self.check, self.rounds, self.calls, self.copies,
+                             progress=lambda r: print_repair_round(console, r))
+            print_certify(console, res["after"])
             print(f"wrote the repaired run {out} (certify.json, certify.png, checkpoint)")
             return 0
         from d2spo.certify import certify_run, load_cbf_run, write_outputs
@@ -381,40 +367,9 @@ class CertifyCmd:
         run = load_cbf_run(self.run_dir)
         summary, nets = certify_run(self.run_dir, self.check, run=run)
         j, p = write_outputs(self.run_dir, run, self.check, summary, nets)
-        _print_certify(console, summary)
+        print_certify(console, summary)
         print(f"wrote {j} and {p}")
         return 0
-
-
-def _print_certify(console, s: dict) -> None:
-    from rich.table import Table
-
-    t = Table(title=f"{s['run']}: Propositions 1-2 ({s['seconds']:.0f} s)")
-    for name in ("net", "proposition", "points", "certified", "not certified", "violated", "worst margin", "worst value"):
-        t.add_column(name, justify="left" if name in ("net", "proposition") else "right")
-    rows = (("X_L", "1: h < 0", "max_h", "h"), ("grid ℒ + contact", "1: h < 0", "max_h", "h"),
-            ("P_exp (X_s)", "2: e ≥ 0", "min_e", "e"), ("grid D", "2: e ≥ 0", "min_e", "e"))
-    for (label, prop, worst, sym), key in zip(rows, ("X_L", "grid_L", "P_exp", "grid_D")):
-        n = s["nets"][key]
-        if not n["points"]:
-            t.add_row(label, prop, "0", "", "", "", "", "")
-            continue
-        t.add_row(label, prop, str(n["points"]), f"{100 * n['certified']:.2f}%", f"{100 * n['not_certified']:.2f}%",
-                  f"{100 * n['violated']:.2f}%", f"{n['worst_margin']:.3g}", f"{sym} = {n[worst]:.3g}",
-                  style="red" if n["violated"] > 0 else None)
-    console.print(t)
-    r = s["residual"]
-    console.print(f"model residual on {r['transitions']} held-out transitions: |Δh| ≤ ρ_h = {r['rho_h']:.4g} "
-                  f"(quantile {r['quantile']:g}; features: median {r['features_m']['p50']:.3g} m, "
-                  f"max {r['features_m']['max']:.3g} m)")
-    for key, sym in (("L", "h"), ("D", "e")):
-        bad = [c for c in s["counterexamples"][key] if c["counterexample"]]
-        if bad:
-            c = bad[0]
-            console.print(f"counterexample ({'ℒ' if key == 'L' else 'D'}): pose {c['pose']} with {sym} = {c[sym]:.3g}"
-                          f" ({len(bad)} of the worst {len(s['counterexamples'][key])} found)")
-        else:
-            console.print(f"gradient search in {'ℒ' if key == 'L' else 'D'}: no counterexample found")
 
 
 Commands = Union[
@@ -427,49 +382,6 @@ Commands = Union[
     Annotated[ReportCmd, tyro.conf.subcommand("report")],
     Annotated[CertifyCmd, tyro.conf.subcommand("certify")],
 ]
-
-_BOX = re.compile(r"[╭╮╰╯│─]+")
-_CONFIG_ERROR = re.compile(r"^Error parsing [^-\s]\S*: ")
-
-
-def _tyro_error_line(text: str, args: list[str] = ()) -> str:
-    """Condense tyro's boxed error message into one line. Its suggestions for a misspelled flag are
-    kept ("did you mean --episodes?"), only those of the subcommand in ``args`` when it names one."""
-    # With a terminal (or UTF-8) tyro draws a box; otherwise a title line underlined with dashes.
-    lines = [_BOX.sub(" ", ln).strip() for ln in text.splitlines() if ln.strip()]
-    title = lines[0] if lines else ""
-    body: list[str] = []
-    similar: dict[str, dict[str, list[str]]] = {}  # misspelled flag ("" = unnamed) -> flag -> subcommands
-    section: dict[str, list[str]] | None = None
-    flag = ""
-    for stripped in lines[1:]:
-        if set(stripped) <= set("-+ "):  # a rule (empty: a rule of box characters)
-            if body and section is None:
-                section = {}  # past the first block: only suggestions are read from here on
-            continue
-        m = re.match(r"(?:Perhaps you meant|Arguments similar to (\S+)):$", stripped)
-        if m:
-            section = similar.setdefault(m.group(1) or "", {})
-        elif section is not None and stripped.startswith("-"):
-            flag = stripped.split()[0]
-            section.setdefault(flag, [])
-        elif section is not None and flag in section and re.fullmatch(r"in .+ --help", stripped):
-            section[flag].append(stripped[3:-7])
-        elif section is None:
-            body.append(stripped)
-    msg = " ".join(body) or "invalid command line"
-    if _CONFIG_ERROR.match(msg):  # a config dataclass refused a value: its own message names the field
-        return _CONFIG_ERROR.sub("", msg)
-    command = " ".join(["d2spo", *[a for a in args if not a.startswith("-")]])
-    hints = []
-    for typo, flags in similar.items():
-        ok = [f for f, where in flags.items() if not where or any(command.startswith(w) for w in where)]
-        if ok:
-            hints.append(" or ".join(ok[:3]) + (f" for {typo}" if typo else ""))
-    if hints:
-        msg += f" (did you mean {'; '.join(hints)}?)"
-    return f"{title}: {msg}" if title and not msg.startswith(title) else msg
-
 
 def version() -> str:
     """The installed d2spo's version (the package metadata; the source tree's when run from it)."""
@@ -496,7 +408,7 @@ def parse(args: list[str]):
                                         "`d2spo --version` prints the version.")
     except SystemExit as e:
         if e.code not in (0, None):
-            _stderr(_tyro_error_line(buf.getvalue(), args) + " (see d2spo --help)")
+            error(tyro_error_line(buf.getvalue(), args) + " (see d2spo --help)")
             raise SystemExit(2) from None
         raise
 
@@ -506,18 +418,18 @@ def main(argv: list[str] | None = None) -> int:
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("always", D2SPOWarning)
-            warnings.showwarning = _show_warning
+            warnings.showwarning = show_warning
             return int(parse(args).run() or 0)
     except LTLSyntaxError as e:
-        _stderr(f"{e} in {e.formula!r}")
+        error(f"{e} in {e.formula!r}")
         if sys.stderr.isatty():  # an interactive user also gets the caret under the column
             print("\n".join(e.pretty().splitlines()[1:]), file=sys.stderr)
         return 2
     except UserError as e:
-        _stderr(str(e))
+        error(str(e))
         return 2
     except NaNError as e:
-        _stderr(str(e))
+        error(str(e))
         return 3
     except BrokenPipeError:  # output piped into `head` and the like
         import os
@@ -525,10 +437,10 @@ def main(argv: list[str] | None = None) -> int:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
     except OSError as e:  # the machine's fault: a full disk, a read-only or vanished directory
-        _stderr(f"{e.filename}: {e.strerror}" if e.filename and e.strerror else str(e))
+        error(f"{e.filename}: {e.strerror}" if e.filename and e.strerror else str(e))
         return 1
     except KeyboardInterrupt:
-        _stderr("interrupted")
+        error("interrupted")
         return 130
 
 

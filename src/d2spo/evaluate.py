@@ -1,8 +1,10 @@
-"""Load a trained policy from a run directory and evaluate it, possibly elsewhere.
+"""Load a trained policy from a run directory and evaluate it, possibly elsewhere (``d2spo eval``).
 
 The policy is restored with the training config (the checkpoint's shapes depend on it) and then
 run on any layout and dynamics whose observation has the same size (same task, same number of
-areas, same number of lidar rays).
+areas, same number of lidar rays). The rollouts are ``d2spo.rollout``'s; the run's config and
+learner come from ``d2spo.train`` (``load_run_config``, ``build``). Nothing here prints: the CLI
+shows the result with ``d2spo.console.print_evaluation``.
 """
 
 from __future__ import annotations
@@ -18,13 +20,13 @@ from d2spo.checkpoint import load_checkpoint, run_fingerprint
 from d2spo.config import TrainConfig
 from d2spo.errors import ConfigError, NaNError, RunDirError
 from d2spo.fields import check_fields
+from d2spo.rollout import make_rollout, rates
 from d2spo.runio import atomic_write_json
+from d2spo.train import build, load_run_config
 
 
 def load_policy(run_dir: Path):
-    """(cfg, learner, policy) of a finished or checkpointed run."""
-    from d2spo.train import build, load_run_config
-
+    """(cfg, learner, policy, meta) of a finished or checkpointed run."""
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise RunDirError(f"{run_dir}: no such run directory")
@@ -75,8 +77,6 @@ def dynamics_label(dynamics: str | None, overrides: dict[str, float] | None, tra
 def learner_on(cfg: TrainConfig, layout: str | None, preset: str | None, overrides: dict[str, float] | None = None):
     """A learner of the same kind on another layout/dynamics (for acting only); ``preset`` is a preset
     name or a dynamics JSON file (``eval_env_config``)."""
-    from d2spo.train import build
-
     return build(dataclasses.replace(cfg, env=eval_env_config(cfg, layout, preset, overrides)))
 
 
@@ -107,7 +107,6 @@ def evaluate_run(run_dir: Path, episodes: int = 100, layout: str | None = None, 
     ``dynamics``: per-field values on top of it (``eval_env_config``)."""
     from d2spo.algos import has_runtime_filter
     from d2spo.envs.dynamics import DYNAMICS_FIELDS
-    from d2spo.train import make_rollout, rates
 
     asked = SimpleNamespace(episodes=episodes, layout_seeds=layout_seeds, seed=seed, filter_iters=filter_iters,
                             filter_alpha=filter_alpha)
@@ -159,69 +158,25 @@ def evaluate_run(run_dir: Path, episodes: int = 100, layout: str | None = None, 
     return out
 
 
-def random_proposal_safety(learner, carry, env, params, shielded: bool, episodes: int = 64, seed: int = 3) -> float:
-    """Fraction of episodes without collision when uniform random proposals u_rl ~ U[-1, 1]^2 are
-    executed through D²SPO's π_Ω (``shielded``) or directly: safety of pure exploration."""
-
-    def one(key):
-        k0, k1 = jax.random.split(key)
-        state, obs = env.reset(k0, params)
-
-        def body(c, k):
-            state, obs, alive, hit = c
-            ka, ks = jax.random.split(k)
-            u = jax.random.uniform(ka, (2,), minval=-1.0, maxval=1.0)
-            if shielded:
-                u = learner.execute(carry.safety, obs, u, state.pose)
-            state, obs, _, _, done, info = env.step(ks, state, u, params)
-            return (state, obs, alive & ~done, hit | (alive & info["collided"])), None
-
-        (_, _, _, hit), _ = jax.lax.scan(body, (state, obs, True, False), jax.random.split(k1, int(params.max_steps)))
-        return hit
-
-    hits = jax.jit(jax.vmap(one))(jax.random.split(jax.random.PRNGKey(seed), episodes))
-    return float(1.0 - np.mean(np.asarray(hits)))
-
-
 def learner_obs_size(learner) -> int:
     return learner.env.observation_size
 
 
-def eval_command(cmd) -> int:
-    from rich.console import Console
-    from rich.table import Table
-
-    res = evaluate_run(cmd.run_dir, cmd.episodes, cmd.layout, cmd.dynamics, cmd.seed, cmd.layout_seeds,
-                       cmd.runtime_filter, cmd.filter_iters, cmd.filter_alpha, cmd.dynamics_fields.given())
+def evaluation_path(run_dir: Path, res: dict) -> Path:
+    """Where ``write_evaluation`` puts ``res``: RUN_DIR/eval-LAYOUT[xN]-DYNAMICS[-filter-aA-iN].json."""
     n = len(res["per_layout"])  # random:0 over 3 layouts is another evaluation than random:0 alone
     tag = f"{Path(res['layout']).stem.replace(':', '')}{f'x{n}' if n > 1 else ''}-{res['dynamics']}"
     if res["runtime_filter"]:
         tag += f"-filter-a{res['filter_alpha']:g}-i{res['filter_iters']}"
-    path = Path(cmd.run_dir) / f"eval-{tag}.json"
+    return Path(run_dir) / f"eval-{tag}.json"
+
+
+def write_evaluation(run_dir: Path, res: dict) -> Path:
+    """Write ``evaluate_run``'s result into the run directory (``evaluation_path``); returns the path.
+    Raises NaNError, leaving any earlier file as it was, when a mean rate is not finite."""
+    path = evaluation_path(run_dir, res)
     means = [res[k] for k in ("safety_rate", "completion_rate", "mean_return", "mean_distance")]
     if not all(np.isfinite(means)):  # never replace an earlier result with a broken one
-        raise NaNError(f"{cmd.run_dir}: the evaluation gave non-finite rates {means}; {path.name} left as it was")
+        raise NaNError(f"{run_dir}: the evaluation gave non-finite rates {means}; {path.name} left as it was")
     atomic_write_json(path, res)
-    filt = ""
-    if res["runtime_filter"] is not None:
-        filt = ", runtime filter " + ("on" if res["runtime_filter"] else "off")
-        if res["runtime_filter"] and cmd.runtime_filter is None:
-            filt += " (not the training layout/dynamics; --runtime-filter False for π_Ω alone)"
-    t = Table(title=f"{cmd.run_dir} on {res['layout']} / {res['dynamics']} ({res['episodes']} episodes{filt})")
-    for name in ("layout", "safety_rate", "completion_rate", "mean_return", "distance driven"):
-        t.add_column(name, justify="left" if name == "layout" else "right")
-
-    def row(name: str, r: dict, **style) -> None:
-        t.add_row(name, f"{100 * r['safety_rate']:.2f}%", f"{100 * r['completion_rate']:.2f}%",
-                  f"{r['mean_return']:.2f}", f"{r['mean_distance']:.2f} m", **style)
-
-    per = res["per_layout"]
-    if len(per) > 1:  # which layouts fail matters more than the mean
-        for r in per:
-            row(r["layout"], r, style="red" if r["safety_rate"] < 1.0 else None)
-        row(f"all {len(per)}", res, end_section=False, style="bold")
-    else:
-        row(per[0]["layout"], res)
-    Console().print(t)
-    print(f"wrote {path}")
-    return 0
+    return path

@@ -21,9 +21,9 @@ OUTCOME_COLORS = {"completed": "tab:purple", "collided": "tab:red", "neither": "
 
 def policy_trajectories(learner, policy, env, params, episodes: int, seed: int, rollout=None):
     """Poses [E, T+1, 3] (NaN after each episode's end) and per-episode (collided, completed).
-    ``rollout``: a ``train.make_rollout`` of the same learner and size, to reuse its compilation
+    ``rollout``: a ``rollout.make_rollout`` of the same learner and size, to reuse its compilation
     (e.g. for several snapshots of one run)."""
-    from d2spo.train import make_rollout
+    from d2spo.rollout import make_rollout
 
     if rollout is None:
         rollout = make_rollout(learner, env, episodes, int(params.max_steps))

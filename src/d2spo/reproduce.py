@@ -505,7 +505,8 @@ def fig5(out: Path, seeds: int, episodes: int, trajectories: int = 8) -> Path:
     from d2spo.envs.render import draw_layout, draw_trajectory
     from d2spo.evaluate import load_policy
     from d2spo.plots import policy_trajectories
-    from d2spo.train import load_snapshot, make_rollout
+    from d2spo.rollout import make_rollout
+    from d2spo.train import load_snapshot
 
     spec = runs_for("fig5", seeds, episodes)[0]
     d = run_dir(out, spec)

@@ -2,7 +2,7 @@
 
 Everything per step happens inside the learner's jitted ``chunk`` (a ``lax.scan`` over steps of
 ``num_envs`` vmapped environments). Between chunks the host only receives a small ``ChunkLog``:
-finished episodes and scalar metrics.
+finished episodes and scalar metrics. The final evaluation's rollouts are ``d2spo.rollout``'s.
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ from d2spo.algos.base import ChunkLog
 from d2spo.checkpoint import Checkpoints, fingerprint, has_checkpoint, run_fingerprint
 from d2spo.config import TrainConfig, config_differences, config_from_dict, config_to_dict
 from d2spo.errors import ConfigError, NaNError, RunDirError, RunDirWarning
+from d2spo.rollout import evaluate_policy
 from d2spo.runio import (
     EpisodeWriter,
     RunLock,
@@ -216,8 +217,8 @@ class _Run:
         if cfg.eval_episodes > 0:
             if progress is not None:
                 progress({"phase": "evaluating", "episodes": cfg.eval_episodes})
-            summary["eval"] = evaluate(learner, learner.policy(carry), env, params, cfg.eval_episodes,
-                                       jax.random.PRNGKey(cfg.seed + 10_000))
+            summary["eval"] = evaluate_policy(learner, learner.policy(carry), env, params, cfg.eval_episodes,
+                                              jax.random.PRNGKey(cfg.seed + 10_000))
         total = (wall + self.meta.get("compile_seconds", 0.0) + self.meta.get("setup_seconds", 0.0)
                  + time.perf_counter() - t_eval)
         summary["wall_seconds_total"] = round(total, 2)
@@ -425,79 +426,3 @@ def _tensorboard(path: Path):
     except ImportError:  # pragma: no cover - tensorboardX is a pinned dependency
         return None
     return SummaryWriter(str(path), flush_secs=30)
-
-
-def acting_on(learner, params):
-    """``learner`` acting on env ``params`` (another layout of the same array shapes): a shallow
-    copy whose ``params`` are replaced. Acting reads the layout only through ``learner.params``
-    (D²SPO's sensed obstacles and arena), so ``params`` may be traced."""
-    import copy
-
-    other = copy.copy(learner)
-    other.params = params
-    return other
-
-
-def make_rollout(learner, env, episodes: int, max_steps: int):
-    """A jitted ``(params, policy, key) -> (collided, completed, return, length, poses)``: ``episodes``
-    envs in parallel, one deterministic episode each; poses are [E, T + 1, 3]. The env params are an
-    argument, so one compilation serves every layout with the same array shapes."""
-
-    def one(params, policy, key):
-        lrn = acting_on(learner, params)
-        k0, k1 = jax.random.split(key)
-        state, obs = env.reset(k0, params)
-
-        def body(c, k):
-            state, obs, alive, ret, length, collided, completed = c
-            a = lrn.act(policy, obs, state, k)
-            state2, obs2, r, _, done, info = env.step(k, state, a, params)
-            ret = ret + jnp.where(alive, r, 0.0)
-            length = length + alive.astype(jnp.int32)
-            collided = collided | (alive & info["collided"])
-            completed = completed | (alive & info["completed"])
-            pose = jnp.where(alive, info["next_pose"], jnp.full_like(info["next_pose"], jnp.nan))
-            return (state2, obs2, alive & ~done, ret, length, collided, completed), pose
-
-        init = (state, obs, jnp.bool_(True), jnp.float32(0.0), jnp.int32(0), jnp.bool_(False), jnp.bool_(False))
-        (_, _, _, ret, length, collided, completed), poses = jax.lax.scan(
-            body, init, jax.random.split(k1, max_steps))
-        start = state.pose
-        return collided, completed, ret, length, jnp.concatenate([start[None], poses], 0)
-
-    @jax.jit
-    def run(params, policy, key):
-        return jax.vmap(one, in_axes=(None, None, 0))(params, policy, jax.random.split(key, episodes))
-
-    return run
-
-
-def rollout_episodes(learner, policy, env, params, episodes: int, key: jax.Array, max_steps: int):
-    """Run ``episodes`` envs in parallel for one episode each, deterministically.
-
-    Returns per-episode collided, completed, return, length, and the [E, T + 1, 3] poses.
-    """
-    return make_rollout(learner, env, episodes, max_steps)(params, policy, key)
-
-
-def rates(collided, completed, ret, length, poses=None) -> dict:
-    """Safety and completion (true labelling) of finished evaluation episodes; with the [E, T + 1, 3]
-    poses of ``make_rollout`` also the mean distance driven (m), which tells a safe policy that
-    moves from one that stands still."""
-    collided, completed = np.asarray(collided), np.asarray(completed)
-    out = {
-        "episodes": int(collided.shape[0]),
-        "safety_rate": float(1.0 - collided.mean()),
-        "completion_rate": float(completed.mean()),
-        "mean_return": float(np.asarray(ret).mean()),
-        "mean_length": float(np.asarray(length).mean()),
-    }
-    if poses is not None:
-        step = np.linalg.norm(np.diff(np.asarray(poses)[..., :2], axis=1), axis=-1)  # NaN after the end
-        out["mean_distance"] = float(np.nansum(step, axis=1).mean())
-    return out
-
-
-def evaluate(learner, policy, env, params, episodes: int, key: jax.Array) -> dict:
-    """Safety and completion (true labelling) of the deterministic policy over ``episodes``."""
-    return rates(*rollout_episodes(learner, policy, env, params, episodes, key, int(params.max_steps)))

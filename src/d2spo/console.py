@@ -1,0 +1,144 @@
+"""What the command line shows, apart from training progress (``d2spo.progress``): the tables of
+``d2spo eval`` and ``d2spo certify``, and errors and warnings as single lines on stderr.
+
+The library (``d2spo.evaluate``, ``d2spo.certify``, ...) returns data; only this module, the CLI
+and ``d2spo.progress`` print.
+"""
+
+from __future__ import annotations
+
+import re
+import sys
+import warnings
+from pathlib import Path
+
+from d2spo.errors import D2SPOWarning
+
+
+def error(msg: str) -> None:
+    """One ``d2spo: error:`` line on stderr."""
+    print(f"d2spo: error: {msg}", file=sys.stderr)
+
+
+def show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """``warnings.showwarning`` for the CLI: a D2SPOWarning (RunDirWarning, TaskWarning) is one line on stderr."""
+    if issubclass(category, D2SPOWarning):
+        print(f"d2spo: warning: {message}", file=sys.stderr)
+    else:
+        _PLAIN_SHOWWARNING(message, category, filename, lineno, file, line)
+
+
+_PLAIN_SHOWWARNING = warnings.showwarning
+
+_BOX = re.compile(r"[╭╮╰╯│─]+")
+_CONFIG_ERROR = re.compile(r"^Error parsing [^-\s]\S*: ")
+
+
+def tyro_error_line(text: str, args: list[str] = ()) -> str:
+    """Condense tyro's boxed error message into one line. Its suggestions for a misspelled flag are
+    kept ("did you mean --episodes?"), only those of the subcommand in ``args`` when it names one."""
+    # With a terminal (or UTF-8) tyro draws a box; otherwise a title line underlined with dashes.
+    lines = [_BOX.sub(" ", ln).strip() for ln in text.splitlines() if ln.strip()]
+    title = lines[0] if lines else ""
+    body: list[str] = []
+    similar: dict[str, dict[str, list[str]]] = {}  # misspelled flag ("" = unnamed) -> flag -> subcommands
+    section: dict[str, list[str]] | None = None
+    flag = ""
+    for stripped in lines[1:]:
+        if set(stripped) <= set("-+ "):  # a rule (empty: a rule of box characters)
+            if body and section is None:
+                section = {}  # past the first block: only suggestions are read from here on
+            continue
+        m = re.match(r"(?:Perhaps you meant|Arguments similar to (\S+)):$", stripped)
+        if m:
+            section = similar.setdefault(m.group(1) or "", {})
+        elif section is not None and stripped.startswith("-"):
+            flag = stripped.split()[0]
+            section.setdefault(flag, [])
+        elif section is not None and flag in section and re.fullmatch(r"in .+ --help", stripped):
+            section[flag].append(stripped[3:-7])
+        elif section is None:
+            body.append(stripped)
+    msg = " ".join(body) or "invalid command line"
+    if _CONFIG_ERROR.match(msg):  # a config dataclass refused a value: its own message names the field
+        return _CONFIG_ERROR.sub("", msg)
+    command = " ".join(["d2spo", *[a for a in args if not a.startswith("-")]])
+    hints = []
+    for typo, flags in similar.items():
+        ok = [f for f, where in flags.items() if not where or any(command.startswith(w) for w in where)]
+        if ok:
+            hints.append(" or ".join(ok[:3]) + (f" for {typo}" if typo else ""))
+    if hints:
+        msg += f" (did you mean {'; '.join(hints)}?)"
+    return f"{title}: {msg}" if title and not msg.startswith(title) else msg
+
+
+# ------------------------------------------------------------------------------------ d2spo eval
+def print_evaluation(res: dict, path: Path, filter_asked: bool | None) -> None:
+    """``d2spo.evaluate.evaluate_run``'s result as a table (a row per layout when there are several),
+    then where it was written. ``filter_asked``: the --runtime-filter flag (None: not given)."""
+    from rich.console import Console
+    from rich.table import Table
+
+    filt = ""
+    if res["runtime_filter"] is not None:
+        filt = ", runtime filter " + ("on" if res["runtime_filter"] else "off")
+        if res["runtime_filter"] and filter_asked is None:
+            filt += " (not the training layout/dynamics; --runtime-filter False for π_Ω alone)"
+    t = Table(title=f"{res['run']} on {res['layout']} / {res['dynamics']} ({res['episodes']} episodes{filt})")
+    for name in ("layout", "safety_rate", "completion_rate", "mean_return", "distance driven"):
+        t.add_column(name, justify="left" if name == "layout" else "right")
+
+    def row(name: str, r: dict, **style) -> None:
+        t.add_row(name, f"{100 * r['safety_rate']:.2f}%", f"{100 * r['completion_rate']:.2f}%",
+                  f"{r['mean_return']:.2f}", f"{r['mean_distance']:.2f} m", **style)
+
+    per = res["per_layout"]
+    if len(per) > 1:  # which layouts fail matters more than the mean
+        for r in per:
+            row(r["layout"], r, style="red" if r["safety_rate"] < 1.0 else None)
+        row(f"all {len(per)}", res, end_section=False, style="bold")
+    else:
+        row(per[0]["layout"], res)
+    Console().print(t)
+    print(f"wrote {path}")
+
+
+# --------------------------------------------------------------------------------- d2spo certify
+def print_repair_round(console, r: dict) -> None:
+    """One line per round of ``d2spo certify --repair`` (``d2spo.repair.repair_run``'s progress)."""
+    console.print(f"round {r['round']}: certified ℒ {100 * r['certified_L']:.2f}%, "
+                  f"D {100 * r['certified_D']:.2f}%, violated grid points: "
+                  f"{r['grid_L_violated']} (Prop. 1), {r['grid_D_violated']} (Prop. 2)")
+
+
+def print_certify(console, s: dict) -> None:
+    """``d2spo.certify.certify_run``'s summary: a table per net, the model residual, counterexamples."""
+    from rich.table import Table
+
+    t = Table(title=f"{s['run']}: Propositions 1-2 ({s['seconds']:.0f} s)")
+    for name in ("net", "proposition", "points", "certified", "not certified", "violated", "worst margin", "worst value"):
+        t.add_column(name, justify="left" if name in ("net", "proposition") else "right")
+    rows = (("X_L", "1: h < 0", "max_h", "h"), ("grid ℒ + contact", "1: h < 0", "max_h", "h"),
+            ("P_exp (X_s)", "2: e ≥ 0", "min_e", "e"), ("grid D", "2: e ≥ 0", "min_e", "e"))
+    for (label, prop, worst, sym), key in zip(rows, ("X_L", "grid_L", "P_exp", "grid_D")):
+        n = s["nets"][key]
+        if not n["points"]:
+            t.add_row(label, prop, "0", "", "", "", "", "")
+            continue
+        t.add_row(label, prop, str(n["points"]), f"{100 * n['certified']:.2f}%", f"{100 * n['not_certified']:.2f}%",
+                  f"{100 * n['violated']:.2f}%", f"{n['worst_margin']:.3g}", f"{sym} = {n[worst]:.3g}",
+                  style="red" if n["violated"] > 0 else None)
+    console.print(t)
+    r = s["residual"]
+    console.print(f"model residual on {r['transitions']} held-out transitions: |Δh| ≤ ρ_h = {r['rho_h']:.4g} "
+                  f"(quantile {r['quantile']:g}; features: median {r['features_m']['p50']:.3g} m, "
+                  f"max {r['features_m']['max']:.3g} m)")
+    for key, sym in (("L", "h"), ("D", "e")):
+        bad = [c for c in s["counterexamples"][key] if c["counterexample"]]
+        if bad:
+            c = bad[0]
+            console.print(f"counterexample ({'ℒ' if key == 'L' else 'D'}): pose {c['pose']} with {sym} = {c[sym]:.3g}"
+                          f" ({len(bad)} of the worst {len(s['counterexamples'][key])} found)")
+        else:
+            console.print(f"gradient search in {'ℒ' if key == 'L' else 'D'}: no counterexample found")

@@ -1,0 +1,116 @@
+"""Acting with a policy: deterministic rollouts, their safety and completion rates, and the safety
+of random proposals executed through D²SPO's π_Ω.
+
+Only the learners' protocol (``d2spo.algos.base.Learner``: ``act``, ``params``) is used here, so
+the run loop (``d2spo.train``, final evaluation), ``d2spo eval`` (``d2spo.evaluate``) and the
+figures share one rollout.
+"""
+
+from __future__ import annotations
+
+import copy
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from d2spo.algos.base import Learner
+
+
+def acting_on(learner: Learner, params) -> Learner:
+    """``learner`` acting on env ``params`` (another layout of the same array shapes): a shallow
+    copy whose ``params`` are replaced. Acting reads the layout only through ``learner.params``
+    (D²SPO's sensed obstacles and arena), so ``params`` may be traced."""
+    other = copy.copy(learner)
+    other.params = params
+    return other
+
+
+def make_rollout(learner: Learner, env, episodes: int, max_steps: int):
+    """A jitted ``(params, policy, key) -> (collided, completed, return, length, poses)``: ``episodes``
+    envs in parallel, one deterministic episode each; poses are [E, T + 1, 3]. The env params are an
+    argument, so one compilation serves every layout with the same array shapes."""
+
+    def one(params, policy, key):
+        lrn = acting_on(learner, params)
+        k0, k1 = jax.random.split(key)
+        state, obs = env.reset(k0, params)
+
+        def body(c, k):
+            state, obs, alive, ret, length, collided, completed = c
+            a = lrn.act(policy, obs, state, k)
+            state2, obs2, r, _, done, info = env.step(k, state, a, params)
+            ret = ret + jnp.where(alive, r, 0.0)
+            length = length + alive.astype(jnp.int32)
+            collided = collided | (alive & info["collided"])
+            completed = completed | (alive & info["completed"])
+            pose = jnp.where(alive, info["next_pose"], jnp.full_like(info["next_pose"], jnp.nan))
+            return (state2, obs2, alive & ~done, ret, length, collided, completed), pose
+
+        init = (state, obs, jnp.bool_(True), jnp.float32(0.0), jnp.int32(0), jnp.bool_(False), jnp.bool_(False))
+        (_, _, _, ret, length, collided, completed), poses = jax.lax.scan(
+            body, init, jax.random.split(k1, max_steps))
+        start = state.pose
+        return collided, completed, ret, length, jnp.concatenate([start[None], poses], 0)
+
+    @jax.jit
+    def run(params, policy, key):
+        return jax.vmap(one, in_axes=(None, None, 0))(params, policy, jax.random.split(key, episodes))
+
+    return run
+
+
+def rollout_episodes(learner: Learner, policy, env, params, episodes: int, key: jax.Array, max_steps: int):
+    """Run ``episodes`` envs in parallel for one episode each, deterministically.
+
+    Returns per-episode collided, completed, return, length, and the [E, T + 1, 3] poses.
+    """
+    return make_rollout(learner, env, episodes, max_steps)(params, policy, key)
+
+
+def rates(collided, completed, ret, length, poses=None) -> dict:
+    """Safety and completion (true labelling) of finished evaluation episodes; with the [E, T + 1, 3]
+    poses of ``make_rollout`` also the mean distance driven (m), which tells a safe policy that
+    moves from one that stands still."""
+    collided, completed = np.asarray(collided), np.asarray(completed)
+    out = {
+        "episodes": int(collided.shape[0]),
+        "safety_rate": float(1.0 - collided.mean()),
+        "completion_rate": float(completed.mean()),
+        "mean_return": float(np.asarray(ret).mean()),
+        "mean_length": float(np.asarray(length).mean()),
+    }
+    if poses is not None:
+        step = np.linalg.norm(np.diff(np.asarray(poses)[..., :2], axis=1), axis=-1)  # NaN after the end
+        out["mean_distance"] = float(np.nansum(step, axis=1).mean())
+    return out
+
+
+def evaluate_policy(learner: Learner, policy, env, params, episodes: int, key: jax.Array) -> dict:
+    """Safety and completion (true labelling) of the deterministic policy over ``episodes``."""
+    return rates(*rollout_episodes(learner, policy, env, params, episodes, key, int(params.max_steps)))
+
+
+def random_proposal_safety(learner, carry, env, params, shielded: bool, episodes: int = 64, seed: int = 3) -> float:
+    """Fraction of episodes without collision when uniform random proposals u_rl ~ U[-1, 1]^2 are
+    executed through D²SPO's π_Ω (``shielded``, ``learner.execute``) or directly: safety of pure
+    exploration."""
+
+    def one(key):
+        k0, k1 = jax.random.split(key)
+        state, obs = env.reset(k0, params)
+
+        def body(c, k):
+            state, obs, alive, hit = c
+            ka, ks = jax.random.split(k)
+            u = jax.random.uniform(ka, (2,), minval=-1.0, maxval=1.0)
+            if shielded:
+                u = learner.execute(carry.safety, obs, u, state.pose)
+            state, obs, _, _, done, info = env.step(ks, state, u, params)
+            return (state, obs, alive & ~done, hit | (alive & info["collided"])), None
+
+        (_, _, _, hit), _ = jax.lax.scan(body, (state, obs, True, False), jax.random.split(k1, int(params.max_steps)))
+        return hit
+
+    hits = jax.jit(jax.vmap(one))(jax.random.split(jax.random.PRNGKey(seed), episodes))
+    return float(1.0 - np.mean(np.asarray(hits)))
