@@ -354,6 +354,12 @@ class CertifyCmd:
     """With --repair: UPDATE(Ω, Θ) calls of Algorithm 1 per round (each `cbf.updates_per_iter` steps)."""
     copies: int = 4
     """With --repair: copies of each counterexample added to the datasets."""
+    gamma_exp: float | None = None
+    """With --repair: T_e's margin γ_exp while repairing (default: the margin certification asks of the
+    median point of D, ρ_h/Δt + L_e ε; 0: the run's own)."""
+    eval_episodes: int = 100
+    """With --repair: evaluate the original and the repaired policy on these episodes (as `d2spo eval`)
+    and keep the original state if the repaired one is less safe or completes less (0: skip)."""
 
     def run(self) -> int:
         from rich.console import Console
@@ -362,18 +368,28 @@ class CertifyCmd:
         if self.repair:
             from d2spo.repair import repair_run
 
-            if self.rounds < 1 or self.calls < 1 or self.copies < 1:
-                raise UserError("--rounds, --calls and --copies must be ≥ 1")
+            if self.rounds < 1 or self.calls < 1 or self.copies < 1 or self.eval_episodes < 0:
+                raise UserError("--rounds, --calls and --copies must be ≥ 1, --eval-episodes ≥ 0")
             out = self.out or self.run_dir.with_name(self.run_dir.name + "-repaired")
 
             def show(r: dict) -> None:
+                if "round" not in r:
+                    b, a = r["eval_before"], r["eval_after"]
+                    console.print(f"eval ({self.eval_episodes} episodes): safety {b['safety_rate']:.3f} → "
+                                  f"{a['safety_rate']:.3f}, completion {b['completion_rate']:.3f} → "
+                                  f"{a['completion_rate']:.3f}" + ("; worse: the original state is kept"
+                                                                    if r["reverted"] else ""))
+                    return
                 console.print(f"round {r['round']}: certified ℒ {100 * r['certified_L']:.2f}%, "
                               f"D {100 * r['certified_D']:.2f}%, violated grid points: "
-                              f"{r['grid_L_violated']} (Prop. 1), {r['grid_D_violated']} (Prop. 2)")
+                              f"{r['grid_L_violated']} (Prop. 1), {r['grid_D_violated']} (Prop. 2, explored)"
+                              + (f"; added {r['added_L']} + {r['added_D']} counterexamples"
+                                 if "added_L" in r else ""))
 
-            res = repair_run(self.run_dir, out, self.check, self.rounds, self.calls, self.copies, progress=show)
+            res = repair_run(self.run_dir, out, self.check, self.rounds, self.calls, self.copies,
+                             self.eval_episodes, self.gamma_exp, progress=show)
             _print_certify(console, res["after"])
-            print(f"wrote the repaired run {out} (certify.json, certify.png, checkpoint)")
+            print(f"wrote the repaired run {out} (round {res['kept']} kept; certify.json, certify.png, checkpoint)")
             return 0
         from d2spo.certify import certify_run, load_cbf_run, write_outputs
 
@@ -389,12 +405,15 @@ class CertifyCmd:
 def _print_certify(console, s: dict) -> None:
     from rich.table import Table
 
-    t = Table(title=f"{s['run']}: Propositions 1-2 ({s['seconds']:.0f} s)")
+    t = Table(title=f"{s['run']}: Propositions 1-2 ({s['seconds']:.0f} s, {s.get('cpu_seconds', 0):.0f} s CPU)")
     for name in ("net", "proposition", "points", "certified", "not certified", "violated", "worst margin", "worst value"):
         t.add_column(name, justify="left" if name in ("net", "proposition") else "right")
-    rows = (("X_L", "1: h < 0", "max_h", "h"), ("grid ℒ + contact", "1: h < 0", "max_h", "h"),
-            ("P_exp (X_s)", "2: e ≥ 0", "min_e", "e"), ("grid D", "2: e ≥ 0", "min_e", "e"))
-    for (label, prop, worst, sym), key in zip(rows, ("X_L", "grid_L", "P_exp", "grid_D")):
+    rows = (("X_L (ℒ)", "1: h < 0", "max_h", "h"), ("grid: ring + contact", "1: h < 0", "max_h", "h"),
+            ("P_exp (D, explored)", "2: e ≥ 0", "min_e", "e"), ("grid: explored cells", "2: e ≥ 0", "min_e", "e"),
+            ("grid: all free (beyond D)", "2: e ≥ 0", "min_e", "e"))
+    for (label, prop, worst, sym), key in zip(rows, ("X_L", "grid_L", "P_exp", "grid_D", "grid_free")):
+        if key not in s["nets"]:
+            continue
         n = s["nets"][key]
         if not n["points"]:
             t.add_row(label, prop, "0", "", "", "", "", "")
@@ -407,6 +426,9 @@ def _print_certify(console, s: dict) -> None:
     console.print(f"model residual on {r['transitions']} held-out transitions: |Δh| ≤ ρ_h = {r['rho_h']:.4g} "
                   f"(quantile {r['quantile']:g}; features: median {r['features_m']['p50']:.3g} m, "
                   f"max {r['features_m']['max']:.3g} m)")
+    console.print("Proven from the weights: h < 0 on each certified ball of ℒ; e ≥ 0 on each certified ball of D "
+                  "for the nominal model's next state, within ρ_h. Measured, not proven: ρ_h. Balls are ℓ∞ in "
+                  "feature space; nothing is proven between grid poses (docs/certify.md).")
     for key, sym in (("L", "h"), ("D", "e")):
         bad = [c for c in s["counterexamples"][key] if c["counterexample"]]
         if bad:
