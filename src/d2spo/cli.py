@@ -350,7 +350,7 @@ class CertifyCmd:
     """With --repair: the new run directory (default: RUN-repaired)."""
     rounds: int = 6
     """With --repair: at most this many rounds of (certify, add counterexamples, train)."""
-    calls: int = 100
+    calls: int = 50
     """With --repair: UPDATE(Ω, Θ) calls of Algorithm 1 per round (each `cbf.updates_per_iter` steps)."""
     copies: int = 4
     """With --repair: copies of each counterexample added to the datasets."""

@@ -15,8 +15,10 @@ points of ℒ or of D's explored part are violated) and better in something; rep
 first round that is not better and keeps the best. With `eval_episodes > 0` the kept state is then evaluated (`d2spo
 eval`'s rollout, the same episodes before and after); if its safety or completion rate is lower
 than the original's, the original state is kept instead and the report says so. The result is an
-ordinary run directory: the original's files with the kept state in its checkpoint (the same
-format), so `d2spo eval` and `d2spo train --resume` work on it.
+ordinary run directory: the original's files and checkpoint with the kept h, π_Ω and f_n (and their
+optimiser states) in place of the original ones; the datasets are the original's (the added
+counterexamples were a means of training), so `d2spo certify OUT` checks the same points and
+reproduces the kept round's figures. `d2spo eval` and `d2spo train --resume` work on it.
 """
 
 from __future__ import annotations
@@ -146,7 +148,7 @@ def _evaluate(path: Path, episodes: int) -> dict:
     return {k: r[k] for k in ("safety_rate", "completion_rate", "mean_return", "mean_distance")}
 
 
-def repair_run(run_dir: Path, out: Path, ccfg: CertifyConfig | None = None, rounds: int = 6, calls: int = 100,
+def repair_run(run_dir: Path, out: Path, ccfg: CertifyConfig | None = None, rounds: int = 6, calls: int = 50,
                copies: int = 4, eval_episodes: int = 100, gamma_exp: float | None = None,
                progress: Callable[[dict], None] | None = None) -> dict[str, Any]:
     """Repair a run into `out` (a new run directory). Returns {"rounds", "before", "after", "kept",
@@ -191,7 +193,7 @@ def repair_run(run_dir: Path, out: Path, ccfg: CertifyConfig | None = None, roun
             break  # the certified fraction stopped rising
         best = {"round": r, "carry": carry, "summary": summary, "nets": nets}
     note = {"repaired_from": str(run_dir), "repair_round": best["round"]}
-    _save(run_dir, out, best["carry"], run.meta, note)
+    _save(run_dir, out, best["carry"].replace(data=data0), run.meta, note)
     res = {"rounds": history, "before": before, "kept": best["round"], "eval_before": None, "eval_after": None,
            "gamma_exp": gamma_exp if gamma_exp is not None else run.cfg.cbf.gamma_exp}
     if eval_episodes and best["round"] > 0:
