@@ -19,6 +19,8 @@ from d2spo.envs import EnvConfig
 from d2spo.runio import atomic_write_json
 from d2spo.safety.cbf import CBFConfig
 
+CCFG_TINY = dict(grid_step=0.25, headings=2, residual_episodes=2, search_starts=8, search_steps=4)
+"""A small grid and search: certification of the tiny runs below takes seconds once compiled."""
 TINY_CBF = CBFConfig(hidden=(8,), policy_hidden=(8,), nominal_hidden=(8,), transitions_capacity=64,
                      p_exp_capacity=64, unsafe_capacity=64, batch_size=8)
 
@@ -63,14 +65,15 @@ def _shifted(run, c: float):
 def test_h_shifted_up_is_reported_violated_and_shifted_down_certified(untrained_run):
     from d2spo.certify import CertifyConfig, certify_run, load_cbf_run
 
-    ccfg = CertifyConfig(grid_step=0.25, headings=2, residual_episodes=2)
+    ccfg = CertifyConfig(**CCFG_TINY)  # the same config as the repair test: the compiled pieces are shared
     run = load_cbf_run(untrained_run)
     up, _ = certify_run(untrained_run, ccfg, run=_shifted(run, 20.0), search=False)
     assert up["nets"]["grid_L"]["points"] > 0 and up["nets"]["grid_L"]["violated"] == 1.0
     assert up["grid_L_violated"] == up["nets"]["grid_L"]["points"]
     down, _ = certify_run(untrained_run, ccfg, run=_shifted(run, -20.0), search=False)
     assert down["nets"]["grid_L"]["certified"] == 1.0
-    assert down["nets"]["grid_D"]["violated"] == 1.0  # e ≈ α(−20) < 0 wherever the robot is free
+    assert down["nets"]["grid_free"]["violated"] == 1.0  # e ≈ α(−20) < 0 wherever the robot is free
+    assert down["nets"]["grid_D"]["points"] == 0  # an untrained run has explored nothing
     json.dumps(up)  # the summary is what certify.json holds
 
 
@@ -100,3 +103,65 @@ def test_bad_epsilon_through_the_command_line_has_no_traceback(untrained_run):
                          capture_output=True, text=True, timeout=120)
     assert res.returncode == 2 and "Traceback" not in res.stderr
     assert [ln for ln in res.stderr.splitlines() if ln.strip()] == ["d2spo: error: eps_unsafe: must be > 0, got 0.0"]
+
+
+
+@pytest.fixture(scope="module")
+def filled_run(untrained_run, tmp_path_factory):
+    """The untrained run with X_L and P_exp filled from the pose grid and h shifted up by 0.3, so that
+    part of the ring is violated: something for --repair to work on."""
+    import jax.numpy as jnp
+
+    from d2spo.certify import CertifyConfig, _compiled, load_cbf_run, pose_grid
+    from d2spo.repair import add_counterexamples
+
+    ccfg = CertifyConfig(**CCFG_TINY)
+    run = load_cbf_run(untrained_run)
+    grid = pose_grid(run, ccfg)
+    near = np.asarray(_compiled(run, ccfg)["nearest"](jnp.asarray(grid)))
+    carry = add_counterexamples(run, ccfg, run.carry, grid[near <= 0.2][:40], [(grid[near >= 0.3][:40], 0)], 1)
+    path = tmp_path_factory.mktemp("repair") / "run"
+    _write_run(path, _tiny_cfg(), _shifted(run._replace(carry=carry), 0.3).carry)
+    return path
+
+
+def test_repair_rule_is_never_worse_in_anything():
+    from d2spo.repair import better
+
+    def s(cl, cd, vl, vd=0):
+        return {"certified_L": cl, "certified_D": cd, "grid_L_violated": vl, "grid_D_violated": vd}
+
+    assert better(s(0.5, 0.9, 3), s(0.4, 0.9, 3)) and better(s(0.4, 0.9, 2), s(0.4, 0.9, 3))
+    assert not better(s(0.9, 0.8, 0), s(0.4, 0.9, 3))  # ℒ up, D down: not better
+    assert not better(s(0.5, 0.9, 4), s(0.4, 0.9, 3))  # one more violated grid point
+    assert not better(s(0.4, 0.9, 3), s(0.4, 0.9, 3))  # no change: repair stops
+    assert better(s(0.1, 0.0, 0), s(float("nan"), float("nan"), 1))  # an empty net counts as 0
+
+
+def test_repair_writes_an_ordinary_run_no_worse_than_before(filled_run, tmp_path):
+    from d2spo.certify import CertifyConfig
+    from d2spo.evaluate import evaluate_run
+    from d2spo.repair import repair_run
+    from d2spo.train import build, load_run_config
+
+    out = tmp_path / "repaired"
+    res = repair_run(filled_run, out, CertifyConfig(**CCFG_TINY), rounds=1, calls=1, copies=1, eval_episodes=0)
+    assert res["before"]["grid_L_violated"] > 0 and len(res["rounds"]) >= 2  # something was tried
+    assert all(r["better"] for r in res["rounds"][1:res["kept"] + 1])  # the kept round beat every earlier one
+    for k in ("certified_L", "certified_D"):  # never worse than the original
+        assert np.nan_to_num(res["after"][k]) >= np.nan_to_num(res["before"][k])
+    assert res["after"]["grid_L_violated"] <= res["before"]["grid_L_violated"]
+    saved = json.loads((out / "certify.json").read_text())
+    assert saved["repair_kept_round"] == res["kept"] and len(saved["repair_rounds"]) == len(res["rounds"])
+    # `d2spo train --resume` reads the run's own config and the checkpoint with the learner's template
+    cfg = load_run_config(out)
+    assert cfg == load_run_config(filled_run)
+    _, _, learner = build(cfg)
+    carry, meta = Checkpoints(out, run_fingerprint(out)).load(jax.eval_shape(learner.init, jax.random.PRNGKey(0)))
+    assert meta["episodes"] == 0
+    orig, _ = Checkpoints(filled_run, run_fingerprint(filled_run)).load(jax.eval_shape(learner.init, jax.random.PRNGKey(0)))
+    same = all(np.array_equal(a, b) for a, b in zip(jax.tree_util.tree_leaves(carry.safety.cbf),
+                                                     jax.tree_util.tree_leaves(orig.safety.cbf)))
+    assert same == (res["kept"] == 0)
+    r = evaluate_run(out, episodes=2)  # `d2spo eval`
+    assert 0.0 <= r["safety_rate"] <= 1.0

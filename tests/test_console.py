@@ -63,7 +63,7 @@ def test_certify_summary_is_shown():
     console = Console(file=buf, width=200)
     print_certify(console, s)
     print_repair_round(console, {"round": 2, "certified_L": 0.95, "certified_D": 0.5, "grid_L_violated": 3,
-                                 "grid_D_violated": 0})
+                                 "grid_D_violated": 0}, 10)
     out = buf.getvalue()
     assert "RUN: Propositions 1-2 (3 s)" in out and "90.00%" in out and "h = -0.5" in out
     assert "ρ_h = 0.0123" in out and "pose [1.0, 2.0, 0.0] with h = 0.3 (1 of the worst 1 found)" in out

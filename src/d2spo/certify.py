@@ -2,18 +2,21 @@
 
 The maths is in `safety/certify.py` (per point) and `safety/bounds.py` (interval bounds). This
 module loads a run, builds the nets, measures the nominal model's residual on held-out transitions,
-classifies every point, searches for counterexamples by gradient steps on the pose, and writes
-RUN/certify.json and RUN/certify.png. Nothing here prints; the CLI renders the summary.
+classifies every point, runs the search for counterexamples (`certify_search.py`), and writes
+RUN/certify.json and RUN/certify.png (`certify_picture.py`). Nothing here prints; the CLI renders
+the summary.
 
-Nets: the run's X_L (Proposition 1) and P_exp (Proposition 2: where T_e of Eq. (9) acts), and a
-grid over the layout's poses (x, y, θ) mapped through the sensor: poses whose nearest obstacle is
-within `unsafe_max` (the ring and contact) are checked for Proposition 1, poses at or beyond the
-P_exp threshold for Proposition 2 (with the RL proposal of every non-absorbing automaton state).
+Nets: the run's X_L (Proposition 1) and P_exp (Proposition 2: D, the explored set, where T_e of
+Eq. (9) acts), and a grid over the layout's poses (x, y, θ) mapped through the sensor: poses whose
+nearest obstacle is within `unsafe_max` (the ring and contact) for Proposition 1; for Proposition
+2 the grid's explored part (cells holding a P_exp row, with its automaton state) and, apart, every
+free pose with every live automaton state (beyond D).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,6 +26,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from d2spo import certify_search as search
+from d2spo.certify_search import search_counterexamples
+from d2spo.config import config_to_dict
 from d2spo.errors import ConfigError, RunDirError
 from d2spo.safety import bounds
 from d2spo.safety import certify as cert
@@ -48,12 +54,15 @@ class CertifyConfig:
     model's error in h, ρ_h = |h(b(s')) − h(b(s_n(s, u)))|, is measured."""
     residual_quantile: float = 1.0
     """Quantile of the held-out residuals used as ρ_h (1.0: the largest one seen)."""
-    search_starts: int = 64
+    search_starts: int = 128
     """Starting poses of each gradient search for counterexamples (the worst grid points)."""
     search_steps: int = 40
     """Gradient steps of each search."""
     seed: int = 0
     """Seed of the held-out episodes."""
+    free_grid: bool = True
+    """Also check Proposition 2 on every free grid pose with every live automaton state (beyond D:
+    poses and states the policy may never visit; reported apart, not part of the targets)."""
 
     def check(self) -> CertifyConfig:
         for name in ("eps_unsafe", "eps_safe", "grid_step"):
@@ -133,7 +142,7 @@ _COMPILED: dict[tuple, Any] = {}
 def _compiled(run: CBFRun, ccfg: CertifyConfig) -> dict[str, Any]:
     """The jitted pieces of a check, compiled once per (learner, config): the parameters are
     arguments, so certifying another state of the same run (repair rounds, tests) reuses them."""
-    key = (id(run.learner), ccfg)
+    key = (json.dumps(config_to_dict(run.cfg), sort_keys=True), ccfg)  # the same config builds the same learner
     if key in _COMPILED:
         return _COMPILED[key]
     lrn, env, params, cbf_cfg = run.learner, run.env, run.params, run.cfg.cbf
@@ -184,46 +193,38 @@ def _compiled(run: CBFRun, ccfg: CertifyConfig) -> dict[str, Any]:
         _, res = jax.lax.scan(body, (state, obs), jax.random.split(k1, int(params.max_steps)))
         return res[0].reshape(-1), res[1].reshape(-1)
 
-    def h_at(pol: Policy, p):
-        x = lrn.features(p, jax.tree_util.tree_map(lambda c: c[0], context(p[None])))
-        return lrn.safety_nets.cbf.apply(pol.safety.cbf, x), jnp.min(x)
+    def h_values(cbf, pose):
+        """h and the nearest-obstacle distance at poses [N, 3]."""
+        x = jax.vmap(lrn.features)(pose, context(pose))
+        return lrn.safety_nets.cbf.apply(cbf, x), jnp.min(x, -1)
 
-    def e_at(pol: Policy, p, q):
-        x, xn, _ = next_features(pol, p[None], context(p[None]), observe(p[None], q))
-        h = lrn.safety_nets.cbf.apply(pol.safety.cbf, x[0])
-        hn = lrn.safety_nets.cbf.apply(pol.safety.cbf, xn[0])
-        return (hn - h) / dt + alpha(h), jnp.min(x[0])
+    def e_values(pol: Policy, pose, q):
+        """e through the nominal model, and the nearest-obstacle distance, at poses [N, 3] in states q."""
+        x, xn, _ = next_features(pol, pose, context(pose), observe(pose, q))
+        h = lrn.safety_nets.cbf.apply(pol.safety.cbf, x)
+        hn = lrn.safety_nets.cbf.apply(pol.safety.cbf, xn)
+        return (hn - h) / dt + alpha(h), jnp.min(x, -1)
 
     lo, hi = params.geom.arena_lo, params.geom.arena_hi
-    step = jnp.array([0.01, 0.01, 0.05])
 
-    def climb(objective, feasible, p0):
-        """Signed-gradient ascent on the pose; a step that leaves the set is undone; the best kept."""
-        def body(c, i):
-            p, best_p, best_v = c
-            (_, _), g = jax.value_and_grad(objective, has_aux=True)(p)
-            cand = p + step * (1.0 - i / ccfg.search_steps) * jnp.sign(g)
-            cand = cand.at[:2].set(jnp.clip(cand[:2], lo, hi))
-            vc, mc = objective(cand)
-            ok = feasible(mc)
-            better = ok & (vc > best_v)
-            return (jnp.where(ok, cand, p), jnp.where(better, cand, best_p), jnp.where(better, vc, best_v)), None
-
-        v0, _ = objective(p0)
-        (_, bp, bv), _ = jax.lax.scan(body, (p0, p0, v0), jnp.arange(ccfg.search_steps, dtype=jnp.float32))
-        return bp, bv
+    def climb(values, feasible, p0, extra):
+        return search.climb(values, feasible, p0, extra, lo, hi, ccfg.search_steps)
 
     thr = p_exp_threshold(cbf_cfg)
 
     def search_l(pol, p0):
-        return jax.vmap(lambda p: climb(lambda z: h_at(pol, z), lambda m: m <= cbf_cfg.unsafe_max, p))(p0)
+        return climb(lambda p, _: h_values(pol.safety.cbf, p), lambda m, p, _: m <= cbf_cfg.unsafe_max, p0,
+                     jnp.zeros(p0.shape[:1], jnp.int32))
 
-    def search_d(pol, p0, q):
-        def neg_e(z, qq):
-            v, m = e_at(pol, z, qq)
+    def search_d(pol, p0, q, explored):
+        def neg_e(p, qq):
+            v, m = e_values(pol, p, qq)
             return -v, m
 
-        bp, bv = jax.vmap(lambda p, qq: climb(lambda z: neg_e(z, qq), lambda m: m >= thr, p))(p0, q)
+        def inside(m, p, qq):  # in D: beyond the P_exp threshold, in an explored cell with this state
+            return (m >= thr) & explored[cell_index(p, lo, ccfg, explored.shape, jnp) + (qq,)]
+
+        bp, bv = climb(neg_e, inside, p0, q)
         return bp, -bv
 
     fns = {
@@ -252,14 +253,27 @@ def model_residual(run: CBFRun, ccfg: CertifyConfig, pol: Policy | None = None) 
     return np.asarray(fx), np.asarray(fh)
 
 
-def pose_grid(run: CBFRun, ccfg: CertifyConfig) -> np.ndarray:
-    """[G, 3] poses: positions every `grid_step` metres over the arena (cell centres), `headings` each."""
+def grid_axes(run: CBFRun, ccfg: CertifyConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The grid's cell centres in x and y (every `grid_step` metres over the arena) and its headings."""
     lo, hi = np.asarray(run.params.geom.arena_lo), np.asarray(run.params.geom.arena_hi)
     xs = np.arange(lo[0] + ccfg.grid_step / 2, hi[0], ccfg.grid_step)
     ys = np.arange(lo[1] + ccfg.grid_step / 2, hi[1], ccfg.grid_step)
-    th = np.linspace(-np.pi, np.pi, ccfg.headings, endpoint=False)
-    gx, gy, gt = np.meshgrid(xs, ys, th, indexing="ij")
+    return xs, ys, np.linspace(-np.pi, np.pi, ccfg.headings, endpoint=False)
+
+
+def pose_grid(run: CBFRun, ccfg: CertifyConfig) -> np.ndarray:
+    """[G, 3] poses: the cell centres, `headings` each."""
+    gx, gy, gt = np.meshgrid(*grid_axes(run, ccfg), indexing="ij")
     return np.stack([gx.ravel(), gy.ravel(), gt.ravel()], -1).astype(np.float32)
+
+
+def cell_index(pose, lo, ccfg: CertifyConfig, shape, xp=np) -> tuple:
+    """(ix, iy, iθ) of the grid cell holding each pose: 5 cm squares and heading sectors centred on
+    the grid's headings. Works in numpy and (xp=jnp) inside jit."""
+    ix = xp.clip(xp.floor((pose[..., 0] - lo[0]) / ccfg.grid_step), 0, shape[0] - 1).astype(xp.int32)
+    iy = xp.clip(xp.floor((pose[..., 1] - lo[1]) / ccfg.grid_step), 0, shape[1] - 1).astype(xp.int32)
+    it = xp.mod(xp.round((pose[..., 2] + np.pi) * ccfg.headings / (2 * np.pi)), ccfg.headings).astype(xp.int32)
+    return ix, iy, it
 
 
 def live_states(run: CBFRun) -> list[int]:
@@ -268,64 +282,63 @@ def live_states(run: CBFRun) -> list[int]:
     return [q for q in range(int(aut.accepting.shape[0])) if not (bool(aut.accepting[q]) or bool(aut.rejecting[q]))]
 
 
-def check_nets(run: CBFRun, ccfg: CertifyConfig, rho_h: float) -> dict[str, Any]:
-    """Propositions 1-2 on every net. Returns per-net arrays (status, margins, values, poses)."""
+def explored_cells(run: CBFRun, ccfg: CertifyConfig, data) -> np.ndarray:
+    """bool [nx, ny, headings, n_states]: the grid cells (with the automaton state) that hold at least
+    one row of P_exp, the explored set D. The state of a row is read from its stored observation."""
+    xs, ys, _ = grid_axes(run, ccfg)
+    n_states = int(run.params.aut.accepting.shape[0])
+    pe = data.p_exp
+    n = int(pe.size)
+    table = np.zeros((len(xs), len(ys), ccfg.headings, n_states), bool)
+    if n:
+        pose = np.asarray(pe.data.pose[:n])
+        q = np.argmax(np.asarray(pe.data.obs[:n, run.env.observation_slices["automaton"]]), -1)
+        table[cell_index(pose, np.asarray(run.params.geom.arena_lo), ccfg, table.shape) + (q,)] = True
+    return table
+
+
+def check_nets(run: CBFRun, ccfg: CertifyConfig, rho_h: float, data=None) -> dict[str, Any]:
+    """Propositions 1-2 on every net, with the parameters of `run` and the datasets `data` (default: the
+    run's own). Returns per-net arrays (status, margins, values, poses) and the explored-cell table."""
     fn, pol, cbf_cfg = _compiled(run, ccfg), policy_of(run), run.cfg.cbf
+    data = run.carry.data if data is None else data
     rho_h = jnp.float32(rho_h)
     out: dict[str, Any] = {}
-    unsafe = run.carry.data.unsafe
+    unsafe = data.unsafe
     out["X_L"] = {"p": _chunked(lambda x: fn["p1"](pol.safety.cbf, x), unsafe.data[: int(unsafe.size)])}
-    pe = run.carry.data.p_exp
+    pe = data.p_exp
     rows = jax.tree_util.tree_map(lambda a: a[: int(pe.size)], pe.data)
     out["P_exp"] = {"p": _chunked(lambda *a: fn["p2_rows"](pol, *a, rho_h), rows.pose, rows.context, rows.obs)}
     grid = pose_grid(run, ccfg)
     nearest = _chunked(fn["nearest"], jnp.asarray(grid))
     ring = nearest <= cbf_cfg.unsafe_max
-    safe = nearest >= p_exp_threshold(cbf_cfg)
+    free = nearest >= p_exp_threshold(cbf_cfg)
     out["grid_L"] = {"p": _chunked(lambda p: fn["grid_p1"](pol.safety.cbf, p), jnp.asarray(grid[ring])),
                      "pose": grid[ring]}
-    worst, worst_q = None, None
+    # the grid's explored part: every (cell, state) of D whose cell centre is beyond the threshold
+    explored = explored_cells(run, ccfg, data)
+    xs, ys, th = grid_axes(run, ccfg)
+    ix, iy, it, iq = np.nonzero(explored & free.reshape(explored.shape[:3])[..., None])
+    pose_d, q_d = np.stack([xs[ix], ys[iy], th[it]], -1).astype(np.float32), iq.astype(np.int32)
+    out["grid_D"] = {"p": _chunked(lambda p, q: fn["grid_p2"](pol, p, q, rho_h), jnp.asarray(pose_d), jnp.asarray(q_d)),
+                     "pose": pose_d, "q": q_d}
+    out["explored"] = explored
+    if not ccfg.free_grid:
+        return out
+    worst, worst_q = None, None  # beyond D: every free pose, every live state, the worst state kept
     for q in live_states(run):
-        r = _chunked(lambda p, q=q: fn["grid_p2"](pol, p, jnp.int32(q), rho_h), jnp.asarray(grid[safe]))
+        p = jnp.asarray(grid[free])
+        r = _chunked(lambda a, b: fn["grid_p2"](pol, a, b, rho_h), p, jnp.full(p.shape[:1], q, jnp.int32))
         if r is None:
             break
-        qs = np.full(r.status.shape, q)
         if worst is None:
-            worst, worst_q = r, qs
+            worst, worst_q = r, np.full(r.status.shape, q)
         else:
             pick = r.margin < worst.margin
             worst = jax.tree_util.tree_map(lambda a, b: np.where(pick, a, b), r, worst)
-            worst_q = np.where(pick, qs, worst_q)
-    out["grid_D"] = {"p": worst, "pose": grid[safe], "q": worst_q}
+            worst_q = np.where(pick, q, worst_q)
+    out["grid_free"] = {"p": worst, "pose": grid[free], "q": worst_q}
     return out
-
-
-def search_counterexamples(run: CBFRun, ccfg: CertifyConfig, nets: dict) -> dict[str, list[dict]]:
-    """Gradient steps on the pose from the worst grid points: maximise h where the nearest obstacle
-    is within unsafe_max (ℒ and contact), minimise e (through the nominal model) where it is at least
-    the P_exp threshold (D). Steps that leave the set are undone. Returns the 10 worst found, each
-    with its pose and value; `counterexample` is true where the condition fails (h ≥ 0, e < 0)."""
-    fn, pol, n = _compiled(run, ccfg), policy_of(run), ccfg.search_starts
-    found: dict[str, list[dict]] = {"L": [], "D": []}
-
-    def starts(values, poses, extra=None):
-        idx = np.argsort(values)[:n]
-        idx = np.concatenate([idx, np.repeat(idx[-1:], n - len(idx))])  # a fixed shape: one compilation
-        return jnp.asarray(poses[idx]), (None if extra is None else jnp.asarray(extra[idx], jnp.int32))
-
-    g1 = nets["grid_L"]
-    if g1["p"] is not None:
-        poses, vals = fn["search_l"](pol, starts(-np.asarray(g1["p"].h), g1["pose"])[0])
-        for p, v in sorted(zip(np.asarray(poses), np.asarray(vals)), key=lambda t: -t[1])[:10]:
-            found["L"].append({"pose": [round(float(a), 4) for a in p], "h": float(v), "counterexample": bool(v >= 0)})
-    g2 = nets["grid_D"]
-    if g2["p"] is not None:
-        p0, q0 = starts(np.asarray(g2["p"].e), g2["pose"], g2["q"])
-        poses, vals = fn["search_d"](pol, p0, q0)
-        for p, v, q in sorted(zip(np.asarray(poses), np.asarray(vals), np.asarray(q0)), key=lambda t: t[1])[:10]:
-            found["D"].append({"pose": [round(float(a), 4) for a in p], "q": int(q), "e": float(v),
-                               "counterexample": bool(v < 0)})
-    return found
 
 
 def _net_summary(p, kind: str) -> dict[str, Any]:
@@ -343,91 +356,68 @@ def _net_summary(p, kind: str) -> dict[str, Any]:
     return s
 
 
+DEFINITIONS = {
+    "L": "X_L: the run's buffer of feature vectors sampled in the unsafe ring (Proposition 1's net)",
+    "D": "P_exp: the explored set, the run's buffer of visited transitions beyond the P_exp threshold "
+         "(where T_e of Eq. (9) acts; Proposition 2's net), each with pi_rl's current proposal",
+    "grid_L": "every grid pose (x, y, theta) whose nearest obstacle is within unsafe_max: the ring and contact",
+    "grid_D": "the grid's explored part: the centre of every grid cell (5 cm x 5 cm x one heading sector) "
+              "that holds a row of P_exp, with that row's automaton state, if the centre is beyond the threshold",
+    "grid_free": "beyond D: every grid pose beyond the threshold with every live automaton state, the worst "
+                 "kept (poses and states the policy may never visit; a stress test, not claimed by the paper)",
+    "proven": "from the weights by interval arithmetic: h < 0 on each certified ball of L; on each certified "
+              "ball of D, e >= 0 for the nominal model's next state, given |h(true next) - h(nominal next)| <= rho_h",
+    "measured": "rho_h: the nominal model's largest error in h on held-out transitions (not a proof)",
+    "balls": "l_inf balls in the sensor-feature space b(z, O_s) (metres); nothing is proven between grid poses",
+}
+
+
 def certify_run(run_dir: Path, ccfg: CertifyConfig | None = None, run: CBFRun | None = None,
-                search: bool = True) -> tuple[dict, dict]:
-    """Check Propositions 1-2 on a run. Returns (summary, nets); `write_outputs` saves them."""
+                search: bool = True, data=None) -> tuple[dict, dict]:
+    """Check Propositions 1-2 on a run (on the datasets `data`, default the run's own). Returns
+    (summary, nets); `write_outputs` saves them."""
     ccfg = (ccfg or CertifyConfig()).check()
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     run = run or load_cbf_run(run_dir)
     times = {}
     res, res_h = model_residual(run, ccfg)
     rho_h = float(np.quantile(res_h, ccfg.residual_quantile))
     times["residual"] = time.perf_counter() - t0
-    nets = check_nets(run, ccfg, rho_h)
+    nets = check_nets(run, ccfg, rho_h, data)
     times["nets"] = time.perf_counter() - t0 - sum(times.values())
-    found = search_counterexamples(run, ccfg, nets) if search else {"L": [], "D": []}
+    found = search_counterexamples(run, ccfg, nets, _compiled(run, ccfg), policy_of(run)) if search else {"L": [], "D": []}
     times["search"] = time.perf_counter() - t0 - sum(times.values())
     glob = {k: v / run.learner.H for k, v in bounds.global_lipschitz(bounds.dense_layers(run.carry.safety.cbf)).items()}
+    keys = [k for k in ("X_L", "grid_L", "P_exp", "grid_D", "grid_free") if k in nets]
     summary = {
         "run": str(run_dir), "algo": run.cfg.algo, "task": run.cfg.task, "layout": run.cfg.layout,
         "episodes_trained": run.meta.get("episodes"), "config": dataclasses.asdict(ccfg),
-        "feature_space": "l_inf balls over b(z, O_s) (metres)",
+        "definitions": DEFINITIONS,
         "residual": {"rho_h": rho_h, "quantile": ccfg.residual_quantile, "transitions": int(res.size),
                      "h": {"p50": float(np.quantile(res_h, 0.5)), "p99": float(np.quantile(res_h, 0.99)),
                            "max": float(res_h.max())},
                      "features_m": {"p50": float(np.quantile(res, 0.5)), "p99": float(np.quantile(res, 0.99)),
                                     "max": float(res.max())}},
         "lipschitz_h_global": glob,
-        "nets": {"X_L": _net_summary(nets["X_L"]["p"], "L"), "grid_L": _net_summary(nets["grid_L"]["p"], "L"),
-                 "P_exp": _net_summary(nets["P_exp"]["p"], "D"), "grid_D": _net_summary(nets["grid_D"]["p"], "D")},
+        "nets": {k: _net_summary(nets[k]["p"], "L" if k in ("X_L", "grid_L") else "D") for k in keys},
+        "explored_cells": int(nets["explored"].any(-1).sum()),
         "counterexamples": found,
     }
     summary["certified_L"] = summary["nets"]["X_L"].get("certified", float("nan"))
     summary["certified_D"] = summary["nets"]["P_exp"].get("certified", float("nan"))
-    for k in ("grid_L", "grid_D"):
-        viol = 0 if nets[k]["p"] is None else int(np.sum(np.asarray(nets[k]["p"].status) == cert.VIOLATED))
-        summary[f"{k}_violated"] = viol
+    for k in keys[1:]:
+        if k != "P_exp":
+            viol = 0 if nets[k]["p"] is None else int(np.sum(np.asarray(nets[k]["p"].status) == cert.VIOLATED))
+            summary[f"{k}_violated"] = viol
     summary["seconds"] = round(time.perf_counter() - t0, 1)
+    summary["cpu_seconds"] = round(time.process_time() - c0, 1)
     summary["seconds_by_stage"] = {k: round(v, 1) for k, v in times.items()}
     return summary, nets
 
 
-def status_maps(run: CBFRun, ccfg: CertifyConfig, nets: dict) -> tuple[np.ndarray, np.ndarray, tuple]:
-    """Worst status over θ (and automaton states) per grid cell, for Prop. 1 and Prop. 2: arrays
-    [ny, nx] of -1 (not in that set), 0 certified, 1 not certified, 2 violated; and the extent."""
-    lo, hi = np.asarray(run.params.geom.arena_lo), np.asarray(run.params.geom.arena_hi)
-    nx = len(np.arange(lo[0] + ccfg.grid_step / 2, hi[0], ccfg.grid_step))
-    ny = len(np.arange(lo[1] + ccfg.grid_step / 2, hi[1], ccfg.grid_step))
-    maps = []
-    for key in ("grid_L", "grid_D"):
-        m = np.full((ny, nx), -1, np.int32)
-        net = nets[key]
-        if net["p"] is not None:
-            ix = np.clip(((net["pose"][:, 0] - lo[0]) / ccfg.grid_step).astype(int), 0, nx - 1)
-            iy = np.clip(((net["pose"][:, 1] - lo[1]) / ccfg.grid_step).astype(int), 0, ny - 1)
-            np.maximum.at(m, (iy, ix), np.asarray(net["p"].status, np.int32))
-        maps.append(m)
-    return maps[0], maps[1], (lo[0], hi[0], lo[1], hi[1])
-
-
-def save_picture(run: CBFRun, ccfg: CertifyConfig, nets: dict, summary: dict, path: Path) -> None:
-    """Two panels over the layout: where Proposition 1 (ℒ and contact) and Proposition 2 (D) are
-    certified (green), not certified (orange) or violated (red), worst over θ; counterexamples as x."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.colors import ListedColormap
-    from matplotlib.figure import Figure
-
-    from d2spo.envs.render import draw_layout
-
-    m1, m2, extent = status_maps(run, ccfg, nets)
-    cmap = ListedColormap(["white", "tab:green", "orange", "tab:red"])
-    fig = Figure(figsize=(11, 5.2))
-    titles = (f"Prop. 1: h < 0 near obstacles (ε̄ = {ccfg.eps_unsafe:g} m)",
-              f"Prop. 2: e ≥ 0 in D (ε = {ccfg.eps_safe:g} m, ρ_h = {summary['residual']['rho_h']:.3g})")
-    for i, (m, title, key, val) in enumerate(((m1, titles[0], "L", "h"), (m2, titles[1], "D", "e"))):
-        ax = fig.add_subplot(1, 2, i + 1)
-        ax.imshow(m + 1, origin="lower", extent=extent, cmap=cmap, vmin=0, vmax=3, interpolation="nearest")
-        draw_layout(run.env.layout, ax, show_sensing=False)
-        for c in summary["counterexamples"][key]:
-            ax.plot(c["pose"][0], c["pose"][1], "x", color="black" if c["counterexample"] else "grey", markersize=7)
-        ax.set_title(title, fontsize=9)
-    fig.suptitle(f"{summary['run']}: green certified, orange not certified, red violated (worst over θ); "
-                 "x = worst found by gradient search (black: a counterexample)", fontsize=8)
-    FigureCanvasAgg(fig).print_png(str(path))
-
-
 def write_outputs(run_dir: Path, run: CBFRun, ccfg: CertifyConfig, summary: dict, nets: dict) -> tuple[Path, Path]:
     """RUN/certify.json and RUN/certify.png."""
+    from d2spo.certify_picture import save_picture
     from d2spo.runio import atomic_write_json
 
     run_dir = Path(run_dir)

@@ -20,7 +20,7 @@ import tyro
 
 from d2spo.certify import CertifyConfig
 from d2spo.config import TrainConfig
-from d2spo.console import error, show_warning, tyro_error_line
+from d2spo.console import error, show_warning, tyro_error_line, version
 from d2spo.errors import ConfigError, D2SPOWarning, LTLSyntaxError, NaNError, UserError
 
 
@@ -339,10 +339,16 @@ class CertifyCmd:
     """With --repair: the new run directory (default: RUN-repaired)."""
     rounds: int = 6
     """With --repair: at most this many rounds of (certify, add counterexamples, train)."""
-    calls: int = 100
+    calls: int = 50
     """With --repair: UPDATE(Ω, Θ) calls of Algorithm 1 per round (each `cbf.updates_per_iter` steps)."""
     copies: int = 4
     """With --repair: copies of each counterexample added to the datasets."""
+    gamma_exp: float | None = None
+    """With --repair: T_e's margin γ_exp while repairing (default: the margin certification asks of the
+    median point of D, ρ_h/Δt + L_e ε; 0: the run's own)."""
+    eval_episodes: int = 100
+    """With --repair: evaluate the original and the repaired policy on these episodes (as `d2spo eval`)
+    and keep the original state if the repaired one is less safe or completes less (0: skip)."""
 
     def run(self) -> int:
         from rich.console import Console
@@ -353,13 +359,14 @@ class CertifyCmd:
         if self.repair:
             from d2spo.repair import repair_run
 
-            if self.rounds < 1 or self.calls < 1 or self.copies < 1:
-                raise UserError("--rounds, --calls and --copies must be ≥ 1")
+            if self.rounds < 1 or self.calls < 1 or self.copies < 1 or self.eval_episodes < 0:
+                raise UserError("--rounds, --calls and --copies must be ≥ 1, --eval-episodes ≥ 0")
             out = self.out or self.run_dir.with_name(self.run_dir.name + "-repaired")
             res = repair_run(self.run_dir, out, self.check, self.rounds, self.calls, self.copies,
-                             progress=lambda r: print_repair_round(console, r))
+                             self.eval_episodes, self.gamma_exp,
+                             progress=lambda r: print_repair_round(console, r, self.eval_episodes))
             print_certify(console, res["after"])
-            print(f"wrote the repaired run {out} (certify.json, certify.png, checkpoint)")
+            print(f"wrote the repaired run {out} (round {res['kept']} kept; certify.json, certify.png, checkpoint)")
             return 0
         from d2spo.certify import certify_run, load_cbf_run, write_outputs
 
@@ -382,18 +389,6 @@ Commands = Union[
     Annotated[ReportCmd, tyro.conf.subcommand("report")],
     Annotated[CertifyCmd, tyro.conf.subcommand("certify")],
 ]
-
-def version() -> str:
-    """The installed d2spo's version (the package metadata; the source tree's when run from it)."""
-    from importlib import metadata
-
-    try:
-        return metadata.version("d2spo")
-    except metadata.PackageNotFoundError:
-        from d2spo import __version__
-
-        return __version__
-
 
 def parse(args: list[str]):
     """Parse the command line; on a usage error print one line and exit 2."""

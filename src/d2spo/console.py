@@ -105,23 +105,34 @@ def print_evaluation(res: dict, path: Path, filter_asked: bool | None) -> None:
 
 
 # --------------------------------------------------------------------------------- d2spo certify
-def print_repair_round(console, r: dict) -> None:
-    """One line per round of ``d2spo certify --repair`` (``d2spo.repair.repair_run``'s progress)."""
+def print_repair_round(console, r: dict, eval_episodes: int) -> None:
+    """One line per ``d2spo certify --repair`` round, and the closing before/after evaluation."""
+    if "round" not in r:
+        b, a = r["eval_before"], r["eval_after"]
+        console.print(f"eval ({eval_episodes} episodes): safety {b['safety_rate']:.3f} → "
+                      f"{a['safety_rate']:.3f}, completion {b['completion_rate']:.3f} → "
+                      f"{a['completion_rate']:.3f}" + ("; worse: the original state is kept"
+                                                        if r["reverted"] else ""))
+        return
     console.print(f"round {r['round']}: certified ℒ {100 * r['certified_L']:.2f}%, "
                   f"D {100 * r['certified_D']:.2f}%, violated grid points: "
-                  f"{r['grid_L_violated']} (Prop. 1), {r['grid_D_violated']} (Prop. 2)")
+                  f"{r['grid_L_violated']} (Prop. 1), {r['grid_D_violated']} (Prop. 2, explored)"
+                  + (f"; added {r['added_L']} + {r['added_D']} counterexamples" if "added_L" in r else ""))
 
 
 def print_certify(console, s: dict) -> None:
     """``d2spo.certify.certify_run``'s summary: a table per net, the model residual, counterexamples."""
     from rich.table import Table
 
-    t = Table(title=f"{s['run']}: Propositions 1-2 ({s['seconds']:.0f} s)")
+    t = Table(title=f"{s['run']}: Propositions 1-2 ({s['seconds']:.0f} s, {s.get('cpu_seconds', 0):.0f} s CPU)")
     for name in ("net", "proposition", "points", "certified", "not certified", "violated", "worst margin", "worst value"):
         t.add_column(name, justify="left" if name in ("net", "proposition") else "right")
-    rows = (("X_L", "1: h < 0", "max_h", "h"), ("grid ℒ + contact", "1: h < 0", "max_h", "h"),
-            ("P_exp (X_s)", "2: e ≥ 0", "min_e", "e"), ("grid D", "2: e ≥ 0", "min_e", "e"))
-    for (label, prop, worst, sym), key in zip(rows, ("X_L", "grid_L", "P_exp", "grid_D")):
+    rows = (("X_L (ℒ)", "1: h < 0", "max_h", "h"), ("grid: ring + contact", "1: h < 0", "max_h", "h"),
+            ("P_exp (D, explored)", "2: e ≥ 0", "min_e", "e"), ("grid: explored cells", "2: e ≥ 0", "min_e", "e"),
+            ("grid: all free (beyond D)", "2: e ≥ 0", "min_e", "e"))
+    for (label, prop, worst, sym), key in zip(rows, ("X_L", "grid_L", "P_exp", "grid_D", "grid_free")):
+        if key not in s["nets"]:
+            continue
         n = s["nets"][key]
         if not n["points"]:
             t.add_row(label, prop, "0", "", "", "", "", "")
@@ -134,6 +145,9 @@ def print_certify(console, s: dict) -> None:
     console.print(f"model residual on {r['transitions']} held-out transitions: |Δh| ≤ ρ_h = {r['rho_h']:.4g} "
                   f"(quantile {r['quantile']:g}; features: median {r['features_m']['p50']:.3g} m, "
                   f"max {r['features_m']['max']:.3g} m)")
+    console.print("Proven from the weights: h < 0 on each certified ball of ℒ; e ≥ 0 on each certified ball of D "
+                  "for the nominal model's next state, within ρ_h. Measured, not proven: ρ_h. Balls are ℓ∞ in "
+                  "feature space; nothing is proven between grid poses (docs/certify.md).")
     for key, sym in (("L", "h"), ("D", "e")):
         bad = [c for c in s["counterexamples"][key] if c["counterexample"]]
         if bad:
@@ -142,3 +156,15 @@ def print_certify(console, s: dict) -> None:
                           f" ({len(bad)} of the worst {len(s['counterexamples'][key])} found)")
         else:
             console.print(f"gradient search in {'ℒ' if key == 'L' else 'D'}: no counterexample found")
+
+
+def version() -> str:
+    """The installed d2spo's version (the package metadata; the source tree's when run from it)."""
+    from importlib import metadata
+
+    try:
+        return metadata.version("d2spo")
+    except metadata.PackageNotFoundError:
+        from d2spo import __version__
+
+        return __version__

@@ -1,17 +1,29 @@
 """`d2spo certify RUN --repair`: counterexample-guided training of h and π_Ω (docs/certify.md).
 
-Each round: certify the current state; add the points that are not certified or violated, and
-the gradient search's counterexamples, to the run's datasets (features to X_L; poses to P_exp as
-rows whose next pose is the nominal model's, so T_e sees them through s_n exactly as the runtime
-filter does); then run UPDATE(Ω, Θ) of Algorithm 1 (`safety.joint_policy.update`, the nominal
-model is refitted on T as in training). Repair stops when the certified fraction (the smaller of
-ℒ's and D's) stops rising, and keeps the best round. The result is written as an ordinary run
-directory: the original's files, with the repaired state in its checkpoint (the same format,
-`runio.save_checkpoint`), so `d2spo eval` and `d2spo train --resume` work on it.
+Each round adds the *counterexamples* of the current state to the run's datasets (nothing that is
+merely not certified): the grid poses where a proposition fails at the point itself (h ≥ 0 in the
+ring or in contact, e < 0 on an explored cell) and every point the gradient search found with
+h ≥ 0 or e < 0. Features go to X_L; poses to P_exp as rows whose next pose is the nominal model's,
+so T_e sees them through s_n exactly as the runtime filter does. Then UPDATE(Ω, Θ) of Algorithm 1
+runs `calls` times (`safety.joint_policy.update`, the nominal model refitted on T as in training;
+π_rl is not trained), and the state is certified again.
+
+Every round is certified on the run's **original** datasets (X_L and P_exp as training left them),
+so rounds are compared on the same points and the added rows do not count themselves. A round is
+better when it is worse in nothing (neither certified fraction, of ℒ or of D, falls; no more grid
+points of ℒ or of D's explored part are violated) and better in something; repair stops at the
+first round that is not better and keeps the best. With `eval_episodes > 0` the kept state is then evaluated (`d2spo
+eval`'s rollout, the same episodes before and after); if its safety or completion rate is lower
+than the original's, the original state is kept instead and the report says so. The result is an
+ordinary run directory: the original's files and checkpoint with the kept h, π_Ω and f_n (and their
+optimiser states) in place of the original ones; the datasets are the original's (the added
+counterexamples were a means of training), so `d2spo certify OUT` checks the same points and
+reproduces the kept round's figures. `d2spo eval` and `d2spo train --resume` work on it.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import shutil
 from pathlib import Path
 from typing import Any, Callable
@@ -28,34 +40,45 @@ from d2spo.safety.joint_policy import update
 from d2spo.safety.nominal import nominal_next
 
 
-def _score(summary: dict) -> float:
-    return min(summary["certified_L"], summary["certified_D"])
+def _figures(s: dict) -> tuple[float, float, int]:
+    """(certified fraction of ℒ, of D, violated grid points of ℒ and of D's explored part); nan → 0."""
+    return (float(np.nan_to_num(s["certified_L"])), float(np.nan_to_num(s["certified_D"])),
+            s["grid_L_violated"] + s.get("grid_D_violated", 0))
 
 
-def _new_rows(run: CBFRun, nets: dict, found: dict) -> tuple[np.ndarray, list[tuple[np.ndarray, int]]]:
-    """Features for X_L and (poses, automaton state) groups for P_exp: every grid point that is
-    not certified, and the search's counterexamples."""
-    feats = []
+def better(s: dict, than: dict) -> bool:
+    """True when `s` is better than `than` and worse in nothing: neither certified fraction falls, no
+    more grid points are violated, and one of the three improves."""
+    (l1, d1, v1), (l0, d0, v0) = _figures(s), _figures(than)
+    return l1 >= l0 and d1 >= d0 and v1 <= v0 and (l1 > l0 or d1 > d0 or v1 < v0)
+
+
+def counterexamples(nets: dict) -> tuple[np.ndarray, list[tuple[np.ndarray, int]]]:
+    """Poses for X_L, and (poses, automaton state) groups for P_exp: the violated grid points of ℒ and
+    of D's explored part, and every point of the searches where h ≥ 0 or e < 0."""
+    poses_l = [np.zeros((0, 3), np.float32)]
     g1 = nets["grid_L"]
     if g1["p"] is not None:
-        feats.append(g1["pose"][np.asarray(g1["p"].status) != cert.CERTIFIED])
-    if found["L"]:
-        feats.append(np.array([c["pose"] for c in found["L"] if c["counterexample"]], np.float32).reshape(-1, 3))
-    poses_l = np.concatenate(feats) if feats else np.zeros((0, 3), np.float32)
-    groups = []
+        poses_l.append(g1["pose"][np.asarray(g1["p"].status) == cert.VIOLATED])
+    if "search_L" in nets:
+        poses_l.append(nets["search_L"]["pose"][nets["search_L"]["h"] >= 0])
+    pose_d, q_d = [np.zeros((0, 3), np.float32)], [np.zeros((0,), np.int32)]
     g2 = nets["grid_D"]
     if g2["p"] is not None:
-        bad = np.asarray(g2["p"].status) != cert.CERTIFIED
-        for q in np.unique(g2["q"][bad]):
-            groups.append((g2["pose"][bad & (g2["q"] == q)], int(q)))
-    for c in found["D"]:
-        if c["counterexample"]:
-            groups.append((np.array([c["pose"]], np.float32), int(c["q"])))
-    return poses_l, groups
+        bad = np.asarray(g2["p"].status) == cert.VIOLATED
+        pose_d.append(g2["pose"][bad])
+        q_d.append(g2["q"][bad])
+    if "search_D" in nets:
+        bad = nets["search_D"]["e"] < 0
+        pose_d.append(nets["search_D"]["pose"][bad])
+        q_d.append(nets["search_D"]["q"][bad])
+    pose_d, q_d = np.concatenate(pose_d), np.concatenate(q_d)
+    groups = [(pose_d[q_d == q], int(q)) for q in np.unique(q_d)]
+    return np.unique(np.concatenate(poses_l), axis=0), groups
 
 
 def add_counterexamples(run: CBFRun, ccfg: CertifyConfig, carry, poses_l: np.ndarray, groups, copies: int):
-    """The datasets with `copies` copies of each new row (so they weigh in the next minibatches)."""
+    """The datasets with `copies` copies of each new row (the oldest rows make room)."""
     lrn, fn, pol = run.learner, _compiled(run, ccfg), policy_of(run._replace(carry=carry))
     data = carry.data
     if len(poses_l):
@@ -77,29 +100,62 @@ def add_counterexamples(run: CBFRun, ccfg: CertifyConfig, carry, poses_l: np.nda
 _TRAIN: dict = {}
 
 
-def train_safety(run: CBFRun, carry, key: jax.Array, calls: int):
-    """`calls` times UPDATE(Ω, Θ) of Algorithm 1 on the run's datasets (the actor is not trained)."""
+def train_safety(run: CBFRun, carry, key: jax.Array, calls: int, gamma_exp: float | None = None):
+    """`calls` times UPDATE(Ω, Θ) of Algorithm 1 on the run's datasets (the actor is not trained),
+    with T_e's margin γ_exp replaced by `gamma_exp` if given."""
     lrn = run.learner
-    if (id(lrn), calls) not in _TRAIN:
+    cbf_cfg = lrn.cbf_cfg if gamma_exp is None else dataclasses.replace(lrn.cbf_cfg, gamma_exp=float(gamma_exp))
+    if (id(lrn), calls, cbf_cfg) not in _TRAIN:
         def many(actor, safety, data, key):
             def body(s, k):
-                s, m = update(k, s, data, nets=lrn.safety_nets, cfg=lrn.cbf_cfg, features_fn=lrn.features,
+                s, m = update(k, s, data, nets=lrn.safety_nets, cfg=cbf_cfg, features_fn=lrn.features,
                               dt=lrn.dt, u_rl_fn=lambda o: lrn.nets.actor.apply(actor, o))
                 return s, m["safety/total"]
 
             return jax.lax.scan(body, safety, jax.random.split(key, calls))
 
-        _TRAIN[(id(lrn), calls)] = jax.jit(many)
-    safety, losses = _TRAIN[(id(lrn), calls)](carry.agent.actor, carry.safety, carry.data, key)
+        _TRAIN[(id(lrn), calls, cbf_cfg)] = jax.jit(many)
+    safety, losses = _TRAIN[(id(lrn), calls, cbf_cfg)](carry.agent.actor, carry.safety, carry.data, key)
     return carry.replace(safety=safety), float(losses[-1])
 
 
-def repair_run(run_dir: Path, out: Path, ccfg: CertifyConfig | None = None, rounds: int = 6, calls: int = 100,
-               copies: int = 4, progress: Callable[[dict], None] | None = None) -> dict[str, Any]:
-    """Repair a run into `out` (a new run directory). Returns {"rounds": [...], "before", "after"}."""
+def _row(r: int, s: dict, **extra) -> dict:
+    return {"round": r, "certified_L": s["certified_L"], "certified_D": s["certified_D"],
+            "grid_L_violated": s["grid_L_violated"], "grid_D_violated": s.get("grid_D_violated", 0),
+            "certified_grid_D": s["nets"]["grid_D"].get("certified", float("nan")),
+            "worst_margin_D": s["nets"]["P_exp"].get("worst_margin", float("nan")),
+            "rho_h": s["residual"]["rho_h"], **extra}
+
+
+def _save(run_dir: Path, out: Path, carry, meta: dict, note: dict) -> None:
     from d2spo.checkpoint import Checkpoints, run_fingerprint
     from d2spo.runio import atomic_write_json, read_json
 
+    if out.exists():
+        shutil.rmtree(out)
+    shutil.copytree(run_dir, out, ignore=shutil.ignore_patterns("checkpoint*", "certify.*", "eval-*.json", ".*"))
+    Checkpoints(out, run_fingerprint(out)).save(carry, meta)
+    if (out / "summary.json").is_file():  # training figures stay true; the final evaluation does not
+        s = read_json(out / "summary.json", "summary")
+        s.pop("eval", None)
+        atomic_write_json(out / "summary.json", dict(s, **note))
+
+
+def _evaluate(path: Path, episodes: int) -> dict:
+    from d2spo.evaluate import evaluate_run
+
+    r = evaluate_run(path, episodes=episodes)
+    return {k: r[k] for k in ("safety_rate", "completion_rate", "mean_return", "mean_distance")}
+
+
+def repair_run(run_dir: Path, out: Path, ccfg: CertifyConfig | None = None, rounds: int = 6, calls: int = 50,
+               copies: int = 4, eval_episodes: int = 100, gamma_exp: float | None = None,
+               progress: Callable[[dict], None] | None = None) -> dict[str, Any]:
+    """Repair a run into `out` (a new run directory). Returns {"rounds", "before", "after", "kept",
+    "eval_before", "eval_after", "gamma_exp"}; `kept` is the round whose state `out` holds (0: the
+    original). `gamma_exp`: T_e's margin while repairing; None: the margin certification asks of
+    the median point of D, ρ_h/Δt + L_e ε (the run's own γ_exp is usually far below it); 0: the
+    run's own."""
     ccfg = (ccfg or CertifyConfig()).check()
     run_dir, out = Path(run_dir), Path(out)
     if out.resolve() == run_dir.resolve():
@@ -107,39 +163,55 @@ def repair_run(run_dir: Path, out: Path, ccfg: CertifyConfig | None = None, roun
     if out.exists():
         raise RunDirError(f"{out}: already exists; choose another --out")
     run = load_cbf_run(run_dir)
+    data0 = run.carry.data  # every round is certified on the original datasets
     key = jax.random.PRNGKey(ccfg.seed + 30_000)
     carry = run.carry
-    summary, nets = certify_run(run_dir, ccfg, run=run)
-    before = summary
-    best = (_score(summary), carry, summary, nets)
-    history = [{"round": 0, "certified_L": summary["certified_L"], "certified_D": summary["certified_D"],
-                "grid_L_violated": summary["grid_L_violated"], "grid_D_violated": summary["grid_D_violated"]}]
+    summary, nets = certify_run(run_dir, ccfg, run=run, data=data0)
+    before, nets0 = summary, nets
+    if gamma_exp is None:
+        gamma_exp = summary["residual"]["rho_h"] / run.learner.dt + summary["nets"]["P_exp"].get(
+            "median_lipschitz", 0.0) * ccfg.eps_safe
+    gamma_exp = float(gamma_exp) if gamma_exp and gamma_exp > 0 else None
+    history = [_row(0, summary)]
+    best = {"round": 0, "carry": carry, "summary": summary, "nets": nets}
     if progress:
         progress(history[-1])
     for r in range(1, rounds + 1):
-        poses_l, groups = _new_rows(run, nets, summary["counterexamples"])
+        poses_l, groups = counterexamples(nets)
+        n_d = int(sum(len(p) for p, _ in groups))
+        if not len(poses_l) and not n_d:
+            break  # nothing left to learn from
         carry = add_counterexamples(run, ccfg, carry, poses_l, groups, copies)
         key, k = jax.random.split(key)
-        carry, loss = train_safety(run, carry, k, calls)
-        run = run._replace(carry=carry)
-        summary, nets = certify_run(out, ccfg, run=run)
-        history.append({"round": r, "certified_L": summary["certified_L"], "certified_D": summary["certified_D"],
-                        "grid_L_violated": summary["grid_L_violated"],
-                        "grid_D_violated": summary["grid_D_violated"], "added_L": int(len(poses_l)),
-                        "added_D": int(sum(len(p) for p, _ in groups)), "loss": loss})
+        carry, loss = train_safety(run, carry, k, calls, gamma_exp)
+        summary, nets = certify_run(out, ccfg, run=run._replace(carry=carry), data=data0)
+        ok = better(summary, best["summary"])
+        history.append(_row(r, summary, added_L=int(len(poses_l)), added_D=n_d, loss=loss, better=ok))
         if progress:
             progress(history[-1])
-        if _score(summary) > best[0] + 1e-4:
-            best = (_score(summary), carry, summary, nets)
-        else:
+        if not ok:
             break  # the certified fraction stopped rising
-    _, carry, summary, nets = best
-    shutil.copytree(run_dir, out, ignore=shutil.ignore_patterns("checkpoint*", "certify.*", "eval-*.json", ".*"))
-    Checkpoints(out, run_fingerprint(out)).save(carry, run.meta)
-    if (out / "summary.json").is_file():  # training figures stay true; the final evaluation does not
-        s = read_json(out / "summary.json", "summary")
-        s.pop("eval", None)
-        atomic_write_json(out / "summary.json", dict(s, repaired_from=str(run_dir)))
-    summary = dict(summary, run=str(out), repaired_from=str(run_dir), repair_rounds=history)
-    write_outputs(out, run._replace(carry=carry), ccfg, summary, nets)
-    return {"rounds": history, "before": before, "after": summary}
+        best = {"round": r, "carry": carry, "summary": summary, "nets": nets}
+    note = {"repaired_from": str(run_dir), "repair_round": best["round"]}
+    _save(run_dir, out, best["carry"].replace(data=data0), run.meta, note)
+    res = {"rounds": history, "before": before, "kept": best["round"], "eval_before": None, "eval_after": None,
+           "gamma_exp": gamma_exp if gamma_exp is not None else run.cfg.cbf.gamma_exp}
+    if eval_episodes and best["round"] > 0:
+        res["eval_before"] = _evaluate(run_dir, eval_episodes)
+        res["eval_after"] = _evaluate(out, eval_episodes)
+        worse = any(res["eval_after"][k] < res["eval_before"][k] for k in ("safety_rate", "completion_rate"))
+        if progress:
+            progress({"eval_before": res["eval_before"], "eval_after": res["eval_after"], "reverted": worse})
+        if worse:  # never leave the run worse than it was: keep the original state
+            res["reverted_from_round"] = best["round"]
+            best = {"round": 0, "carry": run.carry, "summary": before, "nets": nets0}
+            note["repair_round"] = 0
+            _save(run_dir, out, run.carry, run.meta, dict(note, reverted="the repaired policy evaluated worse"))
+            res["kept"] = 0
+    summary = dict(best["summary"], run=str(out), repaired_from=str(run_dir), repair_rounds=history,
+                   repair_kept_round=res["kept"], repair_gamma_exp=res["gamma_exp"], eval_before=res["eval_before"], eval_after=res["eval_after"])
+    if "reverted_from_round" in res:
+        summary["repair_reverted_from_round"] = res["reverted_from_round"]
+    write_outputs(out, run._replace(carry=best["carry"]), ccfg, summary, best["nets"])
+    res["after"] = summary
+    return res
