@@ -124,7 +124,8 @@ def print_certify(console, s: dict) -> None:
     """``d2spo.certify.certify_run``'s summary: a table per net, the model residual, counterexamples."""
     from rich.table import Table
 
-    t = Table(title=f"{s['run']}: Propositions 1-2 ({s['seconds']:.0f} s, {s.get('cpu_seconds', 0):.0f} s CPU)")
+    cpu = f", {s['cpu_seconds']:.0f} s CPU" if "cpu_seconds" in s else ""
+    t = Table(title=f"{s['run']}: Propositions 1-2 ({s['seconds']:.0f} s{cpu})")
     for name in ("net", "proposition", "points", "certified", "not certified", "violated", "worst margin", "worst value"):
         t.add_column(name, justify="left" if name in ("net", "proposition") else "right")
     rows = (("X_L (ℒ)", "1: h < 0", "max_h", "h"), ("grid: ring + contact", "1: h < 0", "max_h", "h"),
