@@ -68,4 +68,4 @@ def test_certify_summary_is_shown():
     assert "RUN: Propositions 1-2 (3 s)" in out and "90.00%" in out and "h = -0.5" in out
     assert "ρ_h = 0.0123" in out and "pose [1.0, 2.0, 0.0] with h = 0.3 (1 of the worst 1 found)" in out
     assert "gradient search in D: no counterexample found" in out
-    assert "round 2: certified ℒ 95.00%, D 50.00%, violated grid points: 3 (Prop. 1), 0 (Prop. 2)" in out
+    assert "round 2: certified ℒ 95.00%, D 50.00%, violated grid points: 3 (Prop. 1), 0 (Prop. 2, explored)" in out
