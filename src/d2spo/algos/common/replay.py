@@ -104,7 +104,8 @@ def add_batch(buffer: ReplayBuffer, items: Any, mask: jax.Array | None = None) -
 
     def check(stored: jax.Array, new: Any) -> None:
         if jnp.shape(new) != (n, *stored.shape[1:]):
-            raise ValueError(f"add_batch: leaf shape {jnp.shape(new)} does not match buffer rows {(n, *stored.shape[1:])}")
+            raise ValueError(f"add_batch: leaf shape {jnp.shape(new)} does not match buffer rows "
+                             f"{(n, *stored.shape[1:])}")
 
     jax.tree_util.tree_map(check, buffer.data, items)
     data, n_add = write_rows(buffer.data, buffer.ptr, items, mask)
