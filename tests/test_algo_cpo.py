@@ -27,14 +27,14 @@ from d2spo.algos.cpo import (
     PolicyData,
     conjugate_gradient,
     cpo_policy_update,
-    cpo_step_direction,
+    cpo_step,
     kl_hessian_vector_product,
 )
 from d2spo.config import TrainConfig
 from d2spo.errors import ConfigError
 from d2spo.train import build, train
 
-_direction = jax.jit(cpo_step_direction)
+_direction = jax.jit(lambda *a: cpo_step(*a)[:2])  # (x, case)
 
 
 def step(g, b, c, h, delta):

@@ -18,7 +18,7 @@ from d2spo.algos.rcrl import (
     rcrl_target,
     safety_target,
 )
-from d2spo.algos.sac_lag import SACConfig
+from d2spo.algos.sac import SACConfig
 from d2spo.config import TrainConfig
 from d2spo.envs import EnvConfig
 from d2spo.errors import ConfigError

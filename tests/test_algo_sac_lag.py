@@ -11,7 +11,8 @@ from _learning import assert_trains_without_nans_and_improves
 
 from d2spo.algos.common.replay import Transition
 from d2spo.algos.offpolicy import empty_window, mean_episode_cost, record_episodes
-from d2spo.algos.sac_lag import SACConfig, SACLagConfig
+from d2spo.algos.sac import SACConfig
+from d2spo.algos.sac_lag import SACLagConfig
 from d2spo.config import TrainConfig
 from d2spo.envs import EnvConfig
 from d2spo.errors import ConfigError

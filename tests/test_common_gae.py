@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from d2spo.algos.common.gae import discounted_cumsum, gae
+from d2spo.algos.common.gae import gae
 
 
 def reference_gae(rewards, values, dones, last_value, gamma, lam, truncated=None, bootstrap=None):
@@ -81,10 +81,3 @@ def test_gae_matches_reference_loop_on_random_data(with_truncation):
     np.testing.assert_allclose(np.asarray(adv), ref_adv, rtol=1e-4, atol=1e-5)
     np.testing.assert_allclose(np.asarray(ret), ref_ret, rtol=1e-4, atol=1e-5)
 
-
-def test_discounted_cumsum_hand_computed():
-    # gamma = 0.5, last = 4: G2 = 3 + .5*4 = 5; G1 = 2 (episode ends); G0 = 1 + .5*2 = 2
-    out = discounted_cumsum(np.array([[1.0], [2.0], [3.0]]), np.array([[0], [1], [0]]), 0.5, np.array([4.0]))
-    np.testing.assert_allclose(np.asarray(out)[:, 0], [2.0, 2.0, 5.0])
-    out0 = discounted_cumsum(np.array([[1.0], [2.0], [3.0]]), np.zeros((3, 1)), 0.5)
-    np.testing.assert_allclose(np.asarray(out0)[:, 0], [1 + 0.5 * 2 + 0.25 * 3, 2 + 0.5 * 3, 3.0])

@@ -1,20 +1,20 @@
-"""The datasets of Sec. IV-A/B: ring buffers, the P_exp filter, and the synthesised unsafe ring X_L."""
+"""The datasets of Sec. IV-A/B: weighted sampling, the P_exp filter, and the synthesised unsafe ring X_L."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from d2spo.algos.common import replay
+from d2spo.algos.common.replay import ReplayBuffer
 from d2spo.safety.cbf import CBFConfig
 from d2spo.safety.datasets import (
     Transition,
     in_p_exp,
     init_safety_data,
-    ring_add,
-    ring_init,
-    ring_sample,
     synthesize_unsafe,
     synthetic_pretrain_data,
     update_datasets,
+    weighted_sample,
 )
 
 H = 1.0
@@ -36,31 +36,12 @@ def _ctx(n=None):
     return ctx if n is None else jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (n,) + a.shape), ctx)
 
 
-def test_ring_buffer_wraps_around_and_keeps_the_newest():
-    buf = ring_init(jnp.zeros(2), capacity=5)
-    buf = ring_add(buf, jnp.arange(6.0).reshape(3, 2))  # items 0, 1, 2
-    assert int(buf.size) == 3 and int(buf.ptr) == 3
-    buf = ring_add(buf, jnp.arange(6.0, 14.0).reshape(4, 2))  # items 3..6 -> 5, 6 overwrite 0, 1
-    assert int(buf.size) == 5 and int(buf.ptr) == 2
-    np.testing.assert_array_equal(np.asarray(buf.data[:, 0]), [10.0, 12.0, 4.0, 6.0, 8.0])
-
-
-def test_ring_buffer_mask_and_oversized_batches():
-    buf = ring_init(jnp.zeros(()), capacity=3)
-    buf = ring_add(buf, jnp.array([1.0, 2.0, 3.0, 4.0]), jnp.array([True, False, True, False]))
-    assert int(buf.size) == 2
-    np.testing.assert_array_equal(np.asarray(buf.data[:2]), [1.0, 3.0])
-    buf = jax.jit(ring_add)(buf, jnp.arange(10.0, 17.0), jnp.ones(7, bool))  # 7 rows into capacity 3
-    assert int(buf.size) == 3
-    assert sorted(np.asarray(buf.data).tolist()) == [14.0, 15.0, 16.0]
-
-
-def test_ring_sample_draws_stored_items_and_flags_an_empty_buffer():
-    buf = ring_init(jnp.zeros(()), capacity=8)
-    _, w = ring_sample(buf, jax.random.PRNGKey(0), 4)
+def test_weighted_sample_draws_stored_items_and_flags_an_empty_buffer():
+    buf = ReplayBuffer.create(8, jnp.zeros(()))
+    _, w = weighted_sample(buf, jax.random.PRNGKey(0), 4)
     assert float(w.sum()) == 0.0
-    buf = ring_add(buf, jnp.array([5.0, 7.0]))
-    items, w = ring_sample(buf, jax.random.PRNGKey(0), 64)
+    buf = replay.add_batch(buf, jnp.array([5.0, 7.0]))
+    items, w = weighted_sample(buf, jax.random.PRNGKey(0), 64)
     assert set(np.asarray(items).tolist()) <= {5.0, 7.0} and float(w.min()) == 1.0
 
 

@@ -156,6 +156,22 @@ def test_effective_differences_ignore_what_the_learner_does_not_read():
     assert config_differences(dataclasses.replace(base, seed=1), base) == ["seed: 1 -> 0"]
 
 
+
+def test_the_learner_table_says_reward_annealing_sections_and_filter():
+    from d2spo.algos import LEARNERS, config_sections, has_runtime_filter
+    from d2spo.train import build
+
+    fields = {f.name for f in dataclasses.fields(TrainConfig)}
+    for algo, spec in LEARNERS.items():
+        assert set(config_sections(algo)) <= fields
+        assert ("anneal" in config_sections(algo)) == spec.anneal == (spec.reward == "progress")
+        assert TrainConfig(algo=algo).env_config().reward.mode == spec.reward
+    assert {a for a in LEARNERS if LEARNERS[a].reward == "sparse"} == {"td3", "sl"}
+    assert {a for a in LEARNERS if has_runtime_filter(a)} == {"d2spo", "sl"}
+    # the registry, not the learner, switches the annealing off (td3 and tlgrl are one class)
+    assert not build(TrainConfig(algo="td3", num_envs=2))[2].anneal.cfg.enabled
+    assert build(TrainConfig(algo="tlgrl", num_envs=2))[2].anneal.cfg.enabled
+
 def test_seeds_vmapped_together_write_ordinary_runs_and_resume_exactly(tmp_path):
     from d2spo.train import train_seeds
 

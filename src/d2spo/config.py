@@ -28,9 +28,6 @@ from d2spo.fields import check_fields
 from d2spo.ltl.anneal import AnnealConfig
 from d2spo.safety.cbf import CBFConfig
 
-ALGOS = ("d2spo", "td3", "tlgrl", "sl", "td3-lag", "sac-lag", "rcrl", "ppo-lag", "cpo")
-"""Learners ``d2spo train --algo`` accepts (baselines are added by their modules)."""
-
 
 @dataclass(frozen=True)
 class TrainConfig:
@@ -84,8 +81,10 @@ class TrainConfig:
         return self.env.layout
 
     def env_config(self) -> EnvConfig:
-        """The env config with the reward mode this learner uses."""
-        mode = "sparse" if self.algo in ("td3", "sl") else "progress"
+        """The env config with the reward mode this learner uses (``d2spo.algos.LEARNERS``)."""
+        from d2spo.algos import reward_mode
+
+        mode = reward_mode(self.algo)
         return dataclasses.replace(self.env, reward=dataclasses.replace(self.env.reward, mode=mode))
 
     def __post_init__(self) -> None:

@@ -32,6 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from d2spo.algos.common import replay
 from d2spo.certify import CBFRun, CertifyConfig, _compiled, certify_run, load_cbf_run, policy_of, write_outputs
 from d2spo.errors import RunDirError
 from d2spo.safety import certify as cert
@@ -84,7 +85,7 @@ def add_counterexamples(run: CBFRun, ccfg: CertifyConfig, carry, poses_l: np.nda
     if len(poses_l):
         p = jnp.asarray(np.repeat(poses_l, copies, 0))
         x = jax.vmap(lrn.features)(p, fn["context"](p))
-        data = data.replace(unsafe=sd.ring_add(data.unsafe, x))
+        data = data.replace(unsafe=replay.add_batch(data.unsafe, x))
     for poses, q in groups:
         p = jnp.asarray(np.repeat(poses, copies, 0))
         ctx = fn["context"](p)
@@ -93,7 +94,7 @@ def add_counterexamples(run: CBFRun, ccfg: CertifyConfig, carry, poses_l: np.nda
         u_rl = lrn.nets.actor.apply(carry.agent.actor, obs)
         nxt = nominal_next(lrn.safety_nets.nominal, carry.safety.nominal, p, u, lrn.dt)
         tr = sd.Transition(pose=p, next_pose=nxt, context=ctx, obs=obs, action=u, u_rl=u_rl)
-        data = data.replace(p_exp=sd.ring_add(data.p_exp, tr))
+        data = data.replace(p_exp=replay.add_batch(data.p_exp, tr))
     return carry.replace(data=data)
 
 

@@ -1,84 +1,120 @@
-"""Learners. ``make_learner(cfg, env, params)`` builds the one ``--algo`` names."""
+"""Learners, and the one table that says what each ``--algo`` is (``LEARNERS``).
+
+Per learner: the class that builds it, the learner-specific TrainConfig sections it reads (the
+others cannot change its run), its reward (Eq. (8)'s progress reward or the sparse task reward),
+whether it trains with the annealed subtask radius of Sec. IV-C (``TrainConfig.anneal``), and
+whether it executes D²SPO's π_Ω, whose runtime filter ``--runtime-filter`` switches.
+``make_learner(cfg, env, params)`` builds the one ``cfg.algo`` names. Each builder imports its
+learner's module when it runs, so that importing one module of ``d2spo.algos`` (a config, or
+``algos.common`` from ``d2spo.safety``) does not load every learner.
+"""
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
-
-_REGISTRY: dict[str, Callable] = {}
-_SECTIONS: dict[str, tuple[str, ...]] = {}
-"""The learner-specific TrainConfig sections each learner reads (the others cannot change its run)."""
+from dataclasses import dataclass
+from typing import Any, Literal
 
 
-def _td3(cfg, env, params, anneal: bool):
-    import dataclasses
-
+def _td3(cfg, env, params, anneal):
     from d2spo.algos.td3 import TD3Learner
 
-    return TD3Learner(env, params, cfg.td3, dataclasses.replace(cfg.anneal, enabled=cfg.anneal.enabled and anneal),
-                      cfg.num_envs, cfg.chunk_steps, cfg.episodes)
+    return TD3Learner(env, params, cfg.td3, anneal, cfg.num_envs, cfg.chunk_steps, cfg.episodes)
 
 
-def _d2spo(cfg, env, params, progress: bool):
-    import dataclasses
-
+def _d2spo(cfg, env, params, anneal):
     from d2spo.algos.d2spo import D2SPOLearner
 
-    anneal = dataclasses.replace(cfg.anneal, enabled=cfg.anneal.enabled and progress)
-    return D2SPOLearner(env, params, cfg.td3, cfg.cbf, anneal, cfg.num_envs, cfg.chunk_steps, cfg.episodes,
-                        cfg.d2spo)
+    return D2SPOLearner(env, params, cfg.td3, cfg.cbf, anneal, cfg.num_envs, cfg.chunk_steps, cfg.episodes, cfg.d2spo)
 
 
-_REGISTRY.update({
-    "d2spo": lambda cfg, env, params: _d2spo(cfg, env, params, progress=True),
-    "sl": lambda cfg, env, params: _d2spo(cfg, env, params, progress=False),
-    "tlgrl": lambda cfg, env, params: _td3(cfg, env, params, anneal=True),
-    "td3": lambda cfg, env, params: _td3(cfg, env, params, anneal=False),
-})
-# the annealed radius only applies with the progress reward, so td3 and sl ignore it
-_SECTIONS.update({"d2spo": ("td3", "anneal", "cbf", "d2spo"), "sl": ("td3", "cbf", "d2spo"),
-                  "tlgrl": ("td3", "anneal"), "td3": ("td3",)})
+def _td3_lag(cfg, env, params, anneal):
+    from d2spo.algos.td3_lag import TD3LagLearner
+
+    return TD3LagLearner(env, params, cfg.td3_lag, anneal, cfg.num_envs, cfg.chunk_steps, cfg.episodes)
 
 
-def _safe_offpolicy(module: str, learner: str, field: str) -> Callable:
-    """td3-lag, sac-lag, rcrl: same env, Eq. (8) reward and annealed radius as tlgrl; config ``cfg.<field>``."""
+def _sac_lag(cfg, env, params, anneal):
+    from d2spo.algos.sac_lag import SACLagLearner
 
-    def build(cfg, env, params):
-        import importlib
-
-        cls = getattr(importlib.import_module(f"d2spo.algos.{module}"), learner)
-        return cls(env, params, getattr(cfg, field), cfg.anneal, cfg.num_envs, cfg.chunk_steps, cfg.episodes)
-
-    return build
+    return SACLagLearner(env, params, cfg.sac_lag, anneal, cfg.num_envs, cfg.chunk_steps, cfg.episodes)
 
 
-# off-policy (td3-lag, sac-lag, rcrl) and on-policy (ppo-lag, cpo) baselines, on the same footing
-# (reward, annealed radius) as tlgrl
-for _name, _module, _learner in (("td3-lag", "td3_lag", "TD3LagLearner"), ("sac-lag", "sac_lag", "SACLagLearner"),
-                                 ("rcrl", "rcrl", "RCRLLearner"), ("ppo-lag", "ppo_lag", "PPOLagLearner"),
-                                 ("cpo", "cpo", "CPOLearner")):
-    _REGISTRY[_name] = _safe_offpolicy(_module, _learner, _module)
-    _SECTIONS[_name] = (_module, "anneal")
-del _name, _module, _learner
+def _rcrl(cfg, env, params, anneal):
+    from d2spo.algos.rcrl import RCRLLearner
+
+    return RCRLLearner(env, params, cfg.rcrl, anneal, cfg.num_envs, cfg.chunk_steps, cfg.episodes)
+
+
+def _ppo_lag(cfg, env, params, anneal):
+    from d2spo.algos.ppo_lag import PPOLagLearner
+
+    return PPOLagLearner(env, params, cfg.ppo_lag, anneal, cfg.num_envs, cfg.chunk_steps, cfg.episodes)
+
+
+def _cpo(cfg, env, params, anneal):
+    from d2spo.algos.cpo import CPOLearner
+
+    return CPOLearner(env, params, cfg.cpo, anneal, cfg.num_envs, cfg.chunk_steps, cfg.episodes)
+
+
+@dataclass(frozen=True)
+class LearnerSpec:
+    """What one ``--algo`` is."""
+
+    build: Callable[[Any, Any, Any, Any], Any]
+    """``build(cfg, env, params, anneal)`` -> the learner; ``anneal`` is the AnnealConfig it trains with."""
+    sections: tuple[str, ...]
+    """The learner-specific TrainConfig sections it reads (``anneal`` is added when ``anneal`` is true)."""
+    reward: Literal["progress", "sparse"]
+    """Eq. (8)'s progress reward (with its shaping), or the sparse task reward."""
+    anneal: bool
+    """Trains with the annealed subtask radius (``TrainConfig.anneal``; it only applies to the progress reward)."""
+    runtime_filter: bool = False
+    """Executes D²SPO's π_Ω, whose runtime filter ``--runtime-filter`` switches."""
+
+
+LEARNERS: dict[str, LearnerSpec] = {
+    "d2spo": LearnerSpec(_d2spo, ("td3", "cbf", "d2spo"), "progress", anneal=True, runtime_filter=True),
+    "td3": LearnerSpec(_td3, ("td3",), "sparse", anneal=False),  # RL-phi of Tables II-III
+    "tlgrl": LearnerSpec(_td3, ("td3",), "progress", anneal=True),
+    "sl": LearnerSpec(_d2spo, ("td3", "cbf", "d2spo"), "sparse", anneal=False, runtime_filter=True),
+    # the safe baselines, on the same footing (reward, annealed radius) as tlgrl
+    "td3-lag": LearnerSpec(_td3_lag, ("td3_lag",), "progress", anneal=True),
+    "sac-lag": LearnerSpec(_sac_lag, ("sac_lag",), "progress", anneal=True),
+    "rcrl": LearnerSpec(_rcrl, ("rcrl",), "progress", anneal=True),
+    "ppo-lag": LearnerSpec(_ppo_lag, ("ppo_lag",), "progress", anneal=True),
+    "cpo": LearnerSpec(_cpo, ("cpo",), "progress", anneal=True),
+}
 
 
 def known_algos() -> tuple[str, ...]:
-    return tuple(_REGISTRY)
+    return tuple(LEARNERS)
 
 
 def config_sections(algo: str) -> tuple[str, ...]:
-    """The learner-specific TrainConfig sections ``algo`` reads (``td3``, ``cbf``, ``ppo_lag``, ...)."""
-    return _SECTIONS[algo]
+    """The learner-specific TrainConfig sections ``algo`` reads (``td3``, ``anneal``, ``cbf``, ``ppo_lag``, ...)."""
+    spec = LEARNERS[algo]
+    return spec.sections + (("anneal",) if spec.anneal else ())
 
 
 def all_config_sections() -> set[str]:
-    return {s for v in _SECTIONS.values() for s in v}
+    return {s for algo in LEARNERS for s in config_sections(algo)}
+
+
+def reward_mode(algo: str) -> str:
+    """The reward ``algo`` trains on: ``progress`` (Eq. (8)) or ``sparse``."""
+    return LEARNERS[algo].reward
 
 
 def has_runtime_filter(algo: str) -> bool:
     """Whether ``algo`` executes D²SPO's π_Ω, whose runtime filter ``--runtime-filter`` switches."""
-    return "d2spo" in config_sections(algo)
+    return LEARNERS[algo].runtime_filter
 
 
 def make_learner(cfg, env, params):
     """The learner for ``cfg.algo`` on (env, params)."""
-    return _REGISTRY[cfg.algo](cfg, env, params)
+    spec = LEARNERS[cfg.algo]
+    anneal = dataclasses.replace(cfg.anneal, enabled=cfg.anneal.enabled and spec.anneal)
+    return spec.build(cfg, env, params, anneal)

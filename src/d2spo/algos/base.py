@@ -8,11 +8,13 @@ inside one ``lax.scan`` (acting, stepping the env, storing, updating); the run l
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any, NamedTuple, Protocol
 
 import jax
 import jax.numpy as jnp
+
+from d2spo.ltl.anneal import AnnealConfig, annealed_params
 
 
 class ChunkLog(NamedTuple):
@@ -72,4 +74,23 @@ class Learner(Protocol):
         """
 
 
-LearnerFactory = Callable[..., Learner]
+@dataclass(frozen=True)
+class AnnealSchedule:
+    """The env params a learner trains on after ``episodes`` finished episodes: its layout's, with
+    the labelling radius annealed as in Sec. IV-C (``ltl.anneal``); k2 is fixed by the run's length."""
+
+    cfg: AnnealConfig
+    k2: float
+
+    @classmethod
+    def for_run(cls, cfg: AnnealConfig, total_episodes: int) -> AnnealSchedule:
+        return cls(cfg, cfg.rate(total_episodes))
+
+    def env_params(self, params: Any, episodes: jax.Array) -> Any:
+        return annealed_params(params, episodes, self.cfg, self.k2)
+
+
+def params_finite(tree: Any) -> jax.Array:
+    """bool []: every leaf of ``tree`` is finite (the parameters' half of ``ChunkLog.nonfinite``)."""
+    leaves = jax.tree_util.tree_leaves(tree)
+    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves]))

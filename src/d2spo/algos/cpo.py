@@ -8,7 +8,7 @@ conjugate gradient. The step solves the linearised problem (CPO Eq. (10))
 
     max_x g^T x   s.t.   c + b^T x <= 0,   1/2 x^T H x <= delta,
 
-through its dual (``cpo_step_direction``), then a backtracking line search keeps the first
+through its dual (``cpo_step``), then a backtracking line search keeps the first
 fraction of the step whose true KL, reward and cost surrogates are acceptable.
 
 The constraint is on the mean *undiscounted* episode cost J_c of the episodes that ended in the
@@ -27,7 +27,7 @@ import jax.numpy as jnp
 from flax import struct
 from jax.flatten_util import ravel_pytree
 
-from d2spo.algos.base import ChunkLog
+from d2spo.algos.base import ChunkLog, params_finite
 from d2spo.algos.common.networks import gaussian_kl, gaussian_log_prob
 from d2spo.algos.common.rollout import flatten_time_env
 from d2spo.algos.onpolicy import (
@@ -44,13 +44,12 @@ from d2spo.algos.onpolicy import (
     standardize,
     with_update_metrics,
 )
-from d2spo.algos.td3 import params_finite
 from d2spo.errors import ConfigError
 from d2spo.fields import check_fields
 from d2spo.ltl.anneal import AnnealConfig
 
 INFEASIBLE, REWARD_STEP, MIXED_STEP = 0, 1, 2
-"""``cpo_step_direction`` cases: recovery (no x satisfies both constraints), pure reward step
+"""``cpo_step`` cases: recovery (no x satisfies both constraints), pure reward step
 (the cost constraint is inactive at the optimum), step on both boundaries."""
 
 
@@ -144,7 +143,7 @@ def cpo_dual(q, r, s, c, delta, a=None, eps: float = 1e-8):
     f_b(proj lambda_b)} is lambda_b exactly when lambda_b lies in Lambda_b, i.e. when the pure
     reward step sqrt(2 delta / q) H^-1 g satisfies c + b'x <= 0 (case REWARD_STEP, nu* = 0), and
     lambda_a otherwise (MIXED_STEP). No feasible x exists when c > 0 and B <= 0 (INFEASIBLE).
-    ``a`` may pass A computed more accurately than q - r^2 / s (see ``cpo_step_direction``).
+    ``a`` may pass A computed more accurately than q - r^2 / s (see ``cpo_step``).
     Returns (lambda*, nu*, case, A, B).
     """
     q_safe, s_safe = jnp.maximum(q, eps), jnp.maximum(s, eps)
@@ -160,8 +159,8 @@ def cpo_dual(q, r, s, c, delta, a=None, eps: float = 1e-8):
     return lam, nu, case, a, b_
 
 
-def cpo_step_direction(g, b, c, h_inv_g, h_inv_b, delta, eps: float = 1e-8):
-    """(direction x, case id) of the CPO step for flat gradients g, b and cost gap c.
+def cpo_step(g, b, c, h_inv_g, h_inv_b, delta, eps: float = 1e-8):
+    """(direction x, case id, lambda*, nu*) of the CPO step for flat gradients g, b and cost gap c.
 
     REWARD_STEP:  x = sqrt(2 delta / q) H^-1 g                     (1/2 x'Hx = delta, nu = 0);
     MIXED_STEP:   x = (H^-1 g - nu H^-1 b) / lambda, written as
@@ -170,11 +169,6 @@ def cpo_step_direction(g, b, c, h_inv_g, h_inv_b, delta, eps: float = 1e-8):
                   small lambda when g and b are nearly parallel;
     INFEASIBLE:   x = -sqrt(2 delta / s) H^-1 b, the recovery step that only decreases the cost (CPO Eq. (14)).
     """
-    x, case, _, _ = _step_and_multipliers(g, b, c, h_inv_g, h_inv_b, delta, eps)
-    return x, case
-
-
-def _step_and_multipliers(g, b, c, h_inv_g, h_inv_b, delta, eps: float = 1e-8):
     q, r, s = g @ h_inv_g, g @ h_inv_b, b @ h_inv_b
     s_safe = jnp.maximum(s, eps)
     # A = q - r^2/s = (g - (r/s) b)' H^-1 (g - (r/s) b): subtracting vectors before the dot
@@ -248,7 +242,7 @@ def cpo_policy_update(apply: Callable, policy: Any, data: PolicyData, c: jax.Arr
     fisher = kl_hessian_vector_product(lambda t: apply(unravel(t), data.obs), theta0, cfg.cg_damping)
     h_inv_g = conjugate_gradient(fisher, g, cfg.cg_iters)
     h_inv_b = conjugate_gradient(fisher, b, cfg.cg_iters)
-    x, case, lam, nu = _step_and_multipliers(g, b, c, h_inv_g, h_inv_b, cfg.target_kl)
+    x, case, lam, nu = cpo_step(g, b, c, h_inv_g, h_inv_b, cfg.target_kl)
 
     fractions = cfg.backtrack_coeff ** jnp.arange(cfg.backtrack_iters, dtype=jnp.float32)
 

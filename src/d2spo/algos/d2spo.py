@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from d2spo.algos.base import ChunkLog, episode_log
+from d2spo.algos.base import ChunkLog, episode_log, params_finite
 from d2spo.algos.common import replay
 from d2spo.algos.common.replay import ReplayBuffer, Transition
 from d2spo.algos.td3 import (
@@ -35,7 +35,6 @@ from d2spo.algos.td3 import (
     TD3Learner,
     explore,
     learn_from_buffer,
-    params_finite,
 )
 from d2spo.envs import geometry, sensors
 from d2spo.envs.geometry import Geometry
@@ -201,7 +200,7 @@ class D2SPOLearner(TD3Learner):
         random_phase = c.steps * self.num_envs < self.cfg.learning_starts
         u_rl = explore(self.nets, c.agent, c.obs, k_act, random_phase, self.cfg.exploration_noise)
         action = self.execute(c.safety, c.obs, u_rl, c.env_state.pose)
-        params = self.env_params(c.episodes)
+        params = self.anneal.env_params(self.params, c.episodes)
         env_state, obs, reward, cost, done, info = self.env.step_batch(k_env, c.env_state, action, params)
         buffer = replay.add_batch(c.buffer, Transition(c.obs, action, reward, cost, info["next_obs"],
                                                        info["terminated"].astype(jnp.float32)))

@@ -6,11 +6,12 @@ inside the chunk's ``lax.scan``:
 1. act: uniform in [-1, 1]^m until ``learning_starts`` transitions are stored, then the
    algorithm's ``behaviour`` (exploration) policy;
 2. step every env with the annealed labelling radius of Sec. IV-C (``d2spo.ltl.anneal``);
-3. store (s, a, r, c, s', terminated) in the device replay buffer; write the cost of every episode
-   that just ended into a ring of the last ``cost_window`` episode costs (J_c's estimate);
-4. once ``learning_starts`` transitions are stored: the algorithm's ``on_step`` hook (the Lagrange
-   multiplier step of the ``*-lag`` methods) and ``updates_per_step`` gradient ``update`` s on
-   uniform minibatches.
+3. store (s, a, r, c, s', terminated) in the device replay buffer; with a ``cost_window`` (the
+   ``*-lag`` methods), write the cost of every episode that just ended into a ring of the last
+   ``cost_window`` episode costs (J_c's estimate);
+4. once ``learning_starts`` transitions are stored: with a cost window, the algorithm's ``on_step``
+   hook (the Lagrange multiplier step), then ``updates_per_step`` gradient ``update`` s on uniform
+   minibatches.
 
 Metrics are scalars per step; NaN means "no value this step" (warm-up, or a delayed actor).
 """
@@ -23,14 +24,10 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from d2spo.algos.base import ChunkLog, episode_log
-from d2spo.algos.common import lagrange, replay
-from d2spo.algos.common.lagrange import LagrangeConfig, LagrangeState
+from d2spo.algos.base import AnnealSchedule, ChunkLog, episode_log, params_finite
+from d2spo.algos.common import replay
 from d2spo.algos.common.replay import ReplayBuffer, Transition
-from d2spo.algos.common.td3_losses import REDUCTIONS
-from d2spo.algos.td3 import params_finite
-from d2spo.fields import check_choice, check_fields
-from d2spo.ltl.anneal import AnnealConfig, annealed_params
+from d2spo.ltl.anneal import AnnealConfig
 
 Metrics = dict[str, jax.Array]
 
@@ -51,13 +48,7 @@ def empty_window(size: int) -> CostWindow:
 
 def record_episodes(window: CostWindow, done: jax.Array, ep_cost: jax.Array) -> CostWindow:
     """Append the costs of the episodes that ended (``done`` [N]) in env order; keeps the last W."""
-    size = window.costs.shape[0]
-    done = done.astype(bool)
-    rank = jnp.cumsum(done) - 1  # position among this step's finished episodes
-    total = jnp.sum(done).astype(jnp.int32)
-    keep = done & (rank >= total - size)  # more than W at once: only the last W matter
-    idx = jnp.where(keep, (window.count + rank) % size, size)  # `size` is out of range: dropped
-    costs = window.costs.at[idx].set(ep_cost.astype(jnp.float32), mode="drop")
+    costs, total = replay.write_rows(window.costs, window.count, ep_cost, done)
     return CostWindow(costs, window.count + total)
 
 
@@ -76,7 +67,8 @@ class OffPolicyAlgo(Protocol):
         """Exploration action [N, m] in [-1, 1] once warm-up is over."""
 
     def on_step(self, agent: Any, mean_cost: jax.Array) -> tuple[Any, Metrics]:
-        """Once per vectorised step after warm-up, before the updates; ``mean_cost`` may be NaN."""
+        """Once per vectorised step after warm-up, before the updates; ``mean_cost`` may be NaN.
+        Called only when the loop keeps a cost window."""
 
     def update(self, agent: Any, batch: Transition, key: jax.Array) -> tuple[Any, Metrics]:
         """One gradient update on a minibatch."""
@@ -93,33 +85,33 @@ class OffPolicyCarry:
     """Vectorised env steps taken (each is num_envs transitions)."""
     episodes: jax.Array
     """Episodes finished so far (I_ep of the annealed radius)."""
-    costs: CostWindow
+    costs: CostWindow | None
+    """The last episode costs (None without a cost window)."""
 
 
 class OffPolicyLoop:
     """Acting, env stepping, storage, warm-up and update scheduling, written once."""
 
     def __init__(self, env, params, anneal: AnnealConfig, num_envs: int, chunk_steps: int, total_episodes: int, *,
-                 buffer_size: int, batch_size: int, learning_starts: int, updates_per_step: int, cost_window: int):
-        self.env, self.params, self.anneal = env, params, anneal
+                 buffer_size: int, batch_size: int, learning_starts: int, updates_per_step: int,
+                 cost_window: int | None = None):
+        self.env, self.params = env, params
+        self.anneal = AnnealSchedule.for_run(anneal, total_episodes)
         self.num_envs, self.chunk_steps = num_envs, chunk_steps
-        self.k2 = anneal.rate(total_episodes)
         self.buffer_size, self.batch_size = buffer_size, batch_size
         self.learning_starts, self.updates_per_step = learning_starts, updates_per_step
         self.cost_window = cost_window
 
-    def env_params(self, episodes: jax.Array):
-        return annealed_params(self.params, episodes, self.anneal, self.k2)
-
     def init(self, key: jax.Array, agent: Any) -> OffPolicyCarry:
         k_env, key = jax.random.split(key)
-        env_state, obs = self.env.reset_batch(k_env, self.env_params(jnp.int32(0)), self.num_envs)
+        env_state, obs = self.env.reset_batch(k_env, self.anneal.env_params(self.params, jnp.int32(0)), self.num_envs)
         o = jax.ShapeDtypeStruct((self.env.observation_size,), jnp.float32)
         example = Transition(obs=o, action=jax.ShapeDtypeStruct((self.env.action_size,), jnp.float32),
                              reward=jnp.float32(0), cost=jnp.float32(0), next_obs=o, done=jnp.float32(0))
         zero = jnp.zeros((), jnp.int32)
+        costs = None if self.cost_window is None else empty_window(self.cost_window)
         return OffPolicyCarry(key, env_state, obs, agent, ReplayBuffer.create(self.buffer_size, example), zero, zero,
-                              empty_window(self.cost_window))
+                              costs)
 
     def chunk(self, carry: OffPolicyCarry, algo: OffPolicyAlgo) -> tuple[OffPolicyCarry, ChunkLog]:
         carry, log = jax.lax.scan(lambda c, _: self._iteration(c, algo), carry, None, length=self.chunk_steps)
@@ -130,15 +122,17 @@ class OffPolicyLoop:
         warm_up = c.steps * self.num_envs < self.learning_starts
         uniform = jax.random.uniform(k_uni, (self.num_envs, self.env.action_size), minval=-1.0, maxval=1.0)
         action = jnp.where(warm_up, uniform, algo.behaviour(c.agent, c.obs, k_act))
-        params = self.env_params(c.episodes)
+        params = self.anneal.env_params(self.params, c.episodes)
         env_state, obs, reward, cost, done, info = self.env.step_batch(k_env, c.env_state, action, params)
         buffer = replay.add_batch(c.buffer, Transition(c.obs, action, reward, cost, info["next_obs"],
                                                        info["terminated"].astype(jnp.float32)))
-        costs = record_episodes(c.costs, done, info["ep_cost"])
+        costs = None if c.costs is None else record_episodes(c.costs, done, info["ep_cost"])
+        mean_cost = None if costs is None else mean_episode_cost(costs)
         ready = (c.steps + 1) * self.num_envs >= self.learning_starts
-        agent, metrics = self._learn(algo, c.agent, buffer, k_upd, mean_episode_cost(costs), ready)
+        agent, metrics = self._learn(algo, c.agent, buffer, k_upd, mean_cost, ready)
         metrics["charts/label_radius"] = jnp.mean(params.label_radius)
-        metrics["charts/recent_ep_cost"] = mean_episode_cost(costs)
+        if mean_cost is not None:
+            metrics["charts/recent_ep_cost"] = mean_cost
         c = OffPolicyCarry(key, env_state, obs, agent, buffer, c.steps + 1,
                            c.episodes + jnp.sum(done).astype(jnp.int32), costs)
         return c, episode_log(done, info, metrics)
@@ -149,7 +143,9 @@ class OffPolicyLoop:
             return algo.update(agent, replay.sample(buffer, k1, self.batch_size), k2)
 
         def learn(agent):
-            agent, step_metrics = algo.on_step(agent, mean_cost)
+            step_metrics = {}
+            if mean_cost is not None:
+                agent, step_metrics = algo.on_step(agent, mean_cost)
             agent, m = jax.lax.scan(one, agent, jax.random.split(key, self.updates_per_step))
             return agent, {**step_metrics, **{k: jnp.nanmean(v) for k, v in m.items()}}
 
@@ -169,21 +165,3 @@ def delayed(do: jax.Array, step, agent):
 
     return jax.lax.cond(do, step, skip, agent)
 
-
-def update_multiplier(lag: LagrangeState, mean_cost: jax.Array) -> LagrangeState:
-    """One projected ascent step on lambda (J_c - d); no step while J_c is unknown (NaN)."""
-    known = jnp.isfinite(mean_cost)
-    stepped = lagrange.update(lag, jnp.where(known, mean_cost, 0.0))
-    return jax.tree_util.tree_map(lambda new, old: jnp.where(known, new, old), stepped, lag)
-
-
-def default_lagrange() -> LagrangeConfig:
-    """The *-lag multiplier: OmniSafe's off-policy TD3Lag/SACLag (Adam, lr 1e-3, init 1e-3), with
-    d = 0.05 collisions per episode (a 95% collision-free target; OmniSafe's 25 is Safety Gym's)."""
-    return LagrangeConfig(cost_limit=0.05, lr=1e-3, init=1e-3)
-
-
-def check_cost_options(cfg, section: str) -> None:
-    """ConfigError on a bad cost-critic ensemble, reduction or cost window (td3-lag, sac-lag)."""
-    check_fields(cfg, section, count=("cost_critics", "cost_window"))
-    check_choice(cfg, "cost_reduce", REDUCTIONS, section)

@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from d2spo.algos.base import ChunkLog
+from d2spo.algos.base import ChunkLog, params_finite
 from d2spo.algos.common import lagrange
 from d2spo.algos.common.lagrange import LagrangeConfig, LagrangeState
 from d2spo.algos.common.networks import gaussian_entropy, gaussian_kl, gaussian_log_prob
@@ -41,7 +41,6 @@ from d2spo.algos.onpolicy import (
     standardize,
     with_update_metrics,
 )
-from d2spo.algos.td3 import params_finite
 from d2spo.errors import ConfigError
 from d2spo.fields import check_fields
 from d2spo.ltl.anneal import AnnealConfig

@@ -33,9 +33,9 @@ from flax import struct
 
 from d2spo.algos.common.networks import MLP, TwinQ, init_params
 from d2spo.algos.common.sac_losses import sample_action
-from d2spo.algos.common.td3_losses import reduce_critics, soft_update
+from d2spo.algos.common.td3_losses import ensemble_mse, reduce_critics, soft_update
 from d2spo.algos.offpolicy import OffPolicyLoop, delayed
-from d2spo.algos.sac_lag import (
+from d2spo.algos.sac import (
     SACAgent,
     SACConfig,
     init_sac_agent,
@@ -142,8 +142,7 @@ class RCRLLearner:
         self.lidar = env.observation_slices["lidar"]
         self.loop = OffPolicyLoop(env, params, anneal, num_envs, chunk_steps, total_episodes,
                                   buffer_size=s.buffer_size, batch_size=s.batch_size,
-                                  learning_starts=s.learning_starts, updates_per_step=s.updates_per_step,
-                                  cost_window=10)
+                                  learning_starts=s.learning_starts, updates_per_step=s.updates_per_step)
 
     def h(self, obs: jax.Array) -> jax.Array:
         """The constraint function h(s) of this env (> 0: unsafe), from the observation's lidar."""
@@ -173,15 +172,12 @@ class RCRLLearner:
         y = safety_target(h, self.h(batch.next_obs), batch.cost, batch.done, next_qh, self.cfg.sac.gamma,
                           self.cfg.margin)
         q = self.safety_net.apply(qh_params, batch.obs, batch.action)
-        loss = jnp.sum(jnp.mean((q - y[None]) ** 2, axis=1))
+        loss = ensemble_mse(q, y)
         return loss, {"losses/qh": loss, "values/qh": jnp.mean(q), "values/h": jnp.mean(h)}
 
     # -- hooks of the loop --------------------------------------------------------------
     def behaviour(self, agent: RCRLAgent, obs, key):
         return sac_behaviour(self.nets, agent.sac, obs, key)
-
-    def on_step(self, agent: RCRLAgent, mean_cost):
-        return agent, {}
 
     def update(self, agent: RCRLAgent, batch, key):
         s, cfg = self.cfg.sac, self.cfg

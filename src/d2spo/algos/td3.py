@@ -20,13 +20,13 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from d2spo.algos.base import ChunkLog, episode_log
+from d2spo.algos.base import AnnealSchedule, ChunkLog, episode_log, params_finite
 from d2spo.algos.common import replay
 from d2spo.algos.common.networks import DeterministicActor, TwinQ, init_params
 from d2spo.algos.common.replay import ReplayBuffer, Transition
 from d2spo.algos.common.td3_losses import soft_update, td3_actor_loss, td3_critic_loss
 from d2spo.fields import check_fields
-from d2spo.ltl.anneal import AnnealConfig, annealed_params
+from d2spo.ltl.anneal import AnnealConfig
 
 
 @dataclass(frozen=True)
@@ -152,11 +152,6 @@ def td3_update(nets: TD3Nets, agent: TD3Agent, batch: Transition, key: jax.Array
     return agent, {"losses/qf": c_metrics["losses/qf"], "values/q": c_metrics["values/q"], "losses/actor": actor_loss}
 
 
-def params_finite(tree: Any) -> jax.Array:
-    leaves = jax.tree_util.tree_leaves(tree)
-    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves]))
-
-
 @struct.dataclass
 class TD3Carry:
     key: jax.Array
@@ -196,15 +191,12 @@ class TD3Learner:
 
     def __init__(self, env, params, cfg: TD3Config, anneal: AnnealConfig, num_envs: int, chunk_steps: int,
                  total_episodes: int):
-        self.env, self.params, self.cfg, self.anneal = env, params, cfg, anneal
+        self.env, self.params, self.cfg = env, params, cfg
+        self.anneal = AnnealSchedule.for_run(anneal, total_episodes)
         self.num_envs, self.chunk_steps = num_envs, chunk_steps
-        self.k2 = anneal.rate(total_episodes)
         self.nets = make_nets(env.action_size, cfg)
 
     # -- shared with D2SPO --------------------------------------------------------------
-    def env_params(self, episodes: jax.Array):
-        return annealed_params(self.params, episodes, self.anneal, self.k2)
-
     def empty_buffer(self) -> ReplayBuffer:
         o = jax.ShapeDtypeStruct((self.env.observation_size,), jnp.float32)
         example = Transition(obs=o, action=jax.ShapeDtypeStruct((self.env.action_size,), jnp.float32),
@@ -213,7 +205,7 @@ class TD3Learner:
 
     def init(self, key: jax.Array) -> TD3Carry:
         k_env, k_agent, key = jax.random.split(key, 3)
-        env_state, obs = self.env.reset_batch(k_env, self.env_params(jnp.int32(0)), self.num_envs)
+        env_state, obs = self.env.reset_batch(k_env, self.anneal.env_params(self.params, jnp.int32(0)), self.num_envs)
         agent = init_agent(k_agent, self.nets, self.env.observation_size, self.env.action_size)
         zero = jnp.zeros((), jnp.int32)
         return TD3Carry(key, env_state, obs, agent, self.empty_buffer(), zero, zero)
@@ -227,7 +219,7 @@ class TD3Learner:
         key, k_act, k_env, k_upd = jax.random.split(c.key, 4)
         random_phase = c.steps * self.num_envs < self.cfg.learning_starts
         action = explore(self.nets, c.agent, c.obs, k_act, random_phase, self.cfg.exploration_noise)
-        params = self.env_params(c.episodes)
+        params = self.anneal.env_params(self.params, c.episodes)
         env_state, obs, reward, cost, done, info = self.env.step_batch(k_env, c.env_state, action, params)
         buffer = replay.add_batch(c.buffer, Transition(c.obs, action, reward, cost, info["next_obs"],
                                                        info["terminated"].astype(jnp.float32)))

@@ -1,7 +1,8 @@
 """TD3-Lagrangian (LTD3 of Tables II-III): TD3 with a cost critic and a Lagrange multiplier.
 
 TD3 (Fujimoto et al., 2018) exactly as ``algos/td3.py`` (same ``TD3Config`` fields, the same
-pieces: ``make_nets``, ``init_agent``, ``explore``), plus OmniSafe's TD3Lag additions:
+pieces: ``make_nets``, ``init_agent``, ``explore``) inside the Lagrangian shell of
+``algos/common/cost_critic.py`` (OmniSafe's TD3Lag):
 
     cost critics: y_c = c + gamma (1 - done) reduce_i Qc'_i(s', a~'),  a~' the smoothed target action
                   (reduce = max over the twin cost critics: pessimistic)
@@ -23,23 +24,10 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from d2spo.algos.common import lagrange
+from d2spo.algos.common.cost_critic import LagrangianShell, check_cost_options, default_lagrange
 from d2spo.algos.common.lagrange import LagrangeConfig, LagrangeState
-from d2spo.algos.common.networks import TwinQ, init_params
-from d2spo.algos.common.td3_losses import (
-    cost_critic_loss,
-    reduce_critics,
-    soft_update,
-    td3_actor_loss,
-    td3_critic_loss,
-)
-from d2spo.algos.offpolicy import (
-    OffPolicyLoop,
-    check_cost_options,
-    default_lagrange,
-    delayed,
-    update_multiplier,
-)
+from d2spo.algos.common.td3_losses import cost_critic_loss, soft_update, td3_actor_loss, td3_critic_loss
+from d2spo.algos.offpolicy import OffPolicyLoop, delayed
 from d2spo.algos.td3 import TD3Agent, TD3Config, explore, init_agent, make_nets
 from d2spo.ltl.anneal import AnnealConfig
 
@@ -79,8 +67,7 @@ class TD3LagLearner:
                  total_episodes: int):
         self.env, self.cfg, t = env, cfg, cfg.td3
         self.nets = make_nets(env.action_size, t)
-        self.cost_net = TwinQ(t.hidden, n_critics=cfg.cost_critics)
-        self.cost_tx = optax.adam(t.critic_lr)
+        self.shell = LagrangianShell(t.hidden, t.critic_lr, cfg)
         self.loop = OffPolicyLoop(env, params, anneal, num_envs, chunk_steps, total_episodes,
                                   buffer_size=t.buffer_size, batch_size=t.batch_size,
                                   learning_starts=t.learning_starts, updates_per_step=t.updates_per_step,
@@ -90,8 +77,7 @@ class TD3LagLearner:
         k_td3, k_cost, k_loop = jax.random.split(key, 3)
         obs_size, act_size = self.env.observation_size, self.env.action_size
         td3 = init_agent(k_td3, self.nets, obs_size, act_size)
-        qc = init_params(self.cost_net, k_cost, jnp.zeros((1, obs_size)), jnp.zeros((1, act_size)))
-        agent = TD3LagAgent(td3, qc, qc, self.cost_tx.init(qc), lagrange.create(self.cfg.lagrange))
+        agent = TD3LagAgent(td3, *self.shell.init(k_cost, obs_size, act_size))
         return self.loop.init(k_loop, agent)
 
     def chunk(self, carry):
@@ -102,27 +88,20 @@ class TD3LagLearner:
         return explore(self.nets, agent.td3, obs, key, jnp.bool_(False), self.cfg.td3.exploration_noise)
 
     def on_step(self, agent: TD3LagAgent, mean_cost):
-        lag = update_multiplier(agent.lag, mean_cost)
-        return agent.replace(lag=lag), {"charts/lambda": lag.multiplier}
+        return self.shell.on_step(agent, mean_cost)
 
     def update(self, agent: TD3LagAgent, batch, key):
         t, a = self.cfg.td3, agent.td3
-        actor_apply, critic_apply, cost_apply = self.nets.actor.apply, self.nets.critic.apply, self.cost_net.apply
+        actor_apply, critic_apply = self.nets.actor.apply, self.nets.critic.apply
         k_q, k_c = jax.random.split(key)
         (_, m), g = jax.value_and_grad(td3_critic_loss, has_aux=True)(
             a.critic, a.critic_target, a.actor_target, batch, k_q, t.gamma, t.policy_noise, t.noise_clip,
             actor_apply, critic_apply)
         upd, critic_opt = self.nets.critic_tx.update(g, a.critic_opt, a.critic)
         critic = optax.apply_updates(a.critic, upd)
-        (_, mc), g = jax.value_and_grad(cost_critic_loss, has_aux=True)(
-            agent.cost_critic, agent.cost_critic_target, a.actor_target, batch, k_c, t.gamma, t.policy_noise,
-            t.noise_clip, actor_apply, cost_apply, self.cfg.cost_reduce)
-        upd, cost_opt = self.cost_tx.update(g, agent.cost_opt, agent.cost_critic)
-        qc = optax.apply_updates(agent.cost_critic, upd)
-        lam = lagrange.value(agent.lag)
-
-        def penalty(obs, action):  # lambda Qc(s, pi(s)), the constraint term of the Lagrangian
-            return lam * reduce_critics(cost_apply(qc, obs, action), self.cfg.cost_reduce)
+        qc, cost_opt, mc = self.shell.critic_step(agent, cost_critic_loss, a.actor_target, batch, k_c, t.gamma,
+                                                  t.policy_noise, t.noise_clip, actor_apply)
+        penalty = self.shell.penalty(agent.lag, qc)  # lambda Qc(s, pi(s))
 
         def actor_step(old):  # actor, then every target network (TD3's delayed updates)
             actor, actor_opt, actor_t, critic_t, cost_t = old
@@ -137,8 +116,7 @@ class TD3LagLearner:
         old = (a.actor, a.actor_opt, a.actor_target, a.critic_target, agent.cost_critic_target)
         (actor, actor_opt, actor_t, critic_t, cost_t), am = delayed(a.updates % t.policy_delay == 0, actor_step, old)
         td3 = TD3Agent(actor, actor_t, critic, critic_t, actor_opt, critic_opt, a.updates + 1)
-        metrics = {"losses/qf": m["losses/qf"], "values/q": m["values/q"], "losses/qc": mc["losses/qc"],
-                   "values/qc": mc["values/qc"], **am}
+        metrics = {"losses/qf": m["losses/qf"], "values/q": m["values/q"], **mc, **am}
         return TD3LagAgent(td3, qc, cost_t, cost_opt, agent.lag), metrics
 
     # -- evaluation ---------------------------------------------------------------------

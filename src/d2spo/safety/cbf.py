@@ -257,8 +257,8 @@ def barrier_terms(cbf_params, policy_params, nominal_params, batch: TeBatch, *, 
     h_x = nets.cbf.apply(cbf_params, x)
     h_next = nets.cbf.apply(cbf_params, x_next)
     alpha = class_k(cfg.alpha, cfg.alpha_coef)
-    residual = t_e_residual(h_x, h_next, dt, alpha, cfg.gamma_exp)
-    te = _wmean(jnp.maximum(residual, 0.0), batch.weight)
+    te = t_e(h_x, h_next, dt, alpha, cfg.gamma_exp, batch.weight)
+    residual = t_e_residual(h_x, h_next, dt, alpha, cfg.gamma_exp)  # for the metrics (same ops: XLA shares them)
     tg = t_g(u, batch.u_rl, batch.weight)
     return te, tg, {"x": x, "h_x": h_x, "h_next": h_next, "u": u, "residual": residual}
 

@@ -1,4 +1,5 @@
-"""The datasets T, P_exp, X_s and X_L of Sec. IV-A/IV-B, as device-resident ring buffers.
+"""The datasets T, P_exp, X_s and X_L of Sec. IV-A/IV-B, as device-resident ring buffers
+(``algos.common.replay.ReplayBuffer``, the one ring buffer of the code).
 
 Everything is generic in the sensor: `features_fn(pose, context) -> x [K]` maps one pose
 (x, y, θ) and one sensed-obstacle context O_s (any pytree) to the feature vector b(z, O_s); it
@@ -21,50 +22,14 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from d2spo.algos.common import replay
+from d2spo.algos.common.replay import ReplayBuffer
 from d2spo.safety.cbf import CBFConfig, TeBatch, p_exp_threshold
 
 
-@struct.dataclass
-class RingBuffer:
-    """A bounded FIFO of pytree items. `data` leaves have a leading axis of length `capacity`."""
-
-    data: Any
-    ptr: jnp.ndarray
-    size: jnp.ndarray
-    capacity: int = struct.field(pytree_node=False)
-
-
-def ring_init(example_item, capacity: int) -> RingBuffer:
-    """An empty buffer whose items look like `example_item` (one item, no batch axis)."""
-    data = jax.tree_util.tree_map(lambda a: jnp.zeros((capacity,) + jnp.shape(a), jnp.asarray(a).dtype), example_item)
-    return RingBuffer(data=data, ptr=jnp.zeros((), jnp.int32), size=jnp.zeros((), jnp.int32), capacity=capacity)
-
-
-def ring_add(buf: RingBuffer, items, mask: jnp.ndarray | None = None) -> RingBuffer:
-    """Append the rows of `items` (leading batch axis) where `mask` is true, overwriting the oldest.
-
-    Jit-able: masked-out rows are scattered out of bounds and dropped. If more than `capacity`
-    rows are added at once, only the last `capacity` of them are kept.
-    """
-    n = jax.tree_util.tree_leaves(items)[0].shape[0]
-    mask = jnp.ones((n,), bool) if mask is None else mask.astype(bool)
-    rank = jnp.cumsum(mask) - 1
-    n_add = jnp.sum(mask, dtype=jnp.int32)
-    keep = mask & (rank >= n_add - buf.capacity)
-    idx = jnp.where(keep, (buf.ptr + rank) % buf.capacity, buf.capacity)
-    data = jax.tree_util.tree_map(lambda d, x: d.at[idx].set(x.astype(d.dtype), mode="drop"), buf.data, items)
-    return buf.replace(
-        data=data,
-        ptr=(buf.ptr + n_add) % buf.capacity,
-        size=jnp.minimum(buf.size + n_add, buf.capacity),
-    )
-
-
-def ring_sample(buf: RingBuffer, key: jax.Array, n: int):
+def weighted_sample(buf: ReplayBuffer, key: jax.Array, n: int):
     """n items drawn uniformly with replacement, and a weight [n] that is 0 when the buffer is empty."""
-    idx = jax.random.randint(key, (n,), 0, jnp.maximum(buf.size, 1))
-    items = jax.tree_util.tree_map(lambda d: d[idx], buf.data)
-    return items, jnp.full((n,), buf.size > 0, jnp.float32)
+    return replay.sample(buf, key, n), jnp.full((n,), buf.size > 0, jnp.float32)
 
 
 @struct.dataclass
@@ -88,17 +53,17 @@ def te_batch(tr: Transition, weight: jnp.ndarray, u_rl: jnp.ndarray | None = Non
 class SafetyData:
     """The three buffers of Algorithm 1: T (all transitions), P_exp, and X_L (features)."""
 
-    transitions: RingBuffer
-    p_exp: RingBuffer
-    unsafe: RingBuffer
+    transitions: ReplayBuffer
+    p_exp: ReplayBuffer
+    unsafe: ReplayBuffer
 
 
 def init_safety_data(cfg: CBFConfig, example: Transition, n_features: int) -> SafetyData:
     """Empty buffers sized by `cfg`; `example` is one unbatched transition (only shapes matter)."""
     return SafetyData(
-        transitions=ring_init(example, cfg.transitions_capacity),
-        p_exp=ring_init(example, cfg.p_exp_capacity),
-        unsafe=ring_init(jnp.zeros((n_features,), jnp.float32), cfg.unsafe_capacity),
+        transitions=ReplayBuffer.create(cfg.transitions_capacity, example),
+        p_exp=ReplayBuffer.create(cfg.p_exp_capacity, example),
+        unsafe=ReplayBuffer.create(cfg.unsafe_capacity, jnp.zeros((n_features,), jnp.float32)),
     )
 
 
@@ -159,9 +124,9 @@ def update_datasets(data: SafetyData, key: jax.Array, tr: Transition, *, feature
     x_u, ok = _ring_samples(key, tr.pose, tr.context, features_fn, cfg)
     ok = ok & mask
     data = SafetyData(
-        transitions=ring_add(data.transitions, tr, mask),
-        p_exp=ring_add(data.p_exp, tr, exp),
-        unsafe=ring_add(data.unsafe, x_u, ok),
+        transitions=replay.add_batch(data.transitions, tr, mask),
+        p_exp=replay.add_batch(data.p_exp, tr, exp),
+        unsafe=replay.add_batch(data.unsafe, x_u, ok),
     )
     return data, {"safety/added_p_exp": jnp.sum(exp), "safety/added_unsafe": jnp.sum(ok)}
 
@@ -196,4 +161,4 @@ def synthetic_pretrain_data(key: jax.Array, features_fn: Callable, sample_fn: Ca
 
 def seed_unsafe(data: SafetyData, pre: PretrainData) -> SafetyData:
     """Put the cautious start's valid ring samples into X_L, so T_u has data from the first update."""
-    return data.replace(unsafe=ring_add(data.unsafe, pre.x_unsafe, pre.unsafe_valid))
+    return data.replace(unsafe=replay.add_batch(data.unsafe, pre.x_unsafe, pre.unsafe_valid))

@@ -36,7 +36,7 @@ from d2spo.safety.cbf import (
     p_exp_threshold,
     total_loss,
 )
-from d2spo.safety.datasets import PretrainData, SafetyData, ring_sample, te_batch
+from d2spo.safety.datasets import PretrainData, SafetyData, te_batch, weighted_sample
 from d2spo.safety.nominal import (
     NominalBatch,
     NominalNet,
@@ -155,7 +155,7 @@ def update(key: jax.Array, state: SafetyState, data: SafetyData, *, nets: Safety
 
     def nominal_body(carry, k):
         params, opt = carry
-        tr, w = ring_sample(data.transitions, k, cfg.batch_size)
+        tr, w = weighted_sample(data.transitions, k, cfg.batch_size)
         batch = NominalBatch(tr.pose, tr.action, tr.next_pose, w)
         params, opt, loss = nominal_update(nets.nominal, params, opt, batch, dt, tn)
         return (params, opt), loss
@@ -166,8 +166,8 @@ def update(key: jax.Array, state: SafetyState, data: SafetyData, *, nets: Safety
 
     def joint_body(st, k):
         k1, k2, k3 = jax.random.split(k, 3)
-        tr, w = ring_sample(data.p_exp, k1, cfg.batch_size)
-        xu, wu = ring_sample(data.unsafe, k2, cfg.batch_size)
+        tr, w = weighted_sample(data.p_exp, k1, cfg.batch_size)
+        xu, wu = weighted_sample(data.unsafe, k2, cfg.batch_size)
         batch = te_batch(tr, w, None if u_rl_fn is None else u_rl_fn(tr.obs))
         synthetic = synthetic_batch(k3, pretrain, cfg, batch.u_rl.shape[-1]) if replay else None
         return joint_step(st, batch, xu, wu, nets=nets, cfg=cfg, features_fn=features_fn, dt=dt, synthetic=synthetic)

@@ -1,4 +1,4 @@
-"""Generalised advantage estimation and discounted sums over time-major [T, N] arrays.
+"""Generalised advantage estimation over time-major [T, N] arrays.
 
 Convention (one row per time step t, one column per env):
 
@@ -57,22 +57,3 @@ def gae(
     _, advantages = jax.lax.scan(backward, jnp.zeros_like(last_value), (deltas, carry_on), reverse=True)
     return advantages, advantages + values
 
-
-def discounted_cumsum(
-    x: jax.Array, dones: jax.Array, gamma: float, last_value: jax.Array | None = None
-) -> jax.Array:
-    """G_t = x_t + gamma * (1 - dones[t]) * G_{t+1}, G_T = ``last_value`` (0 if None); [T, N].
-
-    Use for discounted cost-to-go targets (e.g. CPO's cost return) over time-major rollouts.
-    """
-    x = jnp.asarray(x, jnp.float32)
-    carry_on = (1.0 - jnp.asarray(dones, jnp.float32)) * gamma
-    init = jnp.zeros_like(x[0]) if last_value is None else jnp.asarray(last_value, jnp.float32)
-
-    def backward(g_next: jax.Array, xs: tuple[jax.Array, jax.Array]) -> tuple[jax.Array, jax.Array]:
-        xt, decay = xs
-        g = xt + decay * g_next
-        return g, g
-
-    _, out = jax.lax.scan(backward, init, (x, carry_on), reverse=True)
-    return out

@@ -23,6 +23,7 @@ from d2spo.algos.common.networks import tanh_gaussian_sample
 from d2spo.algos.common.td3_losses import (
     CriticApply,
     PenaltyFn,
+    ensemble_mse,
     reduce_critics,
     td_target,
 )
@@ -61,8 +62,7 @@ def _soft_td_loss(
     soft_next = next_q - jax.lax.stop_gradient(entropy_coef) * next_log_prob
     y = td_target(signal, batch.done, soft_next, gamma)
     q = critic_apply(critic_params, batch.obs, batch.action)
-    loss = jnp.sum(jnp.mean((q - y[None]) ** 2, axis=1))
-    return loss, q, y
+    return ensemble_mse(q, y), q, y
 
 
 def sac_critic_loss(

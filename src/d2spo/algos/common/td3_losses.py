@@ -56,6 +56,11 @@ def td_target(signal: jax.Array, done: jax.Array, next_q: jax.Array, gamma: floa
     return jax.lax.stop_gradient(y)
 
 
+def ensemble_mse(q: jax.Array, y: jax.Array) -> jax.Array:
+    """Sum over the critics of each critic's MSE to the target: q [K, B], y [B] -> []."""
+    return jnp.sum(jnp.mean((q - y[None]) ** 2, axis=1))
+
+
 def _twin_td_loss(
     critic_params: Any,
     target_critic_params: Any,
@@ -74,8 +79,7 @@ def _twin_td_loss(
     next_q = reduce_critics(critic_apply(target_critic_params, batch.next_obs, next_action), reduce)
     y = td_target(signal, batch.done, next_q, gamma)
     q = critic_apply(critic_params, batch.obs, batch.action)  # [K, B]
-    loss = jnp.sum(jnp.mean((q - y[None]) ** 2, axis=1))  # sum over critics of each critic's MSE
-    return loss, q, y
+    return ensemble_mse(q, y), q, y
 
 
 def td3_critic_loss(
