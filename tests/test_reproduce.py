@@ -1,5 +1,6 @@
 """`d2spo reproduce` and `d2spo report`: which runs each target needs, reuse of finished runs,
-tables against the paper, snapshots for Fig. 5, and the Ray backend on a local Ray instance."""
+tables against the paper, snapshots for Fig. 5, and the Ray backend on a local Ray instance. The
+figures themselves: tests/test_plots.py."""
 
 from __future__ import annotations
 
@@ -134,33 +135,6 @@ def test_runs_trained_with_other_settings_are_refused_unless_allowed(tmp_path, c
     assert rp.stale_runs(tmp_path, [spec]) == {} and main(args) == 0
 
 
-def test_fig2_plots_reward_bands(tmp_path):
-    """Fig. 2 reads episodes.csv of the table runs: the curve is the moving-average return, mean over
-    seeds, with a ± 1 std band. Run directories with known returns stand in for trained runs."""
-    from d2spo.runio import EPISODE_FIELDS
-
-    out = tmp_path / "r"
-    specs = rp.runs_for("table3", 2, 50, ["ppo-lag"])
-    for s, offset in zip(specs, (0.0, 2.0)):
-        d = rp.run_dir(out, s)
-        d.mkdir(parents=True)
-        rows = [(i, float(i) + offset, 0.0, 0, 0, 0, 200, 0.0, 0.0) for i in range(50)]
-        with open(d / "episodes.csv", "w", newline="") as f:
-            csv.writer(f).writerows([EPISODE_FIELDS, *rows])
-    x, mean, std = rp.reward_curves(out, specs, smooth=5)["ppo-lag"]
-    assert len(x) == len(mean) == 46 and x[0] == 5
-    np.testing.assert_allclose(mean, np.arange(46) + 2.0 + 1.0)  # mean of i..i+4, plus the mean offset 1
-    np.testing.assert_allclose(std, 1.0)  # the two seeds differ by 2 everywhere
-    _, _, one_std = rp.reward_curves(out, specs[:1], smooth=5)["ppo-lag"]
-    assert np.all(one_std == 0)  # one seed: no spread
-    assert rp.fig2(out, 2, 50, ["ppo-lag"]).stat().st_size > 10_000
-    # a run shorter than the default width of 200 still gets a curve: a fifth of it per window,
-    # each point placed at the end of its window (not at 200 + i)
-    x, mean, _ = rp.reward_curves(out, specs)["ppo-lag"]
-    assert len(x) == 41 and x[0] == 10 and x[-1] == 50
-    np.testing.assert_allclose(mean[0], np.mean(np.arange(10)) + 1.0)
-
-
 def test_snapshots_are_saved_and_loaded(tmp_path):
     from d2spo.algos.td3 import TD3Config
     from d2spo.config import TrainConfig
@@ -200,24 +174,3 @@ def test_ray_backend_on_a_local_instance(tmp_path):
     assert "0 of 1 runs already finished" in done.stdout and "1 Ray task\n" in done.stdout
     # the same directory layout as the local backend: the table reads it
     assert "| LPPO | 1 |" in (out / "table3.md").read_text()
-
-
-def test_fig5_renders_from_a_short_d2spo_run_with_snapshots(tmp_path):
-    """Fig. 5 from a run with policy snapshots."""
-    out = tmp_path / "r"
-    (f5,) = rp.runs_for("fig5", 1, 32)
-    assert f5.snapshots == (3, 16, 32)
-    rp.train_one(f5, str(out))
-    for n in f5.snapshots:
-        assert (rp.run_dir(out, f5) / f"policy-{n}.msgpack").is_file()
-    assert rp.fig5(out, 1, 32).stat().st_size > 20_000
-
-
-def test_fig4_renders_with_one_layout_trained(tmp_path):
-    """Fig. 4 with one of its four layouts trained (the others are drawn as 'not run'); a separate
-    test from Fig. 5 so that the two trainings can run on both test workers."""
-    out = tmp_path / "r"
-    f4 = rp.runs_for("fig4", 1, 200)[0]
-    assert f4.episodes == 20 and f4.layout == "physical-1"
-    rp.train_one(f4, str(out))
-    assert rp.fig4(out, 1, 200).stat().st_size > 20_000

@@ -1,10 +1,19 @@
-"""Figures of trained policies: trajectories on the layout and the learned CBF over the workspace.
+"""Every figure of d2spo, drawn from data: run directories, their episode curves and snapshots.
 
-Matplotlib only, with Figure objects (no pyplot global state), so it is safe in tests and servers.
+* the policy figure of ``d2spo demo``: trajectories on the layout and the learned CBF;
+* Figs. 2–3 (``reward_figure``): moving-average return per method, mean and ± 1 std over seeds;
+* Fig. 4 (``cbf_figure``): the learned h as a surface and as level sets, one run per layout;
+* Fig. 5 (``snapshot_figure``): the executed policy's trajectories at the run's policy snapshots.
+
+Each thing is drawn by one function (``draw_trajectories``, ``draw_cbf``, ``draw_reward_curves``)
+that the figures share. ``d2spo.reproduce`` only chooses which run directories go into which
+figure. Matplotlib only, with Figure objects (no pyplot global state), so it is safe in tests and
+servers.
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 
 import jax
@@ -52,17 +61,23 @@ def cbf_grid(learner, safety, heading: float = 0.0, resolution: int = 80):
     return xs, ys, np.asarray(h).reshape(gx.shape), np.asarray(inside).reshape(gx.shape)
 
 
-def draw_cbf(ax, learner, safety, layout, heading: float = 0.0, levels: int = 15, colorbar_fig=None) -> None:
-    """Filled contour of h over the workspace, its zero level set in white, obstacles on top."""
-    xs, ys, h, _ = cbf_grid(learner, safety, heading)
+def draw_cbf(ax, xs, ys, h, layout, levels: int = 15, zero_color: str = "white", zero_width: float = 1.5):
+    """Filled contours of h (a ``cbf_grid``) over the workspace, its zero level set as a line, the
+    layout on top; returns the filled contours (for a colorbar). The caller titles the axes."""
     lim = float(np.nanmax(np.abs(h))) or 1.0
     cs = ax.contourf(xs, ys, h, levels=levels, cmap="RdYlGn", vmin=-lim, vmax=lim)
-    ax.contour(xs, ys, h, levels=[0.0], colors="white", linewidths=1.5)
+    ax.contour(xs, ys, h, levels=[0.0], colors=zero_color, linewidths=zero_width)
     draw_layout(layout, ax, show_sensing=False)
-    ax.set_title(f"learned CBF h at heading {np.degrees(heading):.0f}° (white: h = 0)")
-    if colorbar_fig is not None:
-        cb = colorbar_fig.colorbar(cs, ax=ax, shrink=0.8)
-        cb.set_label("h, the learned CBF (h ≥ 0: safe set)")
+    return cs
+
+
+def draw_trajectories(ax, poses, collided, completed) -> None:
+    """Each episode's path (poses [E, T+1, 3], NaN after its end) coloured by its outcome."""
+    for i in range(poses.shape[0]):
+        xy = poses[i, :, :2]
+        xy = xy[np.all(np.isfinite(xy), axis=-1)]
+        outcome = "collided" if collided[i] else ("completed" if completed[i] else "neither")
+        draw_trajectory(ax, xy, color=OUTCOME_COLORS[outcome])
 
 
 def policy_figure(path: Path, learner, policy, env, params, episodes: int = 8, seed: int = 0,
@@ -85,17 +100,140 @@ def draw_policy_figure(learner, policy, env, params, episodes: int = 8, seed: in
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 2 if has_cbf else 1, 1)
     draw_layout(env.layout, ax, sensing_radius=float(params.sensing_radius))
-    for i in range(poses.shape[0]):
-        xy = poses[i, :, :2]
-        xy = xy[np.all(np.isfinite(xy), axis=-1)]
-        outcome = "collided" if collided[i] else ("completed" if completed[i] else "neither")
-        draw_trajectory(ax, xy, color=OUTCOME_COLORS[outcome])
+    draw_trajectories(ax, poses, collided, completed)
     ax.set_title(title or f"{completed.mean():.0%} completed, {1 - collided.mean():.0%} safe "
                           f"({poses.shape[0]} episodes)")
     names = {"completed": "task completed", "collided": "collision", "neither": "out of time"}
     add_legend(ax, [Line2D([], [], color=c, label=f"trajectory: {names[k]} (x: end)")
                     for k, c in OUTCOME_COLORS.items()])
     if has_cbf:
-        draw_cbf(fig.add_subplot(1, 2, 2), learner, policy[1], env.layout, heading=0.0, colorbar_fig=fig)
+        ax = fig.add_subplot(1, 2, 2)
+        xs, ys, h, _ = cbf_grid(learner, policy[1], heading=0.0)
+        filled = draw_cbf(ax, xs, ys, h, env.layout)
+        ax.set_title("learned CBF h at heading 0° (white: h = 0)")
+        cb = fig.colorbar(filled, ax=ax, shrink=0.8)
+        cb.set_label("h, the learned CBF (h ≥ 0: safe set)")
     fig.suptitle(suptitle or f"layout {env.layout.name!r}")
     return fig, {"safety_rate": float(1 - collided.mean()), "completion_rate": float(completed.mean())}
+
+
+# ---------------------------------------------------------------------- Figs. 2-3: reward curves
+def smoothing_window(n_episodes: int, smooth: int = 200) -> int:
+    """Episodes per moving-average point: ``smooth``, but at most a fifth of a short run, so that a
+    quick run still draws a curve of a few points rather than a single one."""
+    return max(1, min(smooth, n_episodes // 5))
+
+
+def reward_curves(runs: Mapping[str, Iterable[Path]], smooth: int = 200) -> dict[str, tuple]:
+    """Per label (its run directories, one per seed): (episode index, mean return over seeds, std)
+    of the moving-average return over ``smoothing_window`` episodes (seeds cut to the shortest);
+    the index is the episode count at the end of each window. Runs without episodes are skipped,
+    and so is a label without any."""
+    from d2spo.runio import read_episodes
+
+    result = {}
+    for label, dirs in runs.items():
+        rs = []
+        for d in dirs:
+            p = Path(d) / "episodes.csv"
+            ret = np.array([r[1] for r in read_episodes(p)], float) if p.is_file() else np.zeros(0)
+            if len(ret) > 0:
+                rs.append(ret)
+        if not rs:
+            continue
+        n = min(len(r) for r in rs)
+        k = smoothing_window(n, smooth)
+        a = np.stack([np.convolve(r[:n], np.ones(k) / k, mode="valid") for r in rs])
+        result[label] = (np.arange(a.shape[1]) + k, a.mean(0), a.std(0))
+    return result
+
+
+def draw_reward_curves(ax, curves: Mapping[str, tuple], title: str) -> None:
+    """``reward_curves`` as lines with a ± 1 std band, labelled with their keys."""
+    for label, (x, mean, std) in curves.items():
+        line = ax.plot(x, mean, label=label, marker="o" if len(x) == 1 else None)[0]
+        ax.fill_between(x, mean - std, mean + std, color=line.get_color(), alpha=0.2)
+    ax.set_xlabel("episode")
+    widths = sorted({int(x[0]) for x, _, _ in curves.values()})  # a curve's first point ends its first window
+    ax.set_ylabel(f"return (moving average over {'/'.join(map(str, widths))} episodes)" if widths
+                  else "return (moving average)")
+    ax.set_title(title)
+    if curves:
+        ax.legend(fontsize=8)
+
+
+def reward_figure(path: Path, panels: Sequence[tuple[str, Mapping[str, Iterable[Path]]]], smooth: int = 200) -> Path:
+    """Figs. 2–3: one panel per (title, {label: run directories}), side by side."""
+    fig = _figure(len(panels))
+    for i, (title, runs) in enumerate(panels):
+        draw_reward_curves(fig.add_subplot(1, len(panels), i + 1), reward_curves(runs, smooth), title)
+    fig.tight_layout()
+    fig.savefig(str(path), dpi=110)
+    return Path(path)
+
+
+# ------------------------------------------------------------------ Fig. 4: the CBF on each layout
+def cbf_figure(path: Path, runs: Sequence[tuple[str, Path]], heading: float = 0.0) -> Path:
+    """Fig. 4: per (name, run directory), the learned h at a fixed heading as a surface (top row)
+    and as level sets with h = 0 in black (bottom row); a run without a checkpoint is 'not run'."""
+    from d2spo.evaluate import load_policy
+
+    n = len(runs)
+    fig = _figure(n, 2, size=4.0)
+    for i, (name, d) in enumerate(runs):
+        ax3 = fig.add_subplot(2, n, i + 1, projection="3d")
+        ax2 = fig.add_subplot(2, n, i + n + 1)
+        ax3.set_title(f"({chr(ord('a') + i)}) {name}")
+        level_title = f"({chr(ord('a') + n + i)}) {name}: level sets, h = 0 in black"
+        if not (Path(d) / "checkpoint.json").is_file():
+            ax2.set_title(level_title)
+            ax2.text(0.5, 0.5, "not run", ha="center", transform=ax2.transAxes)
+            continue
+        _, learner, policy, _ = load_policy(d)
+        xs, ys, h, _ = cbf_grid(learner, policy[1], heading, resolution=60)
+        gx, gy = np.meshgrid(xs, ys)
+        ax3.plot_surface(gx, gy, h, cmap="RdYlGn", linewidth=0, antialiased=False)
+        ax3.set_xlabel("x (m)")
+        ax3.set_ylabel("y (m)")
+        ax3.set_zlabel("h")
+        draw_cbf(ax2, xs, ys, h, learner.env.layout, zero_color="black", zero_width=1.2)
+        ax2.set_title(level_title)  # after draw_layout, which titles the axes with the layout's name
+    fig.tight_layout()
+    fig.savefig(str(path), dpi=100)
+    return Path(path)
+
+
+# ------------------------------------------------------- Fig. 5: trajectories during training
+def snapshot_figure(path: Path, run_dir: Path, trajectories: int = 8) -> Path:
+    """Fig. 5: the layout, then the executed policy's trajectories at each of the run's policy
+    snapshots (``TrainConfig.snapshots``), ``trajectories`` episodes each (seed: the panel's index)."""
+    from d2spo.evaluate import load_policy
+    from d2spo.rollout import make_rollout
+    from d2spo.train import load_snapshot
+
+    cfg, learner, _, _ = load_policy(run_dir)
+    snapshots = tuple(cfg.snapshots)
+    env, params = learner.env, learner.params
+    fig = _figure(1 + len(snapshots), size=4.0)
+    ax = fig.add_subplot(1, 1 + len(snapshots), 1)
+    draw_layout(env.layout, ax, sensing_radius=float(params.sensing_radius))
+    ax.set_title("(a) layout, start and sensing radius")
+    rollout = make_rollout(learner, env, trajectories, int(params.max_steps))  # one compilation for every snapshot
+    for i, n in enumerate(snapshots):
+        policy = load_snapshot(run_dir, n, learner)
+        poses, collided, completed = policy_trajectories(learner, policy, env, params, trajectories, seed=i,
+                                                         rollout=rollout)
+        ax = fig.add_subplot(1, 1 + len(snapshots), i + 2)
+        draw_layout(env.layout, ax, show_sensing=False)
+        draw_trajectories(ax, poses, collided, completed)
+        ax.set_title(f"({chr(ord('b') + i)}) after {n} episodes\n{completed.mean():.0%} complete, "
+                     f"{1 - collided.mean():.0%} safe ({poses.shape[0]} runs)")
+    fig.set_layout_engine("constrained")  # tight_layout clips two-line titles over equal-aspect axes
+    fig.savefig(str(path), dpi=100)
+    return Path(path)
+
+
+def _figure(ncols: int, nrows: int = 1, size: float = 4.5) -> Figure:
+    fig = Figure(figsize=(size * ncols, size * nrows))
+    FigureCanvasAgg(fig)
+    return fig

@@ -12,20 +12,18 @@ reused, an interrupted one resumes from its checkpoint, and any of them can be i
 * ``ray``: one Ray task per run on a cluster (``--address``) or a local Ray instance; every task
   writes the same run directory (the output directory must be shared by the workers).
 
-Renderers write ``OUT/table2.md`` / ``.csv`` etc. and ``OUT/figN.png``; ``d2spo report OUT``
-gathers them into one page.
+``render`` hands each target's run directories to its renderer, which reads only the directories:
+``d2spo.tables`` writes ``OUT/table2.md`` / ``.csv`` etc., ``d2spo.plots`` draws ``OUT/figN.png``;
+``d2spo report OUT`` gathers them into one page.
 """
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import json
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
-
-import numpy as np
 
 from d2spo.errors import UserError
 from d2spo.runio import atomic_write_json
@@ -33,15 +31,6 @@ from d2spo.runio import atomic_write_json
 TARGETS = ("table2", "table3", "fig2", "fig3", "fig4", "fig5")
 METHODS = ("cpo", "ppo-lag", "td3-lag", "sac-lag", "rcrl", "d2spo")
 """The rows of Tables II and III, in the paper's order."""
-METHOD_NAMES = {"cpo": "CPO", "ppo-lag": "LPPO", "td3-lag": "LTD3", "sac-lag": "LSAC", "rcrl": "RCRL",
-                "d2spo": "D²SPO", "tlgrl": "TLGRL", "td3": "RL (sparse)", "sl": "SL"}
-PAPER = {
-    # Table II (ϕ1) and Table III (relaxed ϕ1): (safety %, completion %)
-    "table2": {"cpo": (90.71, 19.44), "ppo-lag": (96.84, 0.0), "td3-lag": (83.08, 0.0), "sac-lag": (77.76, 96.74),
-               "rcrl": (74.47, 77.52), "d2spo": (95.23, 99.31)},
-    "table3": {"cpo": (94.49, 98.02), "ppo-lag": (91.59, 63.50), "td3-lag": (95.10, 97.11),
-               "sac-lag": (93.94, 98.75), "rcrl": (94.19, 94.82), "d2spo": (97.94, 99.48)},
-}
 TABLE_SETTING = {"table2": ("phi1", "paper"), "table3": ("relaxed", "relaxed")}
 PHYSICAL = ("physical-1", "physical-2", "physical-3", "physical-4")
 FIG4_EPISODES = 2000
@@ -316,233 +305,42 @@ def run_ray(specs: list[RunSpec], out: Path, address: str | None = None, num_cpu
             ray.shutdown()
 
 
-# ------------------------------------------------------------------------------------ tables
-def summaries(out: Path, specs: list[RunSpec]) -> dict[str, list[dict]]:
-    """Finished summaries per algo (missing runs are skipped), each with ``collision_rate_all``: the
-    fraction of *all* training episodes that collided (the paper's window only sees the last 2000)."""
-    from d2spo.runio import read_episodes, read_json
+# ------------------------------------------------------------------------- tables and figures
+FIG3_PANELS = ((("td3", "tlgrl"), "(a) RL vs TLGRL, open layout"), (("sl", "d2spo"), "(b) SL vs D²SPO, paper layout"))
 
-    by: dict[str, list[dict]] = {}
+
+def runs_by(out: Path, specs: Iterable[RunSpec], label: Callable[[RunSpec], str]) -> dict[str, list[Path]]:
+    """The run directories of ``specs`` grouped under ``label(spec)``, in the order of ``specs``."""
+    groups: dict[str, list[Path]] = {}
     for s in specs:
-        if is_finished(out, s):
-            summary = read_json(run_dir(out, s) / "summary.json", "summary")
-            rows = read_episodes(run_dir(out, s) / "episodes.csv")
-            summary["collision_rate_all"] = float(np.mean([r[3] for r in rows])) if rows else float("nan")
-            by.setdefault(s.algo, []).append(summary)
-    return by
-
-
-def _pm(values: list[float]) -> str:
-    a = 100 * np.asarray(values, float)
-    return f"{a.mean():.2f} ± {a.std():.2f}" if len(a) > 1 else f"{a.mean():.2f}"
-
-
-def write_table(target: str, out: Path, seeds: int, episodes: int, methods: Iterable[str] = METHODS) -> Path:
-    """OUT/TARGET.md and OUT/TARGET.csv: mean ± std over seeds beside the paper's numbers."""
-    out = Path(out)
-    methods = list(methods)
-    specs = runs_for(target, seeds, episodes, methods)
-    by = summaries(out, specs)
-    task, layout = TABLE_SETTING[target]
-    rows = []
-    for m in methods:
-        got = by.get(m, [])
-        paper = PAPER[target].get(m)
-        rows.append({
-            "method": METHOD_NAMES.get(m, m), "algo": m, "seeds": len(got),
-            "safety_mean": float(np.mean([g["safety_rate"] for g in got])) if got else float("nan"),
-            "safety_std": float(np.std([g["safety_rate"] for g in got])) if got else float("nan"),
-            "completion_mean": float(np.mean([g["completion_rate"] for g in got])) if got else float("nan"),
-            "completion_std": float(np.std([g["completion_rate"] for g in got])) if got else float("nan"),
-            "paper_safety": paper[0] / 100 if paper else float("nan"),
-            "paper_completion": paper[1] / 100 if paper else float("nan"),
-            "wall_seconds_mean": float(np.mean([g["wall_seconds"] for g in got])) if got else float("nan"),
-            "collision_rate_all_mean": float(np.mean([g["collision_rate_all"] for g in got])) if got else float("nan"),
-            "_safety": _pm([g["safety_rate"] for g in got]) if got else "not run",
-            "_completion": _pm([g["completion_rate"] for g in got]) if got else "not run",
-        })
-    with open(out / f"{target}.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=[k for k in rows[0] if not k.startswith("_")])
-        w.writeheader()
-        w.writerows([{k: v for k, v in r.items() if not k.startswith("_")} for r in rows])
-    window = min(next((g["window"] for gs in by.values() for g in gs), 2000), episodes)  # a short run: all of it
-    title = {"table2": "Table II: ϕ1 on `paper`", "table3": "Table III: relaxed ϕ1 on `relaxed`"}[target]
-    lines = [f"### {title}", "",
-             f"Safety and completion rate (%) over {f'the last {window} of' if window < episodes else 'all'} "
-             f"{episodes} training episodes, mean ± std "
-             f"over seeds; task `{task}`, layout `{layout}`; the paper's figures beside them. \"Collisions, all "
-             f"episodes\": the share of every training episode that collided (mean over seeds).", "",
-             "| method | seeds | safety | completion | paper safety | paper completion | collisions, all episodes | wall time / run |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|"]
-    for r in rows:
-        wall = f"{r['wall_seconds_mean']:.0f} s" if r["seeds"] else "–"
-        ps = f"{100 * r['paper_safety']:.2f}" if np.isfinite(r["paper_safety"]) else "–"
-        pc = f"{100 * r['paper_completion']:.2f}" if np.isfinite(r["paper_completion"]) else "–"
-        coll = f"{100 * r['collision_rate_all_mean']:.2f}%" if r["seeds"] else "–"
-        lines.append(f"| {r['method']} | {r['seeds']} | {r['_safety']} | {r['_completion']} | {ps} | {pc} | {coll} "
-                     f"| {wall} |")
-    path = out / f"{target}.md"
-    path.write_text("\n".join(lines) + "\n")
-    return path
-
-
-# ----------------------------------------------------------------------------------- figures
-def smoothing_window(n_episodes: int, smooth: int = 200) -> int:
-    """Episodes per moving-average point: ``smooth``, but at most a fifth of a short run, so that a
-    quick run still draws a curve of a few points rather than a single one."""
-    return max(1, min(smooth, n_episodes // 5))
-
-
-def reward_curves(out: Path, specs: list[RunSpec], smooth: int = 200):
-    """Per algo: (episode index, mean return over seeds, std) of the moving-average return over
-    ``smoothing_window`` episodes (seeds cut to the shortest); the index is the episode count at
-    the end of each window."""
-    from d2spo.runio import read_episodes
-
-    returns: dict[str, list[np.ndarray]] = {}
-    for s in specs:
-        p = run_dir(out, s) / "episodes.csv"
-        if not p.is_file():
-            continue
-        ret = np.array([r[1] for r in read_episodes(p)], float)
-        if len(ret) > 0:
-            returns.setdefault(s.algo, []).append(ret)
-    result = {}
-    for algo, rs in returns.items():
-        n = min(len(r) for r in rs)
-        k = smoothing_window(n, smooth)
-        a = np.stack([np.convolve(r[:n], np.ones(k) / k, mode="valid") for r in rs])
-        result[algo] = (np.arange(a.shape[1]) + k, a.mean(0), a.std(0))
-    return result
-
-
-def _figure(ncols: int, nrows: int = 1, size: float = 4.5):
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(size * ncols, size * nrows))
-    FigureCanvasAgg(fig)
-    return fig
-
-
-def _curve_axes(ax, curves, title: str) -> None:
-    for algo, (x, mean, std) in curves.items():
-        line = ax.plot(x, mean, label=METHOD_NAMES.get(algo, algo), marker="o" if len(x) == 1 else None)[0]
-        ax.fill_between(x, mean - std, mean + std, color=line.get_color(), alpha=0.2)
-    ax.set_xlabel("episode")
-    widths = sorted({int(x[0]) for x, _, _ in curves.values()})  # a curve's first point ends its first window
-    ax.set_ylabel(f"return (moving average over {'/'.join(map(str, widths))} episodes)" if widths
-                  else "return (moving average)")
-    ax.set_title(title)
-    if curves:
-        ax.legend(fontsize=8)
-
-
-def fig2(out: Path, seeds: int, episodes: int, methods: Iterable[str] = METHODS) -> Path:
-    fig = _figure(2)
-    for i, target in enumerate(("table2", "table3")):
-        curves = reward_curves(out, runs_for(target, seeds, episodes, methods))
-        _curve_axes(fig.add_subplot(1, 2, i + 1), curves, "(a) ϕ1" if i == 0 else "(b) relaxed ϕ1")
-    fig.tight_layout()
-    path = Path(out) / "fig2.png"
-    fig.savefig(str(path), dpi=110)
-    return path
-
-
-def fig3(out: Path, seeds: int, episodes: int) -> Path:
-    specs = runs_for("fig3", seeds, episodes)
-    fig = _figure(2)
-    for i, (algos, title) in enumerate(((("td3", "tlgrl"), "(a) RL vs TLGRL, open layout"),
-                                        (("sl", "d2spo"), "(b) SL vs D²SPO, paper layout"))):
-        ax = fig.add_subplot(1, 2, i + 1)
-        for task in ("phi1", "phi2"):
-            curves = reward_curves(out, [s for s in specs if s.algo in algos and s.task == task])
-            _curve_axes(ax, {f"{METHOD_NAMES[a]}-{task}": v for a, v in curves.items()}, title)
-    fig.tight_layout()
-    path = Path(out) / "fig3.png"
-    fig.savefig(str(path), dpi=110)
-    return path
-
-
-def fig4(out: Path, seeds: int, episodes: int, heading: float = 0.0) -> Path:
-    """Surface and level-set plots of the learned h on the four physical layouts (fixed heading)."""
-    from d2spo.envs.render import draw_layout
-    from d2spo.evaluate import load_policy
-    from d2spo.plots import cbf_grid
-
-    specs = runs_for("fig4", seeds, episodes)
-    fig = _figure(4, 2, size=4.0)
-    for i, spec in enumerate(specs):
-        d = run_dir(out, spec)
-        ax3 = fig.add_subplot(2, 4, i + 1, projection="3d")
-        ax2 = fig.add_subplot(2, 4, i + 5)
-        ax3.set_title(f"({'abcd'[i]}) {spec.layout}")
-        level_title = f"({'efgh'[i]}) {spec.layout}: level sets, h = 0 in black"
-        if not (d / "checkpoint.json").is_file():
-            ax2.set_title(level_title)
-            ax2.text(0.5, 0.5, "not run", ha="center", transform=ax2.transAxes)
-            continue
-        _, learner, policy, _ = load_policy(d)
-        xs, ys, h, _ = cbf_grid(learner, policy[1], heading, resolution=60)
-        gx, gy = np.meshgrid(xs, ys)
-        ax3.plot_surface(gx, gy, h, cmap="RdYlGn", linewidth=0, antialiased=False)
-        ax3.set_xlabel("x (m)")
-        ax3.set_ylabel("y (m)")
-        ax3.set_zlabel("h")
-        lim = float(np.nanmax(np.abs(h))) or 1.0
-        ax2.contourf(xs, ys, h, levels=15, cmap="RdYlGn", vmin=-lim, vmax=lim)
-        ax2.contour(xs, ys, h, levels=[0.0], colors="black", linewidths=1.2)
-        draw_layout(learner.env.layout, ax2, show_sensing=False)
-        ax2.set_title(level_title)  # after draw_layout, which titles the axes with the layout's name
-    fig.tight_layout()
-    path = Path(out) / "fig4.png"
-    fig.savefig(str(path), dpi=100)
-    return path
-
-
-def fig5(out: Path, seeds: int, episodes: int, trajectories: int = 8) -> Path:
-    """The layout and the executed policy's trajectories after 10%, 50% and 100% of training."""
-    from d2spo.envs.render import draw_layout, draw_trajectory
-    from d2spo.evaluate import load_policy
-    from d2spo.plots import policy_trajectories
-    from d2spo.rollout import make_rollout
-    from d2spo.train import load_snapshot
-
-    spec = runs_for("fig5", seeds, episodes)[0]
-    d = run_dir(out, spec)
-    fig = _figure(1 + len(spec.snapshots), size=4.0)
-    if not (d / "checkpoint.json").is_file():
-        raise UserError(f"{d}: fig5's run has not been trained")
-    _, learner, _, _ = load_policy(d)
-    env, params = learner.env, learner.params
-    ax = fig.add_subplot(1, 1 + len(spec.snapshots), 1)
-    draw_layout(env.layout, ax, sensing_radius=float(params.sensing_radius))
-    ax.set_title("(a) layout, start and sensing radius")
-    rollout = make_rollout(learner, env, trajectories, int(params.max_steps))  # one compilation for every snapshot
-    for i, n in enumerate(spec.snapshots):
-        policy = load_snapshot(d, n, learner)
-        poses, collided, completed = policy_trajectories(learner, policy, env, params, trajectories, seed=i,
-                                                         rollout=rollout)
-        ax = fig.add_subplot(1, 1 + len(spec.snapshots), i + 2)
-        draw_layout(env.layout, ax, show_sensing=False)
-        for k in range(poses.shape[0]):
-            xy = poses[k, :, :2]
-            xy = xy[np.all(np.isfinite(xy), axis=-1)]
-            draw_trajectory(ax, xy, color="tab:red" if collided[k] else ("tab:purple" if completed[k] else "tab:orange"))
-        ax.set_title(f"({'bcd'[i]}) after {n} episodes\n{completed.mean():.0%} complete, {1 - collided.mean():.0%} safe "
-                     f"({poses.shape[0]} runs)")
-    fig.set_layout_engine("constrained")  # tight_layout clips two-line titles over equal-aspect axes
-    path = Path(out) / "fig5.png"
-    fig.savefig(str(path), dpi=100)
-    return path
+        groups.setdefault(label(s), []).append(run_dir(out, s))
+    return groups
 
 
 def render(target: str, out: Path, seeds: int, episodes: int, methods: Iterable[str] = METHODS) -> Path:
+    """Write OUT/TARGET.md and .csv (``d2spo.tables``) or OUT/TARGET.png (``d2spo.plots``) from the
+    runs in OUT that the target needs (a missing or unfinished run is left out or shown as not run)."""
+    from d2spo import plots, tables
+
+    out = Path(out)
+    specs, path = runs_for(target, seeds, episodes, methods), out / f"{target}.png"
     if target in TABLE_SETTING:
-        return write_table(target, out, seeds, episodes, methods)
+        return tables.write_table(out, target, runs_by(out, specs, lambda s: s.algo), *TABLE_SETTING[target], episodes)
     if target == "fig2":
-        return fig2(out, seeds, episodes, methods)
-    return {"fig3": fig3, "fig4": fig4, "fig5": fig5}[target](out, seeds, episodes)
+        return plots.reward_figure(path, [
+            (title, runs_by(out, runs_for(t, seeds, episodes, methods), lambda s: tables.METHOD_NAMES.get(s.algo, s.algo)))
+            for t, title in (("table2", "(a) ϕ1"), ("table3", "(b) relaxed ϕ1"))])
+    if target == "fig3":  # per panel: the two methods on ϕ1, then on ϕ2
+        return plots.reward_figure(path, [
+            (title, runs_by(out, [s for t in ("phi1", "phi2") for s in specs if s.algo in algos and s.task == t],
+                            lambda s: f"{tables.METHOD_NAMES[s.algo]}-{s.task}"))
+            for algos, title in FIG3_PANELS])
+    if target == "fig4":
+        return plots.cbf_figure(path, [(s.layout, run_dir(out, s)) for s in specs])
+    d = run_dir(out, specs[0])
+    if not (d / "checkpoint.json").is_file():
+        raise UserError(f"{d}: fig5's run has not been trained")
+    return plots.snapshot_figure(path, d)
 
 
 def reproduce(targets: Iterable[str], out: Path, seeds: int = 3, episodes: int = 20_000, backend: str = "local",
@@ -592,10 +390,9 @@ def reproduce(targets: Iterable[str], out: Path, seeds: int = 3, episodes: int =
     else:
         run_ray(specs, out, address, log=log)
     written = [render(t, out, seeds, episodes, methods) for t in targets]
-    meta = {"targets": targets, "seeds": seeds, "finished": sum(is_finished(out, s) for s in specs), "train": train, "episodes": episodes, "methods": methods, "backend": backend,
-            "runs": [dataclasses.asdict(s) for s in specs]}
-    meta["stale"] = stale
-    meta["rendered"] = _rendered_history(out, targets, seeds, episodes, methods, stale)
+    meta = {"targets": targets, "seeds": seeds, "finished": sum(is_finished(out, s) for s in specs), "train": train,
+            "episodes": episodes, "methods": methods, "backend": backend, "runs": [dataclasses.asdict(s) for s in specs],
+            "stale": stale, "rendered": _rendered_history(out, targets, seeds, episodes, methods, stale)}
     atomic_write_json(out / "reproduce.json", meta)
     for p in written:
         log(f"wrote {p}")
