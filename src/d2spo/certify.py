@@ -3,7 +3,7 @@
 The maths is in `safety/certify.py` (per point) and `safety/bounds.py` (interval bounds). This
 module loads a run, builds the nets, measures the nominal model's residual on held-out transitions,
 classifies every point, runs the search for counterexamples (`certify_search.py`), and writes
-RUN/certify.json and RUN/certify.png (`certify_picture.py`). Nothing here prints; the CLI renders
+RUN/certify.json and RUN/certify.png (drawn by `plots.certify_figure`). Nothing here prints; the CLI renders
 the summary.
 
 Nets: the run's X_L (Proposition 1) and P_exp (Proposition 2: D, the explored set, where T_e of
@@ -417,11 +417,30 @@ def certify_run(run_dir: Path, ccfg: CertifyConfig | None = None, run: CBFRun | 
 
 def write_outputs(run_dir: Path, run: CBFRun, ccfg: CertifyConfig, summary: dict, nets: dict) -> tuple[Path, Path]:
     """RUN/certify.json and RUN/certify.png."""
-    from d2spo.certify_picture import save_picture
+    from d2spo.plots import certify_figure
     from d2spo.runio import atomic_write_json
 
     run_dir = Path(run_dir)
     j, p = run_dir / "certify.json", run_dir / "certify.png"
     atomic_write_json(j, summary)
-    save_picture(run, ccfg, nets, summary, p)
+    maps, extent = status_maps(run, ccfg, nets)
+    certify_figure(run.env.layout, maps, extent, summary, ccfg.eps_unsafe, ccfg.eps_safe, p)
     return j, p
+
+
+def status_maps(run: CBFRun, ccfg: CertifyConfig, nets: dict) -> tuple[list[np.ndarray], tuple]:
+    """Worst status over θ (and automaton states) per grid cell, for grid_L, grid_D and grid_free (if
+    checked): arrays [ny, nx] of -1 (not in that set), 0 certified, 1 not certified, 2 violated."""
+    lo, hi = np.asarray(run.params.geom.arena_lo), np.asarray(run.params.geom.arena_hi)
+    xs, ys, _ = grid_axes(run, ccfg)
+    maps = []
+    for key in ("grid_L", "grid_D", "grid_free"):
+        if key not in nets:
+            continue
+        m = np.full((len(ys), len(xs)), -1, np.int32)
+        net = nets[key]
+        if net["p"] is not None:
+            ix, iy, _ = cell_index(net["pose"], lo, ccfg, (len(xs), len(ys)))
+            np.maximum.at(m, (iy, ix), np.asarray(net["p"].status, np.int32))
+        maps.append(m)
+    return maps, (lo[0], hi[0], lo[1], hi[1])

@@ -75,9 +75,12 @@ class LtlCmd:
             print(aut.pretty(feasible))
             print(f"distance: area visits (letters) still needed to accept, over {letters}")
         if self.plot is not None:
-            from d2spo.envs.state_fields import plot_state_fields
+            from d2spo.envs.state_fields import check_task, default_fields
+            from d2spo.plots import state_fields_figure
 
-            plot_state_fields(aut, self.formula, self.layout, self.label_mode, self.plot)
+            layout, sf, distance, radius = default_fields(aut, self.layout, self.label_mode)
+            state_fields_figure(layout, aut, sf, self.plot, distance)
+            check_task(aut, layout, self.label_mode, radius, repr(self.formula))  # the picture shows why
             print(f"wrote {self.plot}")
         return 0
 

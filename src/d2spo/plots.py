@@ -3,7 +3,9 @@
 * the policy figure of ``d2spo demo``: trajectories on the layout and the learned CBF;
 * Figs. 2–3 (``reward_figure``): moving-average return per method, mean and ± 1 std over seeds;
 * Fig. 4 (``cbf_figure``): the learned h as a surface and as level sets, one run per layout;
-* Fig. 5 (``snapshot_figure``): the executed policy's trajectories at the run's policy snapshots.
+* Fig. 5 (``snapshot_figure``): the executed policy's trajectories at the run's policy snapshots;
+* ``d2spo certify``'s picture (``certify_figure``) from its status maps;
+* ``d2spo ltl TASK --layout L --plot``'s shaping fields per automaton state (``state_fields_figure``).
 
 Each thing is drawn by one function (``draw_trajectories``, ``draw_cbf``, ``draw_reward_curves``)
 that the figures share. ``d2spo.reproduce`` only chooses which run directories go into which
@@ -21,8 +23,9 @@ import jax.numpy as jnp
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.patches import Circle, Rectangle
 
-from d2spo.envs.render import add_legend, draw_layout, draw_trajectory
+from d2spo.envs.render import OBSTACLE_COLOR, START_COLOR, add_legend, draw_layout, draw_trajectory
 
 OUTCOME_COLORS = {"completed": "tab:purple", "collided": "tab:red", "neither": "tab:orange"}
 """Trajectory colours: the task completed (true labelling), a collision, or the episode ran out."""
@@ -237,3 +240,76 @@ def _figure(ncols: int, nrows: int = 1, size: float = 4.5) -> Figure:
     fig = Figure(figsize=(size * ncols, size * nrows))
     FigureCanvasAgg(fig)
     return fig
+
+
+def certify_figure(layout, maps: list[np.ndarray], extent: tuple, summary: dict, eps_unsafe: float,
+                   eps_safe: float, path: str | Path) -> None:
+    """``d2spo certify``'s picture (RUN/certify.png) from its status maps (``certify.status_maps``):
+    where Proposition 1 (ℒ and contact) and Proposition 2 (the grid's explored part; then the whole
+    free space, if checked) are certified (green), not certified (orange) or violated (red), worst
+    over θ and states; the search's worst points as x."""
+    from matplotlib.colors import ListedColormap
+
+    cmap = ListedColormap(["white", "tab:green", "orange", "tab:red"])
+    rho = summary["residual"]["rho_h"]
+    titles = (f"Prop. 1: h < 0 in the ring and contact (ε̄ = {eps_unsafe:g} m)",
+              f"Prop. 2: e ≥ 0 on explored cells (D; ε = {eps_safe:g} m, ρ_h = {rho:.3g})",
+              "Prop. 2 beyond D: every free pose, every live state")
+    fig = Figure(figsize=(5.5 * len(maps), 5.2))
+    for i, m in enumerate(maps):
+        ax = fig.add_subplot(1, len(maps), i + 1)
+        ax.imshow(m + 1, origin="lower", extent=extent, cmap=cmap, vmin=0, vmax=3, interpolation="nearest")
+        draw_layout(layout, ax, show_sensing=False)
+        key = "L" if i == 0 else "D"
+        if i < 2:
+            for c in summary["counterexamples"][key]:
+                ax.plot(c["pose"][0], c["pose"][1], "x", color="black" if c["counterexample"] else "grey", markersize=7)
+        ax.set_title(titles[i], fontsize=9)
+    fig.suptitle(f"{summary['run']}: green certified, orange not certified, red violated (worst over θ and "
+                 "automaton state), white outside the set; x = worst found by the search (black: a counterexample)",
+                 fontsize=8)
+    FigureCanvasAgg(fig).print_png(str(path))
+
+
+def state_fields_figure(layout, aut, fields, path: str | Path, distance=None, dpi: int = 90) -> None:
+    """One panel per automaton state that still has a target: the shaping distance field
+    (``envs.state_fields.StateFields``) with its target nodes (green) and forbidden nodes (red).
+
+    ``aut`` is the ``Automaton``; ``distance`` its distances on this layout (shown in the titles).
+    """
+    states = [q for q in range(aut.n_states) if fields.target_cells[q].any()]
+    cols = min(len(states), 3) or 1
+    rows = max(1, -(-len(states) // cols))
+    fig = Figure(figsize=(4.2 * cols, 4.4 * rows))
+    FigureCanvasAgg(fig)
+    w, h = layout.arena
+    for k, q in enumerate(states):
+        ax = fig.add_subplot(rows, cols, k + 1)
+        f = fields.field[q]
+        vmax = float(np.percentile(f, 90))
+        im = ax.imshow(f, origin="lower", extent=(0, w, 0, h), cmap="viridis", vmin=0.0, vmax=vmax)
+        ax.contour(np.linspace(0, w, f.shape[1]), np.linspace(0, h, f.shape[0]), f,
+                   levels=np.arange(0.5, vmax, 0.5), colors="white", linewidths=0.4, alpha=0.6)
+        for mask, color in ((fields.target_cells[q], "tab:green"), (fields.forbidden_cells[q], "tab:red")):
+            if mask.any():
+                ax.contourf(np.linspace(0, w, mask.shape[1]), np.linspace(0, h, mask.shape[0]), mask.astype(float),
+                            levels=[0.5, 1.5], colors=[color], alpha=0.75)
+        for o in layout.obstacles:
+            ax.add_patch(Rectangle(tuple(o.lo), 2 * o.half_extents[0], 2 * o.half_extents[1], color=OBSTACLE_COLOR))
+        for a in layout.areas:
+            ax.add_patch(Circle(a.center, a.radius, fill=False, edgecolor="white", linewidth=0.8))
+            ax.annotate(a.name, a.center, ha="center", va="center", fontsize=8, weight="bold", color="white")
+        ax.plot([layout.start[0]], [layout.start[1]], "o", color=START_COLOR, markersize=5)
+        d = "" if distance is None else f", {distance[q]} to go"
+        formula = aut.state_formulas[q]
+        formula = formula if len(formula) <= 42 else formula[:40] + "…"
+        ax.set_title(f"state {q}{d}: to {' '.join(fields.targets[q]) or '-'}, "
+                     f"not {' '.join(fields.forbidden[q]) or '-'}\n{formula}", fontsize=8)
+        ax.set_xlim(0, w)
+        ax.set_ylim(0, h)
+        ax.set_aspect("equal")
+        fig.colorbar(im, ax=ax, fraction=0.046, pad=0.02, label="distance (m)")
+    fig.suptitle(f"shaping distance per automaton state on {layout.name} (green: target, red: forbidden)",
+                 fontsize=9)
+    fig.tight_layout()
+    fig.savefig(str(path), dpi=dpi)

@@ -309,20 +309,17 @@ def check_task(aut: Automaton, layout: Layout, label_mode: str, robot_radius: fl
                       f"({aut.state_formulas[q]}) a robot of radius {robot_radius:g} m cannot reach {goal}{why}")
 
 
-def plot_state_fields(aut: Automaton, name: str, layout_name: str, label_mode: str, path) -> None:
-    """Draw the fields of ``aut`` on a layout as the default environment config computes them (robot
-    radius, shaping clearance) into the PNG ``path``; then ``check_task`` (ConfigError if the task
-    cannot be done; the picture shows why)."""
+def default_fields(aut: Automaton, layout_name: str, label_mode: str):
+    """(layout, fields, distances, robot radius) of ``aut`` on a layout as the default environment
+    config computes them (robot radius, shaping clearance): what ``d2spo ltl --plot`` draws
+    (``plots.state_fields_figure``) before it runs ``check_task``."""
     from d2spo.envs.env_config import EnvConfig
-    from d2spo.envs.render import save_state_fields_png
 
     cfg = EnvConfig(layout=layout_name, label_mode=label_mode).resolved()
     layout = layouts.load(layout_name).scaled(cfg.layout_scale)
-    clearance = cfg.reward.clearance(cfg.robot_radius)
-    sf = state_fields(aut, layout, label_mode, clearance)
+    sf = state_fields(aut, layout, label_mode, cfg.reward.clearance(cfg.robot_radius))
     distance = aut.distances(layouts.feasible_letters(layout, aut.aps, label_mode))
-    save_state_fields_png(layout, aut, sf, path, distance)
-    check_task(aut, layout, label_mode, cfg.robot_radius, repr(name))
+    return layout, sf, distance, cfg.robot_radius
 
 
 TIGHT_FRACTION = 0.6
