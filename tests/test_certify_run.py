@@ -62,12 +62,12 @@ def _shifted(run, c: float):
     return run._replace(carry=run.carry.replace(safety=run.carry.safety.replace(cbf=new)))
 
 
-def test_h_shifted_up_is_reported_violated_and_shifted_down_certified(untrained_run):
-    from d2spo.certify import CertifyConfig, certify_run, load_cbf_run
+def test_h_shifted_up_is_reported_violated_and_shifted_down_certified(untrained_run, tmp_path):
+    from d2spo.certify import CertifyConfig, certify_run, load_cbf_run, status_maps, write_outputs
 
     ccfg = CertifyConfig(**CCFG_TINY)  # the same config as the repair test: the compiled pieces are shared
     run = load_cbf_run(untrained_run)
-    up, _ = certify_run(untrained_run, ccfg, run=_shifted(run, 20.0), search=False)
+    up, up_nets = certify_run(untrained_run, ccfg, run=_shifted(run, 20.0), search=False)
     assert up["nets"]["grid_L"]["points"] > 0 and up["nets"]["grid_L"]["violated"] == 1.0
     assert up["grid_L_violated"] == up["nets"]["grid_L"]["points"]
     down, _ = certify_run(untrained_run, ccfg, run=_shifted(run, -20.0), search=False)
@@ -75,6 +75,13 @@ def test_h_shifted_up_is_reported_violated_and_shifted_down_certified(untrained_
     assert down["nets"]["grid_free"]["violated"] == 1.0  # e ≈ α(−20) < 0 wherever the robot is free
     assert down["nets"]["grid_D"]["points"] == 0  # an untrained run has explored nothing
     json.dumps(up)  # the summary is what certify.json holds
+    # the picture: Prop. 1's map is violated (2) wherever the ring and contact grid has a point
+    maps, _ = status_maps(run, ccfg, up_nets)
+    assert set(np.unique(maps[0])) <= {-1, 2} and (maps[0] == 2).any()
+    up["counterexamples"] = {"L": [], "D": []}
+    j, png = write_outputs(tmp_path, run, ccfg, up, up_nets)
+    assert json.loads(j.read_text())["grid_L_violated"] == up["grid_L_violated"]
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def _one_error_line(capsys, args) -> str:
