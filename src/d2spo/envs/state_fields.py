@@ -199,12 +199,32 @@ def state_fields(aut: Automaton, layout: Layout, label_mode: str, clearance: flo
     """Target and forbidden areas and the shaping distance field of every state of ``aut`` on
     ``layout`` (cached). ``clearance``: the path keeps this far from obstacles, walls and
     forbidden areas where it can (the reward's ``shaping_clearance``)."""
-    key = (*_key(aut, layout), label_mode, float(clearance), float(spacing))
+    key = ("fields", *_key(aut, layout), label_mode, float(clearance), float(spacing))
+    return _memo(key, lambda: _compute(aut, layout, label_mode == "event", float(clearance), float(spacing)))
+
+
+def _memo(key: tuple, compute):
+    """``compute()``, cached under ``key`` (the oldest entry goes when ``_CACHE_SIZE`` are held)."""
     if key not in _CACHE:
         if len(_CACHE) >= _CACHE_SIZE:
             del _CACHE[next(iter(_CACHE))]
-        _CACHE[key] = _compute(aut, layout, label_mode == "event", float(clearance), float(spacing))
+        _CACHE[key] = compute()
     return _CACHE[key]
+
+
+def _task_grid(aut: Automaton, layout: Layout, label_mode: str, robot_radius: float):
+    """The grid the task checks search: (free [ny, nx], letters [ny, nx], delta [Q, 2**n], resolution,
+    start (q0, iy, ix)) with q0 the state after the start cell's letter is read as the env reads it."""
+    resolution = min(0.05, max(layout.arena) / 100.0)
+    free, centres = layouts.free_grid(layout, robot_radius, resolution)
+    letters = _letters_at(centres, layout, aut.aps)
+    ny, nx = free.shape
+    delta = np.asarray(aut.delta, np.int64).reshape(aut.n_states, aut.n_letters)
+    iy = min(int(layout.start[1] / resolution), ny - 1)
+    ix = min(int(layout.start[0] / resolution), nx - 1)
+    first = letters[iy, ix]
+    q0 = int(delta[aut.initial, first]) if (first != 0 or label_mode != "event") else aut.initial
+    return free, letters, delta, resolution, (q0, iy, ix)
 
 
 def _reachable(delta: np.ndarray, letters: np.ndarray, free: np.ndarray, start: tuple[int, int, int], event: bool,
@@ -282,17 +302,8 @@ def check_task(aut: Automaton, layout: Layout, label_mode: str, robot_radius: fl
     if distance[aut.initial] is None:
         raise ConfigError("task", f"{name} cannot be completed on layout {layout.name!r}: no sequence of the "
                           "letters it can produce (areas entered alone, or together where they overlap) does it")
-    event = label_mode == "event"
-    resolution = min(0.05, max(layout.arena) / 100.0)
-    free, centres = layouts.free_grid(layout, robot_radius, resolution)
-    letters = _letters_at(centres, layout, aut.aps)
-    ny, nx = free.shape
-    delta = np.asarray(aut.delta, np.int64).reshape(aut.n_states, aut.n_letters)
-    iy = min(int(layout.start[1] / resolution), ny - 1)
-    ix = min(int(layout.start[0] / resolution), nx - 1)
-    first = letters[iy, ix]
-    q0 = delta[aut.initial, first] if (first != 0 or not event) else aut.initial
-    reached = _reachable(delta, letters, free, (q0, iy, ix), event, sorted(aut.accepting | aut.rejecting))
+    free, letters, delta, _, start = _task_grid(aut, layout, label_mode, robot_radius)
+    reached = _reachable(delta, letters, free, start, label_mode == "event", sorted(aut.accepting | aut.rejecting))
     open_states = np.ones(aut.n_states, bool)
     open_states[sorted(aut.accepting | aut.rejecting)] = False
     if any(reached[q] for q in aut.accepting):
@@ -332,10 +343,8 @@ def check_time(aut: Automaton, layout: Layout, label_mode: str, robot_radius: fl
                v_max: float, name: str) -> None:
     """ConfigError when no route completes the task within ``max_steps`` steps at ``v_max``; a
     ``TaskWarning`` when the shortest route needs more than ``TIGHT_FRACTION`` of them."""
-    key = (*_key(aut, layout), label_mode, float(robot_radius))
-    if key not in _ROUTES:
-        _ROUTES[key] = route_length(aut, layout, label_mode, robot_radius)
-    length = _ROUTES[key]
+    key = ("route", *_key(aut, layout), label_mode, float(robot_radius))
+    length = _memo(key, lambda: route_length(aut, layout, label_mode, robot_radius))
     need = length / (v_max * dt)
     budget = f"{max_steps} steps of {dt:g} s at {v_max:g} m/s"
     if need / OCTILE_EXCESS > max_steps:  # refuse only what no continuous route could do
@@ -348,7 +357,6 @@ def check_time(aut: Automaton, layout: Layout, label_mode: str, robot_radius: fl
             "route may run out of time (--max-steps raises the limit)"), stacklevel=3)
 
 
-_ROUTES: dict = {}
 OCTILE_EXCESS = math.sqrt(4 - 2 * math.sqrt(2))
 """The most an 8-neighbour grid path exceeds the straight segment it follows (1.082, at 22.5°)."""
 
@@ -363,14 +371,13 @@ def route_length(aut: Automaton, layout: Layout, label_mode: str, robot_radius: 
     environment reads them, rejecting states excluded. ``inf`` when no route exists.
     """
     event = label_mode == "event"
-    resolution = min(0.05, max(layout.arena) / 100.0)
-    free, centres = layouts.free_grid(layout, robot_radius, resolution)
-    letters = _letters_at(centres, layout, aut.aps)
+    free, letters, delta, resolution, (q0, iy, ix) = _task_grid(aut, layout, label_mode, robot_radius)
     ny, nx = free.shape
     n_states = aut.n_states
-    delta = np.asarray(aut.delta, np.int64).reshape(n_states, aut.n_letters)
-    dead = np.zeros(n_states, bool)
-    dead[sorted(aut.accepting | aut.rejecting)] = True
+    rejecting = np.zeros(n_states, bool)
+    rejecting[sorted(aut.rejecting)] = True
+    live = ~rejecting
+    live[sorted(aut.accepting)] = False
     cell = np.arange(ny * nx).reshape(ny, nx)
     rows, cols, weights = [], [], []
     for dy, dx in _SHIFTS8:
@@ -384,18 +391,14 @@ def route_length(aut: Automaton, layout: Layout, label_mode: str, robot_radius: 
         ys, xs, ty, tx = ys[ok], xs[ok], ty[ok], tx[ok]
         a, b = letters[ys, xs], letters[ty, tx]
         reads = (b != a) & (b != 0) if event else np.ones_like(b, bool)
-        for q in np.nonzero(~dead)[0]:
+        for q in np.nonzero(live)[0]:
             t = np.where(reads, delta[q, b], q)
-            keep = ~np.isin(t, sorted(aut.rejecting))
+            keep = ~rejecting[t]
             rows.append(q * ny * nx + cell[ys[keep], xs[keep]])
             cols.append(t[keep] * ny * nx + cell[ty[keep], tx[keep]])
             weights.append(np.full(int(keep.sum()), resolution * math.hypot(dy, dx)))
     n = n_states * ny * nx
     graph = sparse.csr_matrix((np.concatenate(weights), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n))
-    iy = min(int(layout.start[1] / resolution), ny - 1)
-    ix = min(int(layout.start[0] / resolution), nx - 1)
-    first = letters[iy, ix]
-    q0 = int(delta[aut.initial, first]) if (first != 0 or not event) else aut.initial
     if q0 in aut.accepting:
         return 0.0
     dist = csgraph.dijkstra(graph, indices=q0 * ny * nx + cell[iy, ix])
