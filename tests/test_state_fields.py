@@ -204,3 +204,19 @@ def test_check_time_refuses_a_task_that_cannot_fit_in_an_episode_and_warns_when_
         warnings.simplefilter("error")
         state_fields.check_time(aut, PAPER, "event", 0.15, int(steps / state_fields.TIGHT_FRACTION) + 1, 0.1, 1.0,
                                 "'phi2'")
+
+
+def test_default_step_limit_gives_a_long_task_room_and_leaves_short_ones_at_200():
+    phi1, phi2 = (translate(task_formula(t)) for t in ("phi1", "phi2"))
+    need = {t: state_fields.route_length(a, PAPER, "event", 0.15) / 0.1 for t, a in (("phi1", phi1), ("phi2", phi2))}
+    assert need["phi1"] <= state_fields.TIGHT_FRACTION * 200 < need["phi2"]  # phi1 fits, phi2 is tight
+    assert state_fields.default_max_steps(phi1, PAPER, "event", 0.15, 0.1, 1.0) == 200
+    auto = state_fields.default_max_steps(phi2, PAPER, "event", 0.15, 0.1, 1.0)
+    assert auto % 50 == 0 and state_fields.ROOM * need["phi2"] <= auto < state_fields.ROOM * need["phi2"] + 50
+    with warnings.catch_warnings():  # the automatic limit is never tight
+        warnings.simplefilter("error")
+        state_fields.check_time(phi2, PAPER, "event", 0.15, auto, 0.1, 1.0, "'phi2'")
+    # the env takes it when max_steps is unset, and an explicit limit wins
+    assert int(make_env(EnvConfig(layout="paper", preset="ideal"), "phi2")[1].max_steps) == auto
+    assert int(make_env(EnvConfig(layout="paper", preset="ideal", max_steps=200), "phi2")[1].max_steps) == 200
+    assert int(make_env(EnvConfig(layout="paper", preset="ideal"), "phi1")[1].max_steps) == 200

@@ -19,8 +19,10 @@ class EnvConfig:
     """Workspace: paper, relaxed, open, physical-1..physical-4, random, random:SEED, or a .json path."""
     preset: str = "default"
     """Robot and dynamics preset filling every field left unset: ideal, default or turtlebot."""
-    max_steps: int = 200
-    """Episode length limit (steps); reaching it truncates the episode."""
+    max_steps: int | None = None
+    """Episode length limit (steps); reaching it truncates the episode. None: 200, or twice the
+    task's shortest route at full speed (rounded up to 50) when that route needs over 60% of 200
+    steps (``envs.state_fields.default_max_steps``; phi2 on ``paper`` gets 300)."""
     n_rays: int = 16
     """Number K of lidar rays, evenly spaced over 360 degrees, ray 0 straight ahead."""
     label_mode: str = "event"
@@ -75,7 +77,7 @@ class EnvConfig:
         dynamics.get_preset(self.preset)
         preset_fields = ("dt", "v_max", "omega_max", "robot_radius", "sensing_radius", "layout_scale", "v_gain",
                          "omega_gain", "actuator_tau", "noise_xy", "noise_theta", "slip")
-        check_fields(self, nullable=preset_fields + ("label_radius",),
+        check_fields(self, nullable=preset_fields + ("label_radius", "max_steps"),
                      positive=("dt", "v_max", "omega_max", "robot_radius", "sensing_radius", "layout_scale",
                                "v_gain", "omega_gain", "label_radius"),
                      non_negative=("actuator_tau", "noise_xy", "noise_theta", "start_jitter_xy", "start_jitter_theta"),

@@ -35,7 +35,7 @@ from d2spo.envs.env_config import EnvConfig
 from d2spo.envs.geometry import Geometry
 from d2spo.envs.layouts import Layout
 from d2spo.errors import ConfigError
-from d2spo.ltl.automaton import UNREACHABLE, AutomatonArrays
+from d2spo.ltl.automaton import UNREACHABLE, Automaton, AutomatonArrays
 from d2spo.ltl.labelling import next_state
 from d2spo.ltl.reward import PER_STATE, RewardConfig, distance_to_progress, progress_areas, step_reward
 
@@ -392,11 +392,17 @@ def make_env(cfg: EnvConfig, task: Any = "phi1") -> tuple[Env, EnvParams]:
 
     n_states = int(arrays.delta.shape[0])
     clearance = cfg.reward.clearance(cfg.robot_radius)
+    speed = cfg.v_max * cfg.v_gain
+    max_steps = cfg.max_steps
+    if max_steps is None and not isinstance(automaton, Automaton):  # an object with arrays() only: no routes
+        max_steps = state_fields.DEFAULT_MAX_STEPS
+    if max_steps is None:
+        max_steps = state_fields.default_max_steps(automaton, layout, cfg.label_mode, cfg.robot_radius, cfg.dt, speed)
     if cfg.reward.shaping_metric == PER_STATE:
         name = task if isinstance(task, str) else "the task"
         state_fields.check_task(automaton, layout, cfg.label_mode, cfg.robot_radius, repr(name))
-        state_fields.check_time(automaton, layout, cfg.label_mode, cfg.robot_radius, cfg.max_steps, cfg.dt,
-                                cfg.v_max * cfg.v_gain, repr(name))
+        state_fields.check_time(automaton, layout, cfg.label_mode, cfg.robot_radius, max_steps, cfg.dt, speed,
+                                repr(name))
         field = state_fields.state_fields(automaton, layout, cfg.label_mode, clearance).field
     else:
         field = np.zeros((n_states, 1, 1), np.float32)
@@ -426,7 +432,7 @@ def make_env(cfg: EnvConfig, task: Any = "phi1") -> tuple[Env, EnvParams]:
         ),
         robot_radius=f32(cfg.robot_radius),
         sensing_radius=f32(cfg.sensing_radius),
-        max_steps=jnp.asarray(cfg.max_steps, jnp.int32),
+        max_steps=jnp.asarray(max_steps, jnp.int32),
         geodesic=f32(geodesic.distance_fields(
             layout.arena, [o.lo for o in layout.obstacles], [o.hi for o in layout.obstacles],
             [a.center for a in layout.areas], area_radius, clearance)
