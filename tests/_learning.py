@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 
 import jax
 import numpy as np
@@ -12,7 +13,8 @@ from d2spo.train import build, train
 
 
 def untrained_eval(cfg, episodes: int) -> dict:
-    """Evaluation of the freshly initialised policy, on the same episodes ``train`` evaluates on."""
+    """Evaluation of the freshly initialised policy, on the same episodes ``train`` evaluates on,
+    computed independently of ``train`` (its own build, init and rollout)."""
     env, params, learner = build(cfg)
     policy = learner.policy(jax.jit(learner.init)(jax.random.PRNGKey(cfg.seed)))
     return evaluate_policy(learner, policy, env, params, episodes, jax.random.PRNGKey(cfg.seed + 10_000))
@@ -20,9 +22,10 @@ def untrained_eval(cfg, episodes: int) -> dict:
 
 def assert_trains_without_nans_and_improves(cfg, run_dir) -> None:
     """300 episodes: collisions fall by 0.2 from the first to the last 75 episodes, and the final
-    policy's evaluation return beats the untrained one's by 1."""
-    untrained = untrained_eval(cfg, cfg.eval_episodes)
-    summary = train(cfg, run_dir)  # raises NaNError on non-finite parameters
+    policy's evaluation return beats the untrained one's by 1 (``eval_untrained``, the same
+    episodes and compilation as the final evaluation)."""
+    summary = train(dataclasses.replace(cfg, eval_untrained=True), run_dir)  # raises NaNError on NaNs
+    untrained = summary["eval_untrained"]
     with open(run_dir / "episodes.csv") as f:
         rows = np.array([[float(r[1]), float(r[3])] for r in list(csv.reader(f))[1:]])
     assert len(rows) == 300

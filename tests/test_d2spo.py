@@ -35,15 +35,14 @@ def test_short_run_on_relaxed_learns_to_reach_a1_safely(tmp_path):
     one and never collide; training itself stays mostly collision-free."""
     import dataclasses
 
-    from _learning import untrained_eval
-
     from d2spo.algos.td3 import TD3Config
     from d2spo.train import train
 
     cfg = TrainConfig(algo="d2spo", task="F A1", env=EnvConfig(layout="relaxed"), episodes=500, seed=0,
-                      eval_episodes=32, td3=dataclasses.replace(TD3Config(), updates_per_step=2)).check()
+                      eval_episodes=32, eval_untrained=True,
+                      td3=dataclasses.replace(TD3Config(), updates_per_step=2)).check()
     summary = train(cfg, tmp_path / "run")
-    untrained = untrained_eval(cfg, 32)
+    untrained = summary["eval_untrained"]
     assert untrained["completion_rate"] <= 0.1
     assert summary["eval"]["completion_rate"] >= 0.8
     assert summary["eval"]["safety_rate"] == 1.0

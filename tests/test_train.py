@@ -31,9 +31,16 @@ def rows(path):
 
 
 def test_outputs_and_summary(tmp_path, capsys):
+    from _learning import untrained_eval
+
     events = []
-    summary = train(tiny(), tmp_path / "run", progress=events.append)
+    summary = train(tiny(eval_untrained=True), tmp_path / "run", progress=events.append)
     run = tmp_path / "run"
+    # the initial policy on the final evaluation's episodes, as an independent build evaluates it
+    assert summary["eval_untrained"] == pytest.approx(untrained_eval(tiny(), 8), rel=1e-6)
+    assert summary["eval_untrained"] != summary["eval"]  # training changed the policy
+    with pytest.raises(ConfigError, match="eval_untrained: the initial policy of a resumed run"):
+        train(tiny(eval_untrained=True), run, resume=True)
     for name in ("config.json", "episodes.csv", "summary.json", "checkpoint.json"):
         assert (run / name).is_file(), name
     table = rows(run / "episodes.csv")
@@ -213,3 +220,4 @@ def test_eval_rates_measure_the_distance_driven():
     r = rates(np.array([False, True]), np.array([True, False]), np.array([1.0, 3.0]), np.array([3, 3]), poses)
     assert r["mean_distance"] == pytest.approx(3.5) and r["safety_rate"] == 0.5 and r["completion_rate"] == 0.5
     assert "mean_distance" not in rates(np.array([False]), np.array([True]), np.array([1.0]), np.array([3]))
+

@@ -55,6 +55,10 @@ class TrainConfig:
     e.g. for the trajectories of Fig. 5."""
     eval_episodes: int = 100
     """Episodes of the final deterministic policy evaluated at the end."""
+    eval_untrained: bool = False
+    """Also evaluate the initial policy (after the cautious start, before the first env step) on
+    the same episodes, with the same compilation: summary.json's ``eval_untrained``. Needs a run
+    that starts from its first episode (not a resumed one)."""
     env: Annotated[EnvConfig, tyro.conf.OmitArgPrefixes] = field(default_factory=EnvConfig)
     """Environment (its flags carry no prefix: --layout, --preset, --dt, ...)."""
     td3: TD3Config = field(default_factory=TD3Config)

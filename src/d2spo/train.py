@@ -23,7 +23,7 @@ from d2spo.algos.base import ChunkLog
 from d2spo.checkpoint import Checkpoints, fingerprint, has_checkpoint, run_fingerprint
 from d2spo.config import TrainConfig, config_differences, config_from_dict, config_to_dict
 from d2spo.errors import ConfigError, NaNError, RunDirError, RunDirWarning
-from d2spo.rollout import evaluate_policy
+from d2spo.rollout import make_rollout, rates
 from d2spo.runio import (
     EpisodeWriter,
     RunLock,
@@ -196,7 +196,7 @@ class _Run:
             return True
         return False
 
-    def finish(self, learner, carry, env, params, progress: ProgressFn | None = None) -> dict:
+    def finish(self, learner, carry, env, params, progress: ProgressFn | None = None, untrained=None) -> dict:
         """summary.json. Wall times: ``wall_seconds`` is the training loop alone (no compilation; the
         steps per second use it), ``compile_seconds`` the compilation of the learner, and
         ``wall_seconds_total`` everything ``train`` spent: building the env, compiling, training and
@@ -217,8 +217,11 @@ class _Run:
         if cfg.eval_episodes > 0:
             if progress is not None:
                 progress({"phase": "evaluating", "episodes": cfg.eval_episodes})
-            summary["eval"] = evaluate_policy(learner, learner.policy(carry), env, params, cfg.eval_episodes,
-                                              jax.random.PRNGKey(cfg.seed + 10_000))
+            rollout = make_rollout(learner, env, cfg.eval_episodes, int(params.max_steps))
+            key = jax.random.PRNGKey(cfg.seed + 10_000)
+            summary["eval"] = rates(*rollout(params, learner.policy(carry), key))
+            if untrained is not None:  # ``cfg.eval_untrained``: the same episodes, the same compilation
+                summary["eval_untrained"] = rates(*rollout(params, untrained, key))
         total = (wall + self.meta.get("compile_seconds", 0.0) + self.meta.get("setup_seconds", 0.0)
                  + time.perf_counter() - t_eval)
         summary["wall_seconds_total"] = round(total, 2)
@@ -239,6 +242,9 @@ def train(
     t_enter = time.perf_counter()
     out = Path(out)
     built = build(cfg)  # a config that cannot be built is refused before anything is written
+    if resume and cfg.eval_untrained and has_checkpoint(out):
+        raise ConfigError("eval_untrained", "the initial policy of a resumed run is gone; "
+                          "evaluate it in a run that starts from its first episode")
     with RunLock(out):
         return _train_locked(cfg, out, built, resume, progress, stop_after_chunks, t_enter)
 
@@ -261,6 +267,9 @@ def _train_locked(cfg: TrainConfig, out: Path, built, resume: bool, progress: Pr
             warnings.warn(f"{out}: no checkpoint was written before it stopped; training from the first episode",
                           RunDirWarning, stacklevel=3)
         carry = jax.jit(learner.init)(key)
+    untrained = None
+    if cfg.eval_untrained and cfg.eval_episodes > 0 and meta is None:
+        untrained = jax.tree_util.tree_map(jnp.copy, learner.policy(carry))  # ``chunk`` donates the carry
     overhead = _compiled(chunk, carry, t_enter, t_compile, [progress], [meta], cfg)
     run = _Run(cfg, out, meta, checkpoints, overhead)
     chunks_this_call = 0
@@ -272,7 +281,7 @@ def _train_locked(cfg: TrainConfig, out: Path, built, resume: bool, progress: Pr
         if stop_after_chunks is not None and chunks_this_call >= stop_after_chunks:
             run.save(learner, carry, force=True)
             return None
-    return run.finish(learner, carry, env, params, progress)
+    return run.finish(learner, carry, env, params, progress, untrained)
 
 
 def _compiling(progress: list[ProgressFn | None], metas: list[dict | None], cfg: TrainConfig) -> float:
