@@ -27,8 +27,9 @@ The grid has ``G`` x ``G`` nodes over each layout's own square arena (spacing si
 0.079 m at 5 m, 0.159 m at 10 m), node (row y, column x) at (x, y) * spacing. ``G`` = 64 resolves
 the narrowest gap ``generator.GAP_WIDTH`` allows (0.6 m) at the largest arena (10 m): the node
 nearest the gap's centre line is at most half a spacing (0.08 m) off it, so the opening always holds
-a line of nodes with clearance >= 0.22 m > the robot radius, where the wall around it holds none
-(docs/layouts.md, "Field bank").
+a line of nodes with clearance >= 0.22 m > the robot radius (cost 10x), while the wall makes a band
+of >= 0.4 m of 100x nodes that no step (0.16 m) jumps. It takes G >= 35 (spacing < 0.3 m); 64 keeps
+about four nodes across the opening (docs/layouts.md, "Field bank").
 
 Two solvers give the same fields: ``fields_numpy`` (scipy's Dijkstra, one per field, like
 ``envs.state_fields``) and ``fields_jax`` (pure JAX, vmappable over layouts, so fresh layouts could
@@ -130,9 +131,9 @@ def pack(layouts: Sequence[Layout]) -> LayoutBank:
         start=f32([lay.start for lay in layouts]), fields=jnp.zeros((b, 0), jnp.float32))
 
 
-def bank_of(layouts: Sequence[Layout], method: str = "jax", chunk: int = 64, grid: int = G) -> LayoutBank:
-    """The layouts with their fields on ``grid`` x ``grid`` nodes, computed by ``fields_jax``
-    (``chunk`` layouts at a time) or ``fields_numpy`` (one at a time)."""
+def bank_of(layouts: Sequence[Layout], method: str = "numpy", chunk: int = 64, grid: int = G) -> LayoutBank:
+    """The layouts with their fields on ``grid`` x ``grid`` nodes, computed by ``fields_numpy`` (one
+    at a time; the faster on a CPU: bench/RESULTS.md) or ``fields_jax`` (``chunk`` layouts a call)."""
     bank = pack(layouts)
     args = (bank.arena, bank.box_lo, bank.box_hi, bank.box_mask, bank.area_center, bank.area_radius)
     if method == "jax":
@@ -144,7 +145,7 @@ def bank_of(layouts: Sequence[Layout], method: str = "jax", chunk: int = 64, gri
     return bank._replace(fields=jnp.concatenate([jnp.asarray(o) for o in out]))
 
 
-def build_bank(seeds: Sequence[int], method: str = "jax", chunk: int = 64, grid: int = G) -> LayoutBank:
+def build_bank(seeds: Sequence[int], method: str = "numpy", chunk: int = 64, grid: int = G) -> LayoutBank:
     """The layouts ``random:SEED`` (``generator.generate``) for ``seeds``, with their fields."""
     return bank_of([generator.generate(int(s)) for s in seeds], method, chunk, grid)
 
