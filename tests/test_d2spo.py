@@ -106,11 +106,11 @@ def test_one_compiled_rollout_serves_every_random_layout():
 
     cfg = TrainConfig(algo="d2spo", task="phi1", episodes=10, num_envs=2)
     cfg = dataclasses.replace(cfg, d2spo=dataclasses.replace(cfg.d2spo, pretrain=False))
-    env0, params0, learner0 = learner_on(cfg, "random:0", None)
+    env0, params0, learner0 = learner_on(cfg, "random5:0", None)
     policy = jax.jit(lambda k: learner0.policy(learner0.init(k)))(jax.random.PRNGKey(0))  # jit: eager init is slow
     shared = make_rollout(learner0, env0, 2, 40)
     key = jax.random.PRNGKey(1)
-    env4, params4, learner4 = learner_on(cfg, "random:4", None)
+    env4, params4, learner4 = learner_on(cfg, "random5:4", None)
     alone = make_rollout(learner4, env4, 2, 40)(params4, policy, key)
     for a, b in zip(alone, shared(params4, policy, key)):
         assert jnp.array_equal(a, b, equal_nan=True)

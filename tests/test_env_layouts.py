@@ -77,7 +77,7 @@ def test_malformed_json_missing_file_and_unknown_names(tmp_path):
     with pytest.raises(ConfigError, match="malformed JSON") as e:
         layouts.load(write(tmp_path, '{"arena": [5, 5],'))
     assert field_of(e) == "layout"
-    for bad in ("nowhere.json", "labyrinth", "random:x", "random:-1", ""):
+    for bad in ("nowhere.json", "labyrinth", "random:x", "random:-1", "random5:x", "random7:1", ""):
         with pytest.raises(ConfigError) as e:
             layouts.load(bad)
         assert field_of(e) == "layout"
@@ -130,11 +130,11 @@ def test_builtin_layouts_validate_for_every_preset(name):
         layouts.check_robot_fits(scaled, preset.robot_radius, 0.05 * preset.layout_scale)
 
 
-def test_random_layouts_are_feasible_and_deterministic():
-    assert layouts.load("random") == layouts.load("random:0")
-    assert layouts.load("random:7") == layouts.random_layout(7) != layouts.load("random:8")
+def test_random5_layouts_are_feasible_and_deterministic():
+    assert layouts.load("random5") == layouts.load("random5:0")
+    assert layouts.load("random5:7") == layouts.random_layout(7) != layouts.load("random5:8")
     for seed in range(40):
-        layout = layouts.load(f"random:{seed}")
+        layout = layouts.load(f"random5:{seed}")
         assert len(layout.obstacles) == 6 and layout.area_names == ("A1", "A2", "A3", "A4")
         layouts.validate(layout)
         layouts.check_robot_fits(layout, layouts.RANDOM_RADIUS)
@@ -142,8 +142,8 @@ def test_random_layouts_are_feasible_and_deterministic():
             assert layout.clearance(np.array(a.center)) > a.radius
 
 
-def test_random_layouts_share_shapes_so_params_batch():
-    envs = [make_env(EnvConfig(layout=f"random:{s}"), "phi2") for s in (1, 2)]
+def test_random5_layouts_share_shapes_so_params_batch():
+    envs = [make_env(EnvConfig(layout=f"random5:{s}"), "phi2") for s in (1, 2)]
     (env, p1), (_, p2) = envs
     stacked = jax.tree.map(lambda a, b: jnp.stack([a, b]), p1, p2)  # vmap over layouts
     keys = jax.random.split(jax.random.key(0), 2)

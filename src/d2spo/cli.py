@@ -91,7 +91,8 @@ class EnvShowCmd:
     """Draw a layout: obstacles, labelled areas, the start and the sensing radius."""
 
     layout: str = "paper"
-    """Built-in layout name (paper, relaxed, open, random[:SEED], physical-1..4) or a JSON file."""
+    """Built-in layout name (paper, relaxed, open, physical-1..4), random[:SEED] (5-10 m, three styles),
+    random5[:SEED] (the earlier 5 m generator) or a JSON file."""
     out: Path = Path("layout.png")
     """Where to write the PNG."""
     rollout_steps: int = 0
@@ -211,7 +212,8 @@ class EvalCmd:
     seed: int = 0
     """Seed of the evaluation episodes."""
     layout_seeds: int = 1
-    """With --layout random: average over this many random layouts (seeds seed..seed+n-1)."""
+    """With --layout random[:SEED] or random5[:SEED]: average over this many random layouts (seeds
+    SEED..SEED+n-1)."""
     runtime_filter: bool | None = None
     """D²SPO only: switch the runtime safety filter on or off for this evaluation; default: as trained on
     the training layout and dynamics, on elsewhere (π_Ω alone transfers poorly to unseen layouts)."""

@@ -113,7 +113,7 @@ def evaluate_run(run_dir: Path, episodes: int = 100, layout: str | None = None, 
     check_fields(asked, nullable=("filter_iters", "filter_alpha"), count=("episodes", "layout_seeds"),
                  seed=("seed",), natural=("filter_iters",), positive=("filter_alpha",))
     if layout_seeds != 1 and not (layout or "").startswith("random"):
-        raise ConfigError("layout_seeds", f"only applies with --layout random[:SEED], got {layout_seeds} "
+        raise ConfigError("layout_seeds", f"only applies with --layout random[:SEED] or random5[:SEED], got {layout_seeds} "
                           f"with layout {layout or 'as trained'!r}")
     cfg, learner, policy, _ = load_policy(run_dir)
     has_filter = has_runtime_filter(cfg.algo)
@@ -129,10 +129,11 @@ def evaluate_run(run_dir: Path, episodes: int = 100, layout: str | None = None, 
         cfg = dataclasses.replace(cfg, cbf=dataclasses.replace(cfg.cbf, **cbf_changes))
     layouts = [layout]
     if layout is not None and layout.startswith("random") and layout_seeds > 1:
-        base = int(layout.split(":")[1]) if ":" in layout else 0
-        layouts = [f"random:{base + i}" for i in range(layout_seeds)]
+        kind, _, base = layout.partition(":")  # random:SEED or random5:SEED
+        if base.isdigit() or not base:  # else load() names the bad seed
+            layouts = [f"{kind}:{int(base or 0) + i}" for i in range(layout_seeds)]
     results = []
-    compiled: dict = {}  # one compiled rollout per shape of the env params (random layouts share one)
+    compiled: dict = {}  # one compiled rollout per shape of the env params (random5 layouts share one)
     for lay in layouts:
         env, params, other = learner_on(cfg, lay, preset, dynamics)
         if env.observation_size != learner_obs_size(learner):

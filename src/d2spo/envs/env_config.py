@@ -16,7 +16,7 @@ class EnvConfig:
     """Configuration of the navigation environment. Fields left at None take the preset's value."""
 
     layout: str = "paper"
-    """Workspace: paper, relaxed, open, physical-1..physical-4, random, random:SEED, or a .json path."""
+    """Workspace: paper, relaxed, open, physical-1..physical-4, random[:SEED], random5[:SEED], or a .json path."""
     preset: str = "default"
     """Robot and dynamics preset filling every field left unset: ideal, default or turtlebot."""
     max_steps: int | None = None

@@ -2,7 +2,7 @@
 
 ``load(name_or_path)`` returns a validated :class:`Layout`: a built-in name (``paper``,
 ``relaxed``, ``open``, ``physical-1`` .. ``physical-4``), ``random`` / ``random:SEED`` for a
-procedural layout, or the path of a JSON file (schema in docs/layouts.md). Every mistake raises
+procedural layout (``envs.generator``; ``random5:SEED`` for the earlier 5 m one), or the path of a JSON file (schema in docs/layouts.md). Every mistake raises
 ``ConfigError`` naming the offending field (``layout``, ``layout.areas[2].radius``, ...).
 
 Layouts are plain Python (numpy at most); the environment turns them into arrays once.
@@ -24,6 +24,10 @@ from d2spo.errors import ConfigError
 
 BUILTIN = ("paper", "relaxed", "open", "physical-1", "physical-2", "physical-3", "physical-4")
 """Names of the layouts shipped as JSON files in ``d2spo/envs/layouts/``."""
+
+RANDOM_KINDS = ("random", "random5")
+"""Procedural layouts by seed: ``random:SEED`` (``envs.generator.generate``: 5-10 m arenas of three
+styles) and ``random5:SEED`` (``random_layout``: the 5 m generator of earlier sessions)."""
 
 RANDOM_RADIUS = 0.25
 """Robot radius (m, unscaled) for which every random layout is checked to be feasible. It covers
@@ -65,7 +69,7 @@ class Layout:
     """A workspace. The arena is [0, width] x [0, height]."""
 
     name: str
-    """Name (built-in name, ``random:SEED`` or the JSON file's ``name``)."""
+    """Name (built-in name, ``random:SEED``, ``random5:SEED`` or the JSON file's ``name``)."""
     arena: tuple[float, float]
     """(width, height) in metres; the lower-left corner is the origin."""
     start: tuple[float, float, float]
@@ -316,21 +320,27 @@ def _circle_intersections(c1, r1, c2, r2) -> list[np.ndarray]:
 
 
 def load(name_or_path: str) -> Layout:
-    """A validated layout by built-in name, ``random`` / ``random:SEED``, or JSON file path."""
+    """A validated layout by built-in name, ``random[:SEED]`` (``envs.generator``), ``random5[:SEED]``
+    (``random_layout``), or JSON file path."""
     if not isinstance(name_or_path, str) or not name_or_path:
         raise ConfigError("layout", f"expected a layout name or a JSON path, got {name_or_path!r}")
     if name_or_path in BUILTIN:
         text = resources.files("d2spo.envs").joinpath("layouts", f"{name_or_path}.json").read_text()
         return from_json(json.loads(text), default_name=name_or_path)
-    if name_or_path == "random" or name_or_path.startswith("random:"):
-        seed_text = name_or_path.partition(":")[2] or "0"
+    kind, _, seed_text = name_or_path.partition(":")
+    if kind in RANDOM_KINDS and (seed_text or name_or_path == kind):
+        seed_text = seed_text or "0"
         try:
             seed = int(seed_text)
         except ValueError:
             raise ConfigError("layout", f"random layout seed must be an integer, got {seed_text!r}") from None
         if seed < 0:
             raise ConfigError("layout", f"random layout seed must be non-negative, got {seed}")
-        return random_layout(seed)
+        if kind == "random5":
+            return random_layout(seed)
+        from d2spo.envs import generator  # it builds on this module
+
+        return generator.generate(seed)
     path = Path(name_or_path)
     if path.suffix == ".json" or path.exists():
         try:
@@ -346,11 +356,12 @@ def load(name_or_path: str) -> Layout:
             raise ConfigError("layout", f"{path}: malformed JSON: {e.msg} ({where})") from None
         return from_json(data, default_name=path.stem)
     raise ConfigError("layout", f"unknown layout {name_or_path!r}; use one of {list(BUILTIN)}, "
-                      "'random', 'random:SEED' or a path to a .json file")
+                      "'random[:SEED]', 'random5[:SEED]' or a path to a .json file")
 
 
 def random_layout(seed: int, n_obstacles: int = 6, n_areas: int = 4) -> Layout:
-    """A procedural 5 m x 5 m layout, a deterministic function of ``seed``.
+    """A procedural 5 m x 5 m layout, a deterministic function of ``seed``: ``random5:SEED`` (it was
+    ``random:SEED`` until 2026-11-23, when ``envs.generator`` took that name).
 
     Obstacles are rectangles with half-extents in [0.2, 0.5] m, areas have radius 0.35 m and are
     named A1 .. An. Candidates are drawn until one is feasible: the start has 0.4 m clearance, the
@@ -365,7 +376,7 @@ def random_layout(seed: int, n_obstacles: int = 6, n_areas: int = 4) -> Layout:
             for _ in range(n_obstacles)
         )
         start = (*_rounded(rng.uniform(0.5, size - 0.5, 2)), *_rounded(rng.uniform(-math.pi, math.pi, 1)))
-        layout = Layout(f"random:{seed}", (size, size), start, obstacles, ())
+        layout = Layout(f"random5:{seed}", (size, size), start, obstacles, ())
         if layout.clearance(np.array(start[:2])) < 0.4:
             continue
         areas: list[Area] = []
