@@ -14,7 +14,7 @@ from d2spo.envs import EnvConfig, geometry, make_env, sensors
 from d2spo.ltl.automaton import UNREACHABLE, AutomatonArrays
 from d2spo.ltl.reward import RewardConfig
 
-NO_SHAPING = RewardConfig(shaping=0.0)
+NO_SHAPING = RewardConfig(shaping=0.0, shaping_metric="euclidean")  # no fields, no task-on-layout check
 
 
 @cache

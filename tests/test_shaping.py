@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import math
 
 import jax.numpy as jnp
@@ -84,7 +86,8 @@ def test_shaping_clearance_makes_the_band_near_an_obstacle_costly():
         by_clearance[c] = (float(geodesic.lookup(f, near)[a2]), float(geodesic.lookup(f, clear)[a2]))
     assert by_clearance[0.3][0] > by_clearance[0.15][0] + 0.5
     assert by_clearance[0.3][1] == pytest.approx(by_clearance[0.15][1], abs=0.15)
-    for reward, c in ((RewardConfig(), 0.3), (RewardConfig(shaping_clearance=None), 0.15)):
+    geo = RewardConfig(shaping_metric="geodesic")
+    for reward, c in ((geo, 0.3), (dataclasses.replace(geo, shaping_clearance=None), 0.15)):
         env, params = make_env(EnvConfig(layout="relaxed", reward=reward), task="relaxed")
         assert float(env._center_distance(near, params)[a2]) == pytest.approx(by_clearance[c][0], rel=1e-5)
 
@@ -131,7 +134,7 @@ def test_relax_targets_keeps_forbidden_areas_at_their_true_radius():
     aps = env.aps
     bit = {a: 1 << aps.index(a) for a in aps}
     k2 = AnnealConfig().rate(20000)
-    relaxed_all = annealed_params(params, jnp.int32(0), AnnealConfig(), k2)
+    relaxed_all = annealed_params(params, jnp.int32(0), AnnealConfig(relax="all"), k2)
     relaxed_targets = annealed_params(params, jnp.int32(0), AnnealConfig(relax="targets"), k2)
     q0 = params.aut.initial
     centre = {a.name: np.asarray(a.center, np.float32) for a in env.layout.areas}

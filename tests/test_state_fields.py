@@ -122,10 +122,11 @@ def test_check_rejects_a_forbidden_area_that_cuts_every_path_and_an_unknown_prop
                  task="!A9 U A1")
 
 
-def test_default_reward_is_bit_identical_to_before_the_per_state_option():
-    """Rewards of a fixed rollout (phi2 on paper, relaxed labelling radius 1 m, default metric)
-    as computed by commit f20c02d, before envs/state_fields.py existed."""
-    env, params = make_env(EnvConfig(layout="paper", label_radius=1.0), task="phi2")
+def test_geodesic_reward_is_bit_identical_to_before_the_per_state_option():
+    """Rewards of a fixed rollout (phi2 on paper, relaxed labelling radius 1 m, the geodesic metric,
+    the default until 2026-11-23) as computed by commit f20c02d, before envs/state_fields.py existed."""
+    env, params = make_env(EnvConfig(layout="paper", label_radius=1.0,
+                                     reward=RewardConfig(shaping_metric="geodesic")), task="phi2")
     n = 2
     state, _ = env.reset_batch(jax.random.PRNGKey(3), params, n)
     step = jax.jit(env.step_batch)

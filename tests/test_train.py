@@ -13,13 +13,16 @@ from d2spo.algos.td3 import TD3Config
 from d2spo.config import TrainConfig, config_from_dict, config_to_dict
 from d2spo.envs import EnvConfig
 from d2spo.errors import ConfigError, NaNError, RunDirError
+from d2spo.ltl.reward import RewardConfig
 from d2spo.train import train
 
 
 def tiny(**kw) -> TrainConfig:
     base = TrainConfig(
         algo="tlgrl", task="relaxed", episodes=60, num_envs=8, chunk_steps=25, checkpoint_every=20,
-        window=50, eval_episodes=8, env=EnvConfig(layout="relaxed", max_steps=40),
+        window=50, eval_episodes=8,
+        # 40-step episodes: the default per-state metric would warn that the task cannot fit in them
+        env=EnvConfig(layout="relaxed", max_steps=40, reward=RewardConfig(shaping_metric="geodesic")),
         td3=TD3Config(hidden=(16, 16), batch_size=32, learning_starts=64, buffer_size=4096),
     )
     return dataclasses.replace(base, **kw).check()

@@ -141,6 +141,8 @@ def _build(cls: type, data: dict, where: str) -> Any:
 
 FORMER_DEFAULTS: dict[tuple[str, ...], Any] = {
     ("env", "reward", "shaping_clearance"): None,  # the default became 0.3 after the field was added
+    ("env", "reward", "shaping_metric"): "geodesic",  # today's default is geodesic-per-state (issue 15)
+    ("anneal", "relax"): "all",  # the field came with the option "targets", which became the default
 }
 """Settings whose default has changed, with the value a config.json that does not mention them was
 trained with (the field did not exist yet, and its old behaviour is this value)."""

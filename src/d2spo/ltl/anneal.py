@@ -41,11 +41,12 @@ class AnnealConfig:
     initial disks (3.5 m) overlap, every area is 'reached' at once and ordered tasks such as phi1 are
     rejected on the first step. False: the paper's rule as written."""
 
-    relax: str = "all"
-    """Which areas are relaxed: "all" (the paper's rule), or "targets": in each automaton state only the
-    areas whose entry makes progress; an area whose entry would reject the task (or regress) keeps its
-    true radius. Not in the paper: with "all", a relaxed forbidden area blocks the way, e.g. phi2's A4
-    (at the centre of `paper`, relaxed to 1.26 m) closes the passage the robot must take from A1 to A3."""
+    relax: str = "targets"
+    """Which areas are relaxed: "targets" (the default): in each automaton state only the areas whose
+    entry makes progress; an area whose entry would reject the task (or regress) keeps its true
+    radius. "all": the paper's rule (the default until 2026-11-23). Not in the paper: with "all", a
+    relaxed forbidden area blocks the way, e.g. phi2's A4 (at the centre of `paper`, relaxed to
+    1.26 m) closes the passage the robot must take from A1 to A3."""
 
     def __post_init__(self) -> None:
         check_fields(self, "anneal", nullable=("k2", "d_bar"), positive=("k1", "d_bar"), non_negative=("k2",),

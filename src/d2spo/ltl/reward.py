@@ -45,12 +45,13 @@ class RewardConfig:
     distance plus the distance to the nearest area that makes progress over the diagonal. 10 makes
     one metre toward the next area worth ~1.4 on the arena of 5 m x 5 m (1 was too weak for TD3
     to find even a single area; docs/ltl.md)."""
-    shaping_metric: str = "geodesic"
-    """'geodesic': distance along the shortest obstacle-free path (``envs.geodesic``, from the
-    layout's map); 'euclidean': straight line, which leads into obstacles lying on the line;
-    'geodesic-per-state': one field per automaton state, the path to the areas whose entry makes
-    progress that also goes round the areas whose entry would reject the task or undo progress
-    (``envs.state_fields``); it also checks, before training, that the task can be done on the layout."""
+    shaping_metric: str = PER_STATE
+    """'geodesic-per-state' (the default): one field per automaton state, the path to the areas whose
+    entry makes progress that also goes round the areas whose entry would reject the task or undo
+    progress (``envs.state_fields``); it also checks, before training, that the task can be done on
+    the layout. 'geodesic': the shortest obstacle-free path to the nearest area that makes progress,
+    straight through the others (``envs.geodesic``; the default until 2026-11-23, which never learnt
+    phi2); 'euclidean': straight line, which leads into obstacles lying on the line."""
     shaping_clearance: float | None = 0.3
     """With the geodesic metric: path nodes closer than this to an obstacle or a wall cost
     ``envs.geodesic.BLOCKED_COST`` times their length, so the shortest path keeps this clearance
