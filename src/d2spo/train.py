@@ -22,6 +22,7 @@ from flax import serialization
 from d2spo.algos.base import ChunkLog
 from d2spo.checkpoint import Checkpoints, fingerprint, has_checkpoint, run_fingerprint
 from d2spo.config import TrainConfig, config_differences, config_from_dict, config_to_dict
+from d2spo.envs.nav import check_episode_time
 from d2spo.errors import ConfigError, NaNError, RunDirError, RunDirWarning
 from d2spo.rollout import make_rollout, rates
 from d2spo.runio import (
@@ -242,6 +243,7 @@ def train(
     t_enter = time.perf_counter()
     out = Path(out)
     built = build(cfg)  # a config that cannot be built is refused before anything is written
+    check_episode_time(built[0], built[1], repr(cfg.task))
     if resume and cfg.eval_untrained and has_checkpoint(out):
         raise ConfigError("eval_untrained", "the initial policy of a resumed run is gone; "
                           "evaluate it in a run that starts from its first episode")
@@ -348,6 +350,7 @@ def train_seeds(
     t_enter = time.perf_counter()
     outs = [Path(o) for o in outs]
     built = build(cfgs[0])
+    check_episode_time(built[0], built[1], repr(cfgs[0].task))
     with contextlib.ExitStack() as locks:
         for out in outs:
             locks.enter_context(RunLock(out))

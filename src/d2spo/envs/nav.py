@@ -160,6 +160,8 @@ class Env:
         """Automaton propositions; bit i of a letter is aps[i]."""
         self.config = config
         """The resolved configuration."""
+        self.automaton: Automaton | None = None
+        """The task's automaton (``make_env`` sets it; None for an object with ``arrays()`` only)."""
         self.n_states = n_states
         self.n_obstacles = len(layout.obstacles)
         self.n_areas = len(layout.areas)
@@ -401,8 +403,6 @@ def make_env(cfg: EnvConfig, task: Any = "phi1") -> tuple[Env, EnvParams]:
     if cfg.reward.shaping_metric == PER_STATE:
         name = task if isinstance(task, str) else "the task"
         state_fields.check_task(automaton, layout, cfg.label_mode, cfg.robot_radius, repr(name))
-        state_fields.check_time(automaton, layout, cfg.label_mode, cfg.robot_radius, max_steps, cfg.dt, speed,
-                                repr(name))
         field = state_fields.state_fields(automaton, layout, cfg.label_mode, clearance).field
     else:
         field = np.zeros((n_states, 1, 1), np.float32)
@@ -444,4 +444,16 @@ def make_env(cfg: EnvConfig, task: Any = "phi1") -> tuple[Env, EnvParams]:
         reward=cfg.reward,
     )
     env = Env(layout, aps, n_states, cfg)
+    env.automaton = automaton if isinstance(automaton, Automaton) else None
     return env, params
+
+
+def check_episode_time(env: Env, params: EnvParams, name: str) -> None:
+    """``state_fields.check_time`` for an env from ``make_env``: a ``TaskWarning`` when the task's
+    shortest route cannot fit in (or needs most of) the episode. Training calls it once; evaluating
+    a run does not (nothing can be done about its episodes then)."""
+    if env.automaton is None:  # an automaton object with arrays() only: no routes
+        return
+    cfg = env.config
+    state_fields.check_time(env.automaton, env.layout, cfg.label_mode, cfg.robot_radius, int(params.max_steps),
+                            cfg.dt, cfg.v_max * cfg.v_gain, name)
