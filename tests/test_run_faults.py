@@ -11,6 +11,7 @@ import errno
 import fcntl
 import json
 import os
+import re
 import random
 import shutil
 import signal
@@ -27,6 +28,7 @@ from d2spo.cli import main
 from d2spo.config import TrainConfig, config_to_dict
 from d2spo.envs import EnvConfig
 from d2spo.errors import RunDirWarning
+from d2spo.ltl.reward import RewardConfig
 from d2spo.runio import EpisodeWriter
 from d2spo.train import train
 
@@ -34,12 +36,12 @@ SEED = int(os.environ.get("D2SPO_FAULT_SEED", "0"))
 
 CFG = TrainConfig(  # the shapes of test_train.tiny(): its compiled chunk is reused
     algo="tlgrl", task="relaxed", episodes=60, num_envs=8, chunk_steps=25, checkpoint_every=10, window=50,
-    eval_episodes=0, env=EnvConfig(layout="relaxed", max_steps=40),
+    eval_episodes=0, env=EnvConfig(layout="relaxed", max_steps=40, reward=RewardConfig(shaping_metric="geodesic")),
     td3=TD3Config(hidden=(16, 16), batch_size=32, learning_starts=64, buffer_size=4096),
 ).check()
 FLAGS = ["--algo", "tlgrl", "--task", "relaxed", "--episodes", "60", "--num-envs", "8", "--chunk-steps", "25",
          "--checkpoint-every", "10", "--window", "50", "--eval-episodes", "0", "--layout", "relaxed",
-         "--max-steps", "40", "--td3.hidden", "16", "16", "--td3.batch-size", "32", "--td3.learning-starts", "64",
+         "--max-steps", "40", "--shaping-metric", "geodesic", "--td3.hidden", "16", "16", "--td3.batch-size", "32", "--td3.learning-starts", "64",
          "--td3.buffer-size", "4096", "--no-progress"]
 
 
@@ -141,7 +143,10 @@ def cli(capsys, *args) -> tuple[int, list[str]]:
     rc = main([str(a) for a in args])
     err = capsys.readouterr().err
     assert "Traceback" not in err, err
-    return rc, [ln for ln in err.splitlines() if ln.strip()]
+    # the 40-step episodes draw the episode-time warning (nav.check_episode_time) at every training
+    # start: it is not what these tests are about
+    time_warning = re.compile(r"^d2spo: warning: 'relaxed' (cannot be completed|: the shortest route) on layout")
+    return rc, [ln for ln in err.splitlines() if ln.strip() and not time_warning.match(ln)]
 
 
 def resume(run: Path) -> list:

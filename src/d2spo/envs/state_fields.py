@@ -199,6 +199,11 @@ def state_fields(aut: Automaton, layout: Layout, label_mode: str, clearance: flo
     """Target and forbidden areas and the shaping distance field of every state of ``aut`` on
     ``layout`` (cached). ``clearance``: the path keeps this far from obstacles, walls and
     forbidden areas where it can (the reward's ``shaping_clearance``)."""
+    nodes = (round(layout.arena[0] / spacing) + 1) * (round(layout.arena[1] / spacing) + 1)
+    if nodes > geodesic.MAX_NODES:
+        raise ConfigError("layout.arena", f"an arena of {layout.arena[0]:g} m x {layout.arena[1]:g} m needs shaping "
+                          f"fields of {nodes} nodes at {spacing:g} m; at most MAX_NODES={geodesic.MAX_NODES} (20 m x "
+                          "20 m) are supported: use a smaller arena or layout scale, or --shaping-metric euclidean")
     key = ("fields", *_key(aut, layout), label_mode, float(clearance), float(spacing))
     return _memo(key, lambda: _compute(aut, layout, label_mode == "event", float(clearance), float(spacing)))
 
@@ -215,7 +220,9 @@ def _memo(key: tuple, compute):
 def _task_grid(aut: Automaton, layout: Layout, label_mode: str, robot_radius: float):
     """The grid the task checks search: (free [ny, nx], letters [ny, nx], delta [Q, 2**n], resolution,
     start (q0, iy, ix)) with q0 the state after the start cell's letter is read as the env reads it."""
-    resolution = min(0.05, max(layout.arena) / 100.0)
+    # 5 cm, finer in arenas under 5 m, coarser above 20 m (at most 400 x 400 cells: route_length
+    # searches states x cells)
+    resolution = max(min(0.05, max(layout.arena) / 100.0), max(layout.arena) / 400.0)
     free, centres = layouts.free_grid(layout, robot_radius, resolution)
     letters = _letters_at(centres, layout, aut.aps)
     ny, nx = free.shape
