@@ -294,7 +294,7 @@ class Env:
         truncated = (t >= params.max_steps) & ~terminated
         done = _compute_once(terminated | truncated)
 
-        stepped = EnvState(
+        stepped = state.replace(  # replace, not EnvState(...): a subclass's extra fields (e.g. its layout) stay
             pose=pose,
             vel=vel_next,
             q=q_next,
