@@ -1,0 +1,267 @@
+"""The generalist's environment (issue 16): a new layout from a bank at every reset, and an
+observation that names the subgoal instead of the layout or the automaton state.
+
+``envs.nav.Env`` trains on one layout: its observation holds the robot's position in that arena,
+the areas' positions and the automaton state's one-hot, so what a policy learns there is tied to
+the layout and the formula. ``GeneralistEnv`` keeps nav's dynamics, sensing, labelling and reward,
+and changes two things:
+
+* **Layouts.** Every episode draws one of the B layouts of a ``layout_bank.LayoutBank`` (square
+  arenas of 5-10 m, four areas A1..A4, ``envs.generator``); the state carries its index.
+  ``view(params, b)`` writes layout b's arrays into the base fields (geometry, areas, start), so
+  nav's step reads them as it reads its own. Unused obstacle slots become tiny boxes far outside the
+  arena. The start is the layout's, with a uniform heading; the labelling radius is the true one
+  (no annealing).
+* **Observation** (float32 [K + 10]), all in the robot's frame, none of it the layout's coordinates
+  or the automaton's state index:
+
+  - ``lidar`` [K]: ranges / H, as nav's;
+  - ``clearance`` [1]: the distance to the nearest obstacle or wall / H (the paper's b(z, O_s));
+    with ``lidar`` it is the CBF's input x, read off the observation (``cbf_input``);
+  - ``target`` [4]: the path length to the nearest area whose entry makes progress, round obstacles
+    and round the areas whose entry would reject the task (``layout_bank.nearest``), / ``SCALE``;
+    the direction of steepest descent of that path (forward, left); 1 if there is a target;
+  - ``forbidden`` [4]: the distance from the robot to the edge of the nearest area whose entry would
+    reject the task (or undo progress) / ``SCALE``; the direction to its centre (forward, left); 1
+    if there is one;
+  - ``progress`` [1]: the automaton's distance to acceptance (area visits still needed) / its
+    largest finite value.
+
+  The automaton state decides the target and forbidden areas (``area_roles``), the layout bank the
+  distances: one network serves every formula over A1..A4 and every layout of the distribution.
+
+The reward is nav's (Eq. (8) plus the shaping); its shaping distance is the same path length as the
+observation's target distance, and its scale the drawn layout's diagonal.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from d2spo.envs import layout_bank, sensors, state_fields
+from d2spo.envs.env_config import EnvConfig
+from d2spo.envs.geometry import Geometry
+from d2spo.envs.layout_bank import LayoutBank
+from d2spo.envs.nav import Env, EnvParams, EnvState, make_env
+from d2spo.errors import ConfigError
+from d2spo.ltl.automaton import UNREACHABLE, Automaton
+
+N_AREAS = layout_bank.N_AREAS
+"""Areas per layout (A1 .. A4)."""
+SCALE = 10.0
+"""Metres per unit of the observation's distances (the largest arena's side)."""
+FAR = -1.0e3
+"""Where unused obstacle slots go: a tiny box this far outside every arena."""
+
+
+@struct.dataclass(kw_only=True)
+class GeneralState(EnvState):
+    """nav's state plus the index of the episode's layout in the bank."""
+
+    layout: jnp.ndarray
+    """int32 []: the episode's layout (index into ``GeneralParams.bank``)."""
+
+
+@struct.dataclass(kw_only=True)
+class GeneralParams(EnvParams):
+    """nav's params (dynamics, automaton, reward, ...) plus the bank and the roles of the areas.
+
+    In a ``view`` the base fields (geometry, areas, start) hold layout ``layout``'s arrays.
+    """
+
+    bank: LayoutBank
+    """The layouts and their fields."""
+    target_areas: jnp.ndarray
+    """bool [Q, 4]: in automaton state q, entering area i (alone) moves closer to acceptance."""
+    forbidden_areas: jnp.ndarray
+    """bool [Q, 4]: in automaton state q, entering area i (alone) rejects the task or moves away."""
+    layout: jnp.ndarray
+    """int32 []: the layout the base fields hold (``view``)."""
+
+
+def view(params: GeneralParams, b: jnp.ndarray) -> GeneralParams:
+    """``params`` with layout b's geometry, areas and start in the base fields."""
+    bank = params.bank
+    mask = bank.box_mask[b][:, None]
+    lo = jnp.where(mask, bank.box_lo[b], FAR)
+    hi = jnp.where(mask, bank.box_hi[b], FAR + 0.01)
+    arena = bank.arena[b]
+    geom = Geometry(lo, hi, jnp.zeros_like(arena), arena)
+    radius = bank.area_radius[b]
+    return params.replace(geom=geom, area_center=bank.area_center[b], area_radius=radius, label_radius=radius,
+                          start=bank.start[b], layout=jnp.asarray(b, jnp.int32))
+
+
+def _bilinear(bank: LayoutBank, b, i, f, xy: jnp.ndarray) -> jnp.ndarray:
+    """Field (target i, forbidden subset f) of layout b at xy: four gathered nodes (no slice of the
+    field is copied, unlike ``layout_bank.field_at``)."""
+    g = bank.fields.shape[-1]
+    spacing = bank.arena[b, 0] / (g - 1)
+    fx = jnp.clip(xy[0] / spacing, 0.0, g - 1.0)
+    fy = jnp.clip(xy[1] / spacing, 0.0, g - 1.0)
+    x0 = jnp.clip(jnp.floor(fx).astype(jnp.int32), 0, g - 2)
+    y0 = jnp.clip(jnp.floor(fy).astype(jnp.int32), 0, g - 2)
+    tx, ty = fx - x0, fy - y0
+    f00, f01 = bank.fields[b, i, f, y0, x0], bank.fields[b, i, f, y0, x0 + 1]
+    f10, f11 = bank.fields[b, i, f, y0 + 1, x0], bank.fields[b, i, f, y0 + 1, x0 + 1]
+    return (1 - ty) * ((1 - tx) * f00 + tx * f01) + ty * ((1 - tx) * f10 + tx * f11)
+
+
+def subgoal(params: GeneralParams, q: jnp.ndarray, xy: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:
+    """(distance, direction [2], any) to the nearest target of state q in the view's layout, along
+    the path round obstacles and q's forbidden areas; the direction is the field's steepest descent
+    (central differences half a node apart). 0, 0, False when q has no target."""
+    bank, b = params.bank, params.layout
+    target, forbidden = params.target_areas[q], params.forbidden_areas[q]
+    f = layout_bank.subsets(forbidden)
+    per_target = jnp.stack([_bilinear(bank, b, i, f[i], xy) for i in range(N_AREAS)])
+    per_target = jnp.where(target, per_target, jnp.inf)
+    k = jnp.argmin(per_target)
+    found = jnp.any(target)
+    eps = 0.5 * bank.arena[b, 0] / (bank.fields.shape[-1] - 1)
+    offsets = jnp.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]]) * eps
+    probes = jax.vmap(lambda d: _bilinear(bank, b, k, f[k], xy + d))(offsets)
+    grad = jnp.stack([probes[0] - probes[1], probes[2] - probes[3]]) / (2 * eps)
+    norm = jnp.sqrt(grad[0] * grad[0] + grad[1] * grad[1])
+    direction = jnp.where(found & (norm > 0), -grad / jnp.where(norm > 0, norm, 1.0), 0.0)
+    return jnp.where(found, per_target[k], 0.0), direction, found
+
+
+class GeneralistEnv(Env):
+    """nav's environment over a bank of layouts, with the subgoal observation (module docstring)."""
+
+    def __init__(self, aps: tuple[str, ...], n_states: int, config: EnvConfig, bank_size: int):
+        self.layout = None
+        """No single layout: the bank's (``GeneralParams.bank``)."""
+        self.aps = aps
+        self.config = config
+        self.automaton = None
+        self.n_states = n_states
+        self.n_obstacles = layout_bank.M_MAX
+        self.n_areas = N_AREAS
+        self.n_rays = config.n_rays
+        self.bank_size = bank_size
+        k = self.n_rays
+        self.observation_slices = {
+            "lidar": slice(0, k),
+            "clearance": slice(k, k + 1),
+            "target": slice(k + 1, k + 5),
+            "forbidden": slice(k + 5, k + 9),
+            "progress": slice(k + 9, k + 10),
+        }
+        """Where each part of the observation lies (module docstring)."""
+        self.observation_size = k + 10
+
+    # -- the layout of the state ------------------------------------------------------------
+    def step(self, key: jax.Array, state: GeneralState, action: jnp.ndarray, params: GeneralParams):
+        """nav's step in the state's layout; an episode that ends restarts in a newly drawn layout."""
+        return super().step(key, state, action, view(params, state.layout))
+
+    def reset(self, key: jax.Array, params: GeneralParams) -> tuple[GeneralState, jnp.ndarray]:
+        """A new episode in a layout drawn uniformly from the bank."""
+        return super().reset(key, params)
+
+    def _reset_state(self, u: jnp.ndarray, params: GeneralParams) -> GeneralState:
+        """A fresh episode from three uniforms in [-1, 1]: u[0] draws the layout, u[1] the heading."""
+        n = params.bank.arena.shape[0]
+        b = jnp.clip(jnp.floor((u[0] + 1.0) * 0.5 * n).astype(jnp.int32), 0, n - 1)
+        v = view(params, b)
+        start = jnp.stack([v.start[0], v.start[1], jnp.pi * u[1]])
+        base = super()._reset_state(jnp.zeros(3), v.replace(start=start, start_jitter=jnp.zeros(3)))
+        return GeneralState(**{f.name: getattr(base, f.name) for f in dataclasses.fields(EnvState)}, layout=b)
+
+    # -- reward shaping and observation ------------------------------------------------------
+    def _distance_to_progress(self, xy: jnp.ndarray, q: jnp.ndarray, params: GeneralParams) -> jnp.ndarray:
+        """The shaping's distance: the path length to q's nearest target (``subgoal``)."""
+        return subgoal(params, q, xy)[0]
+
+    def observe(self, state: GeneralState, params: GeneralParams) -> jnp.ndarray:
+        """The subgoal observation of ``state`` in its own layout (module docstring)."""
+        v = view(params, state.layout)
+        pose = state.pose
+        xy, c, s = pose[:2], jnp.cos(pose[2]), jnp.sin(pose[2])
+        everything = jnp.ones((self.n_obstacles,), bool)
+        H = v.sensing_radius
+        scan = sensors.lidar_cs(xy, c, s, v.geom, everything, v.n_rays, H) / H
+        clearance = sensors.nearest_obstacle(xy, v.geom, everything, H) / H
+
+        def frame(d):  # a world vector in the robot's frame (forward, left)
+            return jnp.stack([c * d[0] + s * d[1], c * d[1] - s * d[0]])
+
+        dist, direction, found = subgoal(v, state.q, xy)
+        target = jnp.concatenate([jnp.minimum(dist / SCALE, 2.0)[None], frame(direction), found[None]])
+        rel = v.area_center - xy  # [4, 2]
+        centre = jnp.sqrt(rel[:, 0] * rel[:, 0] + rel[:, 1] * rel[:, 1])
+        edge = jnp.where(v.forbidden_areas[state.q], jnp.maximum(centre - v.area_radius, 0.0), jnp.inf)
+        j = jnp.argmin(edge)
+        has = jnp.isfinite(edge[j])
+        toward = jnp.where(has, rel[j] / jnp.maximum(centre[j], 1e-6), 0.0)
+        forbidden = jnp.concatenate([jnp.where(has, jnp.minimum(edge[j] / SCALE, 2.0), 0.0)[None], frame(toward),
+                                     has[None]])
+        aut = v.aut
+        finite = aut.distance < UNREACHABLE
+        worst = jnp.maximum(jnp.max(jnp.where(finite, aut.distance, 0)), 1)
+        progress = jnp.where(finite[state.q], aut.distance[state.q] / worst, 1.0)
+        return jnp.concatenate([scan, clearance[None], target, forbidden, progress[None]]).astype(jnp.float32)
+
+    def cbf_input(self, obs: jnp.ndarray, params: GeneralParams) -> jnp.ndarray:
+        """x = b(z, O_s) [..., K + 1] read off observations: ranges and clearance times H."""
+        sl = self.observation_slices
+        return jnp.concatenate([obs[..., sl["lidar"]], obs[..., sl["clearance"]]], axis=-1) * params.sensing_radius
+
+
+def area_roles(automaton, aps: tuple[str, ...], event: bool, feasible_letters: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    """(target [Q, 4], forbidden [Q, 4]): the role of entering area A(i+1) alone in each state, from
+    ``state_fields.letter_roles`` (areas whose name is no proposition are neutral)."""
+    roles = state_fields.letter_roles(automaton, automaton.distances(feasible_letters), event)
+    target = np.zeros((automaton.n_states, N_AREAS), bool)
+    forbidden = np.zeros_like(target)
+    for i in range(N_AREAS):
+        name = f"A{i + 1}"
+        if name in aps:
+            letter = automaton.letter([name])
+            target[:, i] = roles[:, letter] == state_fields.TARGET
+            forbidden[:, i] = roles[:, letter] == state_fields.FORBIDDEN
+    return target, forbidden
+
+
+def make_generalist_env(cfg: EnvConfig, task: Any, bank: LayoutBank, max_steps: int = 400
+                        ) -> tuple[GeneralistEnv, GeneralParams]:
+    """The generalist's env for a task (a name, a formula or an automaton over A1..A4) and a bank.
+
+    nav's ``make_env`` on the first layout of the bank's kind builds the automaton, dynamics and
+    reward; ``max_steps`` is one limit for every layout (the longest routes of 10 m arenas need it).
+    """
+    n = int(bank.arena.shape[0])
+    if n == 0 or bank.fields.ndim != 5:
+        raise ConfigError("bank", "a layout bank with its fields is needed (layout_bank.build_bank)")
+    if isinstance(task, str):
+        from d2spo.ltl import task_formula, translate
+
+        task = translate(task_formula(task))
+    if not isinstance(task, Automaton):
+        raise ConfigError("task", "the generalist needs a task name, a formula or an Automaton")
+    unknown = sorted(set(task.aps) - {f"A{i + 1}" for i in range(N_AREAS)})
+    if unknown:
+        raise ConfigError("task", f"the generalist's layouts have areas A1..A4; the task names {unknown}")
+    base_env, base = make_env(dataclasses.replace(cfg, layout="random:0", max_steps=max_steps), task)
+    aut = task
+    singles = [0] + [aut.letter([a]) for a in aut.aps]  # bank layouts' areas never overlap
+    target, forbidden = area_roles(aut, aut.aps, base.event, singles)
+    bits = np.array([aut.letter([f"A{i + 1}"]) if f"A{i + 1}" in aut.aps else 0 for i in range(N_AREAS)], np.int32)
+    fields = {f.name: getattr(base, f.name) for f in dataclasses.fields(EnvParams)}
+    fields.update(area_bits=jnp.asarray(bits), advance=jnp.asarray(target), relax_mask=jnp.ones_like(jnp.asarray(target)),
+                  geodesic=jnp.zeros((N_AREAS, 1, 1), jnp.float32), state_field=jnp.zeros((aut.n_states, 1, 1), jnp.float32))
+    params = GeneralParams(**fields, bank=bank, target_areas=jnp.asarray(target), forbidden_areas=jnp.asarray(forbidden),
+                           layout=jnp.zeros((), jnp.int32))
+    params = view(params, jnp.zeros((), jnp.int32))
+    env = GeneralistEnv(base_env.aps, base_env.n_states, base_env.config, n)
+    env.automaton = aut
+    return env, params
+

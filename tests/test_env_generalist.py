@@ -1,0 +1,77 @@
+"""The generalist's environment (envs/generalist.py): a layout per episode from a bank, the subgoal observation."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from d2spo.envs import EnvConfig, generator, layout_bank
+from d2spo.envs.generalist import GeneralistEnv, make_generalist_env, subgoal, view
+from d2spo.errors import ConfigError
+
+SEEDS = (3, 4, 5)
+
+
+@pytest.fixture(scope="module")
+def built():
+    bank = layout_bank.build_bank(SEEDS)
+    env, params = make_generalist_env(EnvConfig(preset="ideal"), "phi1", bank)
+    return bank, env, params
+
+
+def test_view_holds_the_drawn_layouts_geometry(built):
+    bank, env, params = built
+    for b, seed in enumerate(SEEDS):
+        lay = generator.generate(seed)
+        v = view(params, jnp.int32(b))
+        assert np.allclose(np.asarray(v.geom.arena_hi), lay.arena)
+        assert np.allclose(np.asarray(v.area_center), [a.center for a in lay.areas], atol=1e-5)
+        o = lay.obstacles[0]
+        from d2spo.envs import geometry
+        assert bool(geometry.collides(jnp.asarray(o.center, jnp.float32), v.geom, v.robot_radius))
+        # unused slots are far away: a free point of the layout does not collide
+        free = np.asarray(lay.start[:2], np.float32)
+        assert not bool(geometry.collides(jnp.asarray(free), v.geom, v.robot_radius))
+
+
+def test_resets_draw_every_layout_and_observations_are_finite(built):
+    bank, env, params = built
+    assert isinstance(env, GeneralistEnv) and env.observation_size == env.n_rays + 10
+    states, obs = jax.jit(lambda k: env.reset_batch(k, params, 64))(jax.random.PRNGKey(0))
+    assert set(np.asarray(states.layout).tolist()) == {0, 1, 2}
+    assert obs.shape == (64, env.observation_size) and bool(jnp.all(jnp.isfinite(obs)))
+    starts = np.asarray(bank.start)[np.asarray(states.layout), :2]
+    assert np.allclose(np.asarray(states.pose)[:, :2], starts, atol=1e-5)
+    sl = env.observation_slices
+    # phi1's initial state has a target (A1) and forbidden areas (A2, A3)
+    assert np.all(np.asarray(obs[:, sl["target"]])[:, 3] == 1.0)
+    assert np.all(np.asarray(obs[:, sl["forbidden"]])[:, 3] == 1.0)
+
+
+def test_subgoal_descends_the_path_rewards_along_it_and_an_ending_episode_draws_a_new_layout(built):
+    bank, env, params = built
+    states, _ = env.reset_batch(jax.random.PRNGKey(3), params, 16)
+    state = jax.tree.map(lambda a: a[0], states)
+    v = view(params, state.layout)
+    dist, direction, found = subgoal(v, state.q, state.pose[:2])
+    assert bool(found) and float(dist) > 0.5 and abs(float(jnp.linalg.norm(direction)) - 1.0) < 1e-4
+    ahead = subgoal(v, state.q, state.pose[:2] + 0.05 * direction)[0]
+    assert float(ahead) < float(dist) - 0.03  # a step along it shortens the path
+    # env 0 faces the direction and drives: the shaping term is positive; the others are on their
+    # last step: they end and restart in drawn layouts
+    heading = jnp.arctan2(direction[1], direction[0])
+    states = states.replace(pose=states.pose.at[0, 2].set(heading), t=states.t.at[1:].set(399))
+    step = jax.jit(env.step_batch)
+    new, obs, r, cost, done, info = step(jax.random.PRNGKey(4), states, jnp.tile(jnp.array([[1.0, 0.0]]), (16, 1)),
+                                         params)
+    assert int(info["q_next"][0]) == int(state.q) and float(r[0]) > 0.0 and not bool(done[0])
+    assert bool(jnp.all(done[1:])) and bool(jnp.all(new.t[1:] == 0)) and bool(jnp.all(jnp.isfinite(obs)))
+    assert len(set(np.asarray(new.layout[1:]).tolist())) > 1
+
+
+def test_a_task_over_other_areas_is_refused(built):
+    bank, _, _ = built
+    with pytest.raises(ConfigError, match="A1..A4"):
+        make_generalist_env(EnvConfig(), "F A5 & F A1", bank)
