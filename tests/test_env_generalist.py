@@ -7,8 +7,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from d2spo.envs import EnvConfig, generator, layout_bank
+from d2spo.envs import EnvConfig, generator, layout_bank, sensors
 from d2spo.envs.generalist import GeneralistEnv, make_generalist_env, subgoal, view
+from d2spo.envs.sensors import Sensed
 from d2spo.errors import ConfigError
 
 SEEDS = (3, 4, 5)
@@ -69,6 +70,14 @@ def test_subgoal_descends_the_path_rewards_along_it_and_an_ending_episode_draws_
     assert int(info["q_next"][0]) == int(state.q) and float(r[0]) > 0.0 and not bool(done[0])
     assert bool(jnp.all(done[1:])) and bool(jnp.all(new.t[1:] == 0)) and bool(jnp.all(jnp.isfinite(obs)))
     assert len(set(np.asarray(new.layout[1:]).tolist())) > 1
+    # the CBF input read off the observation is what the sensed boxes alone give (walls are boxes):
+    # the learner's data and its acting see the same x, with no arena
+    x_obs = env.cbf_input(info["next_obs"], params)
+    ctx = Sensed(info["box_lo"], info["box_hi"], info["sensed"] | True)
+    big = jnp.array([-100.0, -100.0]), jnp.array([100.0, 100.0])
+    x_ctx = jax.vmap(lambda p, c: sensors.cbf_input(p, c, *big, env.n_rays, params.sensing_radius))(
+        info["next_pose"], ctx)
+    np.testing.assert_allclose(np.asarray(x_obs), np.asarray(x_ctx), atol=1e-4)
 
 
 def test_a_task_over_other_areas_is_refused(built):

@@ -11,8 +11,8 @@ import errno
 import fcntl
 import json
 import os
-import re
 import random
+import re
 import shutil
 import signal
 import subprocess

@@ -85,13 +85,32 @@ class GeneralParams(EnvParams):
     """int32 []: the layout the base fields hold (``view``)."""
 
 
+N_BOXES = layout_bank.M_MAX + 4
+"""Obstacle boxes of a view: the bank's slots, then the four walls as boxes (``view``)."""
+WALL = 1.0
+"""Thickness (m) of the wall boxes, more than the sensing radius reaches through."""
+
+
+def wall_boxes(arena: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """(lo [4, 2], hi [4, 2]): the arena's walls as boxes just outside it (left, right, bottom, top)."""
+    w, h, t = arena[0], arena[1], WALL
+    lo = jnp.stack([jnp.stack([-t, -t]), jnp.stack([w, -t]), jnp.stack([-t, -t]), jnp.stack([-t, h])])
+    hi = jnp.stack([jnp.stack([0.0 * w, h + t]), jnp.stack([w + t, h + t]), jnp.stack([w + t, 0.0 * h]),
+                    jnp.stack([w + t, h + t])])
+    return lo, hi
+
+
 def view(params: GeneralParams, b: jnp.ndarray) -> GeneralParams:
-    """``params`` with layout b's geometry, areas and start in the base fields."""
+    """``params`` with layout b's geometry, areas and start in the base fields. The geometry's boxes
+    are the layout's (unused slots far away) and its four walls (``wall_boxes``), so a set of sensed
+    boxes (``info["box_lo"]``, ``info["box_hi"]``, ``info["sensed"]``) describes everything the
+    robot senses without the arena: the learner's CBF input needs no per-layout arena."""
     bank = params.bank
     mask = bank.box_mask[b][:, None]
-    lo = jnp.where(mask, bank.box_lo[b], FAR)
-    hi = jnp.where(mask, bank.box_hi[b], FAR + 0.01)
     arena = bank.arena[b]
+    w_lo, w_hi = wall_boxes(arena)
+    lo = jnp.concatenate([jnp.where(mask, bank.box_lo[b], FAR), w_lo])
+    hi = jnp.concatenate([jnp.where(mask, bank.box_hi[b], FAR + 0.01), w_hi])
     geom = Geometry(lo, hi, jnp.zeros_like(arena), arena)
     radius = bank.area_radius[b]
     return params.replace(geom=geom, area_center=bank.area_center[b], area_radius=radius, label_radius=radius,
@@ -143,7 +162,7 @@ class GeneralistEnv(Env):
         self.config = config
         self.automaton = None
         self.n_states = n_states
-        self.n_obstacles = layout_bank.M_MAX
+        self.n_obstacles = N_BOXES
         self.n_areas = N_AREAS
         self.n_rays = config.n_rays
         self.bank_size = bank_size
@@ -160,8 +179,12 @@ class GeneralistEnv(Env):
 
     # -- the layout of the state ------------------------------------------------------------
     def step(self, key: jax.Array, state: GeneralState, action: jnp.ndarray, params: GeneralParams):
-        """nav's step in the state's layout; an episode that ends restarts in a newly drawn layout."""
-        return super().step(key, state, action, view(params, state.layout))
+        """nav's step in the state's layout; an episode that ends restarts in a newly drawn layout.
+        ``info`` also holds the step's boxes (``box_lo``, ``box_hi`` [N_BOXES, 2]; ``sensed`` masks them)."""
+        v = view(params, state.layout)
+        out = super().step(key, state, action, v)
+        out[-1].update(box_lo=v.geom.box_lo, box_hi=v.geom.box_hi)
+        return out
 
     def reset(self, key: jax.Array, params: GeneralParams) -> tuple[GeneralState, jnp.ndarray]:
         """A new episode in a layout drawn uniformly from the bank."""
