@@ -84,3 +84,23 @@ def test_a_task_over_other_areas_is_refused(built):
     bank, _, _ = built
     with pytest.raises(ConfigError, match="A1..A4"):
         make_generalist_env(EnvConfig(), "F A5 & F A1", bank)
+
+
+def test_the_generalist_learner_reads_x_and_o_s_per_environment(built):
+    from d2spo.algos.generalist import GeneralistD2SPO
+    from d2spo.algos.td3 import TD3Config
+    from d2spo.ltl.anneal import AnnealConfig
+    from d2spo.safety.cbf import CBFConfig
+
+    bank, env, params = built
+    learner = GeneralistD2SPO(env, params, TD3Config(), CBFConfig(), AnnealConfig(enabled=False), 4, 10, 100)
+    states, obs = env.reset_batch(jax.random.PRNGKey(5), params, 16)  # the shapes of the test above: one compile
+    _, _, _, _, _, info = jax.jit(env.step_batch)(jax.random.PRNGKey(6), states, jnp.zeros((16, 2)), params)
+    ctx = learner.context(info)
+    all_sensed = Sensed(ctx.box_lo, ctx.box_hi, jnp.ones_like(ctx.mask))
+    x_data = jax.vmap(learner.features)(info["next_pose"], all_sensed)
+    np.testing.assert_allclose(np.asarray(learner.x_of_obs(info["next_obs"])), np.asarray(x_data), atol=1e-4)
+    pose, sensed = learner.synthetic_sample(jax.random.PRNGKey(7))  # walls are its last four boxes
+    x = learner.features(pose, sensed)
+    assert x.shape == (env.n_rays + 1,) and bool(jnp.all((x >= 0) & (x <= params.sensing_radius)))
+    assert float(x[-1]) <= float(jnp.min(jnp.stack([pose[0], pose[1]]))) + 1e-5  # the walls count

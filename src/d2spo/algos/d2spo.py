@@ -115,7 +115,7 @@ class D2SPOLearner(TD3Learner):
         self.safety_nets = make_nets(cbf, self.H)
         self.lidar = env.observation_slices["lidar"]
         self.n_obstacles = int(params.geom.box_lo.shape[0])
-        self.pose_slice = env.observation_slices["pose"]
+        self.pose_slice = env.observation_slices.get("pose")  # None: x is read off the obs otherwise (algos/generalist.py)
         self.n_features = env.n_rays + 1
 
     @property
@@ -134,6 +134,10 @@ class D2SPOLearner(TD3Learner):
     def sensed(self, mask: jax.Array) -> Sensed:
         """O_s: this layout's obstacles with the sensed ``mask`` [..., M]."""
         return sensors.sensed_obstacles(self.params.geom, mask)
+
+    def context(self, info: dict) -> Sensed:
+        """O_s of a step, from the env's ``info``: this layout's obstacles, ``info["sensed"]`` of them."""
+        return self.sensed(info["sensed"])
 
     def synthetic_sample(self, key: jax.Array):
         """A hypothetical pose among random boxes in this arena (pre-training data, not the layout)."""
@@ -205,7 +209,7 @@ class D2SPOLearner(TD3Learner):
         env_state, obs, reward, cost, done, info = self.env.step_batch(k_env, c.env_state, action, params)
         buffer = replay.add_batch(c.buffer, Transition(c.obs, action, reward, cost, info["next_obs"],
                                                        info["terminated"].astype(jnp.float32)))
-        tr = sd.Transition(pose=info["pose"], next_pose=info["next_pose"], context=self.sensed(info["sensed"]),
+        tr = sd.Transition(pose=info["pose"], next_pose=info["next_pose"], context=self.context(info),
                            obs=c.obs, action=action, u_rl=u_rl)
         data, data_stats = sd.update_datasets(c.data, k_data, tr, features_fn=self.features, cfg=self.cbf_cfg)
         execute_fn = None

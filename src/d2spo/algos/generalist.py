@@ -1,0 +1,73 @@
+"""D²SPO over ``envs.generalist.GeneralistEnv`` (issue 16, in progress): one learner for a bank of layouts.
+
+``D2SPOLearner`` reads the layout from its params: the CBF input of an observation needs the
+layout's obstacles (the nearest-obstacle distance) and the datasets store the step's sensed set of
+the layout's boxes. Over a bank every environment has its own layout, so this learner reads both
+per environment instead:
+
+* x of an observation is ``GeneralistEnv.cbf_input`` (the ranges and the clearance it carries);
+* a step's O_s is ``info["box_lo"]``, ``info["box_hi"]`` and ``info["sensed"]`` (the layout's
+  boxes and its four walls as boxes, ``envs.generalist.view``); the sensor model then needs no
+  arena, so the learner's arena is one far larger than any layout's;
+* the cautious start's synthetic samples are drawn in arenas of ``generator.SIDE`` with walls as
+  boxes, as the bank's layouts are.
+
+The runtime filter needs the layout's boxes when acting; it is not available here yet.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from d2spo.algos.d2spo import D2SPOLearner
+from d2spo.envs import generator, geometry
+from d2spo.envs.generalist import N_BOXES, wall_boxes
+from d2spo.envs.geometry import Geometry
+from d2spo.envs.sensors import Sensed
+from d2spo.errors import ConfigError
+
+BEYOND = 1.0e3
+"""Half-side (m) of the learner's arena: farther than any wall box, so walls are seen only as boxes."""
+
+
+class GeneralistD2SPO(D2SPOLearner):
+    """D²SPO with the CBF input and O_s read per environment (module docstring)."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        if self.d2.runtime_filter:
+            raise ConfigError("d2spo.runtime_filter", "the generalist has no runtime filter yet")
+        if self.n_obstacles != N_BOXES:
+            raise ConfigError("env", "GeneralistD2SPO trains on envs.generalist.GeneralistEnv")
+
+    @property
+    def arena_lo(self) -> jax.Array:
+        return jnp.full((2,), -BEYOND, jnp.float32)
+
+    @property
+    def arena_hi(self) -> jax.Array:
+        return jnp.full((2,), BEYOND, jnp.float32)
+
+    def x_of_obs(self, obs: jax.Array) -> jax.Array:
+        return self.env.cbf_input(obs, self.params)
+
+    def context(self, info: dict) -> Sensed:
+        return Sensed(info["box_lo"], info["box_hi"], info["sensed"])
+
+    def synthetic_sample(self, key: jax.Array):
+        """A hypothetical pose among random boxes in a random arena of the generator's sizes, its
+        walls as the last four boxes (as in ``envs.generalist.view``)."""
+        k_side, k_pose, k_theta, k_centre, k_half = jax.random.split(key, 5)
+        side = jax.random.uniform(k_side, (), minval=generator.SIDE[0], maxval=generator.SIDE[1])
+        pose_xy = jax.random.uniform(k_pose, (2,), minval=0.0, maxval=side)
+        theta = jax.random.uniform(k_theta, (), minval=-jnp.pi, maxval=jnp.pi)
+        m = N_BOXES - 4
+        centre = jax.random.uniform(k_centre, (m, 2), minval=0.0, maxval=side)
+        a, b = self.d2.synthetic_box_half
+        half = jax.random.uniform(k_half, (m, 1), minval=a, maxval=b)
+        w_lo, w_hi = wall_boxes(jnp.stack([side, side]))
+        box_lo = jnp.concatenate([centre - half, w_lo])
+        box_hi = jnp.concatenate([centre + half, w_hi])
+        mask = geometry.sensed_mask(pose_xy, Geometry(box_lo, box_hi, self.arena_lo, self.arena_hi), self.H)
+        return jnp.concatenate([pose_xy, theta[None]]), Sensed(box_lo, box_hi, mask)
