@@ -104,3 +104,12 @@ def test_the_generalist_learner_reads_x_and_o_s_per_environment(built):
     x = learner.features(pose, sensed)
     assert x.shape == (env.n_rays + 1,) and bool(jnp.all((x >= 0) & (x <= params.sensing_radius)))
     assert float(x[-1]) <= float(jnp.min(jnp.stack([pose[0], pose[1]]))) + 1e-5  # the walls count
+
+
+def test_the_generalist_flag_is_for_d2spo():
+    from d2spo.config import TrainConfig
+
+    with pytest.raises(ConfigError, match="generalist: the generalist is trained with --algo d2spo"):
+        TrainConfig(algo="tlgrl", generalist=True)
+    with pytest.raises(ConfigError, match="generalist_layouts"):
+        TrainConfig(generalist=True, generalist_layouts=0)

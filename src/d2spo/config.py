@@ -55,6 +55,11 @@ class TrainConfig:
     e.g. for the trajectories of Fig. 5."""
     eval_episodes: int = 100
     """Episodes of the final deterministic policy evaluated at the end."""
+    generalist: bool = False
+    """Train one policy over a bank of random layouts with the subgoal observation
+    (``envs.generalist``, ``algos.generalist``; d2spo only; issue 16, in progress)."""
+    generalist_layouts: int = 256
+    """With ``generalist``: train on the layouts random:0 .. random:N-1 (``envs.generator``)."""
     eval_untrained: bool = False
     """Also evaluate the initial policy (after the cautious start, before the first env step) on
     the same episodes, with the same compilation: summary.json's ``eval_untrained``. Needs a run
@@ -96,7 +101,10 @@ class TrainConfig:
 
         if self.algo not in known_algos():
             raise ConfigError("algo", f"unknown algorithm {self.algo!r}; choose one of {list(known_algos())}")
-        check_fields(self, count=("episodes", "num_envs", "chunk_steps", "checkpoint_every", "window"),
+        if self.generalist and self.algo != "d2spo":
+            raise ConfigError("generalist", f"the generalist is trained with --algo d2spo, not {self.algo!r}")
+        check_fields(self, count=("episodes", "num_envs", "chunk_steps", "checkpoint_every", "window",
+                                  "generalist_layouts"),
                      seed=("seed",), counts=("snapshots",), natural=("eval_episodes",))
         if not isinstance(self.task, str) or not self.task.strip():
             raise ConfigError("task", f"expected a task name or an LTL formula, got {self.task!r}")

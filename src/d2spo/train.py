@@ -44,8 +44,31 @@ def build(cfg: TrainConfig):
     from d2spo.algos import make_learner
     from d2spo.envs import make_env
 
+    if cfg.generalist:
+        return _build_generalist(cfg)
     env, params = make_env(cfg.env_config(), task=cfg.task)
     learner = make_learner(cfg, env, params)
+    return env, params, learner
+
+
+GENERALIST_MAX_STEPS = 400
+"""The generalist's episode limit when ``max_steps`` is unset: routes in 10 m arenas are long."""
+
+
+def _build_generalist(cfg: TrainConfig):
+    """(env, params, learner) of ``--generalist``: the bank random:0 .. random:N-1, GeneralistD2SPO."""
+    import dataclasses
+
+    from d2spo.algos.generalist import GeneralistD2SPO
+    from d2spo.envs import layout_bank
+    from d2spo.envs.generalist import make_generalist_env
+
+    bank = layout_bank.build_bank(range(cfg.generalist_layouts))
+    env_cfg = cfg.env_config()
+    env, params = make_generalist_env(env_cfg, cfg.task, bank, env_cfg.max_steps or GENERALIST_MAX_STEPS)
+    anneal = dataclasses.replace(cfg.anneal, enabled=False)  # the view keeps the true radius
+    learner = GeneralistD2SPO(env, params, cfg.td3, cfg.cbf, anneal, cfg.num_envs, cfg.chunk_steps, cfg.episodes,
+                              cfg.d2spo)
     return env, params, learner
 
 
@@ -207,7 +230,8 @@ class _Run:
         if self.tb is not None:
             self.tb.close()
         summary = {
-            "algo": cfg.algo, "task": cfg.task, "layout": cfg.layout, "seed": cfg.seed,
+            "algo": cfg.algo, "task": cfg.task, "seed": cfg.seed,
+            "layout": f"random:0..{cfg.generalist_layouts - 1}" if cfg.generalist else cfg.layout,
             "episodes": len(self.writer), "env_steps": self.meta["env_steps"], "wall_seconds": round(wall, 2),
             "compile_seconds": round(self.meta.get("compile_seconds", 0.0), 2),
             "env_steps_per_second": round(self.meta["env_steps"] / max(wall, 1e-9), 1),

@@ -452,7 +452,7 @@ def check_episode_time(env: Env, params: EnvParams, name: str) -> None:
     """``state_fields.check_time`` for an env from ``make_env``: a ``TaskWarning`` when the task's
     shortest route cannot fit in (or needs most of) the episode. Training calls it once; evaluating
     a run does not (nothing can be done about its episodes then)."""
-    if env.automaton is None:  # an automaton object with arrays() only: no routes
+    if env.automaton is None or env.layout is None:  # arrays() only, or a bank of layouts: no one route
         return
     cfg = env.config
     state_fields.check_time(env.automaton, env.layout, cfg.label_mode, cfg.robot_radius, int(params.max_steps),
