@@ -117,39 +117,13 @@ def view(params: GeneralParams, b: jnp.ndarray) -> GeneralParams:
                           start=bank.start[b], layout=jnp.asarray(b, jnp.int32))
 
 
-def _bilinear(bank: LayoutBank, b, i, f, xy: jnp.ndarray) -> jnp.ndarray:
-    """Field (target i, forbidden subset f) of layout b at xy: four gathered nodes (no slice of the
-    field is copied, unlike ``layout_bank.field_at``)."""
-    g = bank.fields.shape[-1]
-    spacing = bank.arena[b, 0] / (g - 1)
-    fx = jnp.clip(xy[0] / spacing, 0.0, g - 1.0)
-    fy = jnp.clip(xy[1] / spacing, 0.0, g - 1.0)
-    x0 = jnp.clip(jnp.floor(fx).astype(jnp.int32), 0, g - 2)
-    y0 = jnp.clip(jnp.floor(fy).astype(jnp.int32), 0, g - 2)
-    tx, ty = fx - x0, fy - y0
-    f00, f01 = bank.fields[b, i, f, y0, x0], bank.fields[b, i, f, y0, x0 + 1]
-    f10, f11 = bank.fields[b, i, f, y0 + 1, x0], bank.fields[b, i, f, y0 + 1, x0 + 1]
-    return (1 - ty) * ((1 - tx) * f00 + tx * f01) + ty * ((1 - tx) * f10 + tx * f11)
-
-
 def subgoal(params: GeneralParams, q: jnp.ndarray, xy: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:
     """(distance, direction [2], any) to the nearest target of state q in the view's layout, along
-    the path round obstacles and q's forbidden areas; the direction is the field's steepest descent
-    (central differences half a node apart). 0, 0, False when q has no target."""
-    bank, b = params.bank, params.layout
-    target, forbidden = params.target_areas[q], params.forbidden_areas[q]
-    f = layout_bank.subsets(forbidden)
-    per_target = jnp.stack([_bilinear(bank, b, i, f[i], xy) for i in range(N_AREAS)])
-    per_target = jnp.where(target, per_target, jnp.inf)
-    k = jnp.argmin(per_target)
-    found = jnp.any(target)
-    eps = 0.5 * bank.arena[b, 0] / (bank.fields.shape[-1] - 1)
-    offsets = jnp.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]]) * eps
-    probes = jax.vmap(lambda d: _bilinear(bank, b, k, f[k], xy + d))(offsets)
-    grad = jnp.stack([probes[0] - probes[1], probes[2] - probes[3]]) / (2 * eps)
-    norm = jnp.sqrt(grad[0] * grad[0] + grad[1] * grad[1])
-    direction = jnp.where(found & (norm > 0), -grad / jnp.where(norm > 0, norm, 1.0), 0.0)
-    return jnp.where(found, per_target[k], 0.0), direction, found
+    the path round obstacles and q's forbidden areas (``layout_bank.nearest``); 0, 0, False when q
+    has no target."""
+    target = params.target_areas[q]
+    dist, direction = layout_bank.nearest(params.bank, params.layout, target, params.forbidden_areas[q], xy)
+    return dist, direction, jnp.any(target)
 
 
 class GeneralistEnv(Env):
@@ -186,12 +160,9 @@ class GeneralistEnv(Env):
         out[-1].update(box_lo=v.geom.box_lo, box_hi=v.geom.box_hi)
         return out
 
-    def reset(self, key: jax.Array, params: GeneralParams) -> tuple[GeneralState, jnp.ndarray]:
-        """A new episode in a layout drawn uniformly from the bank."""
-        return super().reset(key, params)
-
     def _reset_state(self, u: jnp.ndarray, params: GeneralParams) -> GeneralState:
-        """A fresh episode from three uniforms in [-1, 1]: u[0] draws the layout, u[1] the heading."""
+        """A fresh episode (``reset``, and nav's step when one ends) from three uniforms in [-1, 1]:
+        u[0] draws the layout uniformly from the bank, u[1] the heading."""
         n = params.bank.arena.shape[0]
         b = jnp.clip(jnp.floor((u[0] + 1.0) * 0.5 * n).astype(jnp.int32), 0, n - 1)
         v = view(params, b)

@@ -25,8 +25,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from d2spo.envs.layouts import RANDOM_RADIUS, Area, Layout, Obstacle, check_robot_fits, validate
-from d2spo.errors import ConfigError
+from d2spo.envs.layouts import Area, Layout, Obstacle, feasible
 
 STYLES = ("boxes", "corridors", "gap")
 """The kinds of layout, drawn with equal probability."""
@@ -75,14 +74,8 @@ def generate(seed: int) -> Layout:
         obstacles, far_side = _OBSTACLES[style](rng, side)
         layout = _with_start_and_areas(rng, Layout(f"random:{seed}", (side, side), (0.0, 0.0, 0.0), obstacles, ()),
                                        far_side)
-        if layout is None:
-            continue
-        try:
-            validate(layout)
-            check_robot_fits(layout, RANDOM_RADIUS)
-        except ConfigError:
-            continue
-        return layout
+        if layout is not None and feasible(layout):
+            return layout
     raise RuntimeError(f"no feasible random layout found for seed {seed} in {MAX_TRIES} draws")  # pragma: no cover
 
 

@@ -301,8 +301,19 @@ def _min_plus_scan(value: jax.Array, step: jax.Array) -> jax.Array:
 
 
 def field_at(bank: LayoutBank, b, i, f, xy: jax.Array) -> jax.Array:
-    """Field (target i, forbidden subset f) of layout b, bilinear at xy [2] (clamped to the arena)."""
-    return geodesic.lookup(bank.fields[b, i], xy, bank.arena[b, 0] / (bank.fields.shape[-1] - 1), index=f)
+    """Field (target i, forbidden subset f) of layout b, bilinear at xy [2] (clamped to the arena),
+    as ``geodesic.lookup``; it gathers the four nodes from the whole bank, so no slice of a field is
+    copied when b, i, f are traced (inside the training step)."""
+    g = bank.fields.shape[-1]
+    spacing = bank.arena[b, 0] / (g - 1)
+    fx = jnp.clip(xy[0] / spacing, 0.0, g - 1.0)
+    fy = jnp.clip(xy[1] / spacing, 0.0, g - 1.0)
+    x0 = jnp.clip(jnp.floor(fx).astype(jnp.int32), 0, g - 2)
+    y0 = jnp.clip(jnp.floor(fy).astype(jnp.int32), 0, g - 2)
+    tx, ty = fx - x0, fy - y0
+    f00, f01 = bank.fields[b, i, f, y0, x0], bank.fields[b, i, f, y0, x0 + 1]
+    f10, f11 = bank.fields[b, i, f, y0 + 1, x0], bank.fields[b, i, f, y0 + 1, x0 + 1]
+    return (1 - ty) * ((1 - tx) * f00 + tx * f01) + ty * ((1 - tx) * f10 + tx * f11)
 
 
 def subsets(forbidden: jax.Array) -> jax.Array:

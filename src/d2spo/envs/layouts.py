@@ -392,13 +392,19 @@ def random_layout(seed: int, n_obstacles: int = 6, n_areas: int = 4) -> Layout:
         if len(areas) < n_areas:
             continue
         layout = replace(layout, areas=tuple(areas))
-        try:
-            validate(layout)
-            check_robot_fits(layout, RANDOM_RADIUS)
-        except ConfigError:
-            continue
-        return layout
+        if feasible(layout):
+            return layout
     raise RuntimeError(f"no feasible random layout found for seed {seed}")  # pragma: no cover
+
+
+def feasible(layout: Layout, robot_radius: float = RANDOM_RADIUS) -> bool:
+    """Whether ``validate`` and ``check_robot_fits`` pass (the random generators' acceptance test)."""
+    try:
+        validate(layout)
+        check_robot_fits(layout, robot_radius)
+    except ConfigError:
+        return False
+    return True
 
 
 def _rounded(values: np.ndarray) -> tuple[float, ...]:
