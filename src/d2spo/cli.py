@@ -206,6 +206,9 @@ class EvalCmd:
     """Evaluation episodes (run in parallel)."""
     layout: str | None = None
     """Evaluate on another layout (name or JSON file); default: the training layout."""
+    task: str | None = None
+    """Zero-shot: run a generalist (`d2spo train --generalist`) on this task, a name or a formula over
+    A1..A4 (needs --layout); other runs only take the task they learnt."""
     dynamics: str | None = None
     """Evaluate under other dynamics: a preset (ideal, default, turtlebot: its unmodelled effects, with the
     trained time step and speed limits) or a JSON file (every field it gives: docs/env.md)."""
@@ -228,7 +231,8 @@ class EvalCmd:
         from d2spo.evaluate import evaluate_run, write_evaluation
 
         res = evaluate_run(self.run_dir, self.episodes, self.layout, self.dynamics, self.seed, self.layout_seeds,
-                           self.runtime_filter, self.filter_iters, self.filter_alpha, self.dynamics_fields.given())
+                           self.runtime_filter, self.filter_iters, self.filter_alpha, self.dynamics_fields.given(),
+                           self.task)
         print_evaluation(res, write_evaluation(self.run_dir, res), filter_asked=self.runtime_filter)
         return 0
 

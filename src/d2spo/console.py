@@ -85,7 +85,8 @@ def print_evaluation(res: dict, path: Path, filter_asked: bool | None) -> None:
         filt = ", runtime filter " + ("on" if res["runtime_filter"] else "off")
         if res["runtime_filter"] and filter_asked is None:
             filt += " (not the training layout/dynamics; --runtime-filter False for π_Ω alone)"
-    t = Table(title=f"{res['run']} on {res['layout']} / {res['dynamics']} ({res['episodes']} episodes{filt})")
+    task = f", task {res['task']!r} (zero-shot)" if res.get("task_given") else ""
+    t = Table(title=f"{res['run']} on {res['layout']} / {res['dynamics']} ({res['episodes']} episodes{filt}{task})")
     for name in ("layout", "safety_rate", "completion_rate", "mean_return", "distance driven"):
         t.add_column(name, justify="left" if name == "layout" else "right")
 

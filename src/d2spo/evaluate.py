@@ -31,7 +31,8 @@ def load_policy(run_dir: Path):
     if not run_dir.is_dir():
         raise RunDirError(f"{run_dir}: no such run directory")
     cfg = load_run_config(run_dir)
-    _, _, learner = build(cfg)
+    # a generalist's checkpoint holds no layout: a one-layout bank gives the same shapes, fast
+    _, _, learner = build(dataclasses.replace(cfg, generalist_layouts=1) if cfg.generalist else cfg)
     template = jax.eval_shape(learner.init, jax.random.PRNGKey(0))  # shapes only: no pre-training
     carry, meta = load_checkpoint(run_dir, template, run_fingerprint(run_dir))
     return cfg, learner, learner.policy(carry), meta
@@ -99,12 +100,14 @@ def filter_choice(cfg: TrainConfig, layout: str | None, preset: str | None, aske
 def evaluate_run(run_dir: Path, episodes: int = 100, layout: str | None = None, preset: str | None = None,
                  seed: int = 0, layout_seeds: int = 1, runtime_filter: bool | None = None,
                  filter_iters: int | None = None, filter_alpha: float | None = None,
-                 dynamics: dict[str, float] | None = None) -> dict:
+                 dynamics: dict[str, float] | None = None, task: str | None = None) -> dict:
     """Safety and completion of the run's final policy, deterministic, on its own layout and dynamics
     or others. ``runtime_filter=None``: as trained on the training layout and dynamics, and on for a
     D²SPO policy evaluated on another layout or dynamics (π_Ω alone is far less safe on layouts it
     never saw: docs/cbf.md); True/False force it. ``preset``: a dynamics preset or JSON file;
-    ``dynamics``: per-field values on top of it (``eval_env_config``)."""
+    ``dynamics``: per-field values on top of it (``eval_env_config``). ``task``: another task (a
+    name or a formula) for a generalist run, zero-shot (``d2spo.zero_shot``); a generalist needs
+    ``layout``."""
     from d2spo.algos import has_runtime_filter
     from d2spo.envs.dynamics import DYNAMICS_FIELDS
 
@@ -116,6 +119,11 @@ def evaluate_run(run_dir: Path, episodes: int = 100, layout: str | None = None, 
         raise ConfigError("layout_seeds", f"only applies with --layout random[:SEED] or random5[:SEED], got {layout_seeds} "
                           f"with layout {layout or 'as trained'!r}")
     cfg, learner, policy, _ = load_policy(run_dir)
+    if task is not None and not cfg.generalist and task != cfg.task:
+        raise ConfigError("task", f"only a generalist (d2spo train --generalist) runs another task than it "
+                          f"learnt; this run learnt {cfg.task!r}")
+    if cfg.generalist and layout is None:
+        raise ConfigError("layout", "a generalist run has no layout of its own: give --layout NAME|FILE|random:SEED")
     has_filter = has_runtime_filter(cfg.algo)
     asked = {"runtime_filter": runtime_filter, "filter_iters": filter_iters, "filter_alpha": filter_alpha}
     for name, value in asked.items():
@@ -132,6 +140,33 @@ def evaluate_run(run_dir: Path, episodes: int = 100, layout: str | None = None, 
         kind, _, base = layout.partition(":")  # random:SEED or random5:SEED
         if base.isdigit() or not base:  # else load() names the bad seed
             layouts = [f"{kind}:{int(base or 0) + i}" for i in range(layout_seeds)]
+    env_cfg = eval_env_config(cfg, layout, preset, dynamics)
+    if cfg.generalist:
+        from d2spo.zero_shot import rollouts
+
+        results, limit = rollouts(cfg, policy, task or cfg.task, layouts, episodes, seed, env_cfg)
+    else:
+        results, limit = _specialist_rollouts(cfg, learner, policy, layouts, episodes, seed, preset, dynamics), None
+    out = {
+        "run": str(run_dir), "episodes": episodes * len(layouts), "layout": layout or cfg.layout,
+        "layouts": [lay or cfg.layout for lay in layouts], "dynamics": dynamics_label(preset, dynamics, cfg.env.preset),
+        "dynamics_values": {k: getattr(env_cfg.resolved(), k) for k in DYNAMICS_FIELDS}, "seed": seed,
+        "task": task or cfg.task, "task_given": task is not None and task != cfg.task,
+        "max_steps": limit,
+        "runtime_filter": bool(cfg.d2spo.runtime_filter) if has_filter else None,
+        "filter_iters": cfg.cbf.filter_iters if has_filter else None,
+        "filter_alpha": cfg.cbf.filter_alpha if has_filter else None,
+        "per_layout": [{"layout": lay or cfg.layout, **r} for lay, r in zip(layouts, results)],
+        **{k: float(np.mean([r[k] for r in results]))
+           for k in ("safety_rate", "completion_rate", "mean_return", "mean_distance")},
+    }
+    return out
+
+
+def _specialist_rollouts(cfg: TrainConfig, learner, policy, layouts: list[str | None], episodes: int, seed: int,
+                         preset: str | None, dynamics: dict[str, float] | None) -> list[dict]:
+    """Rates per layout of a policy that reads its layout's coordinates (every learner but the
+    generalist): the observation must keep its size (number of areas, automaton states)."""
     results = []
     compiled: dict = {}  # one compiled rollout per shape of the env params (random5 layouts share one)
     for lay in layouts:
@@ -145,18 +180,7 @@ def evaluate_run(run_dir: Path, episodes: int = 100, layout: str | None = None, 
         if shape not in compiled:
             compiled[shape] = make_rollout(other, env, episodes, int(params.max_steps))
         results.append(rates(*compiled[shape](params, policy, jax.random.PRNGKey(seed))))
-    out = {
-        "run": str(run_dir), "episodes": episodes * len(layouts), "layout": layout or cfg.layout,
-        "layouts": [lay or cfg.layout for lay in layouts], "dynamics": dynamics_label(preset, dynamics, cfg.env.preset),
-        "dynamics_values": {k: getattr(env.config, k) for k in DYNAMICS_FIELDS}, "seed": seed,
-        "runtime_filter": bool(cfg.d2spo.runtime_filter) if has_filter else None,
-        "filter_iters": cfg.cbf.filter_iters if has_filter else None,
-        "filter_alpha": cfg.cbf.filter_alpha if has_filter else None,
-        "per_layout": [{"layout": lay or cfg.layout, **r} for lay, r in zip(layouts, results)],
-        **{k: float(np.mean([r[k] for r in results]))
-           for k in ("safety_rate", "completion_rate", "mean_return", "mean_distance")},
-    }
-    return out
+    return results
 
 
 def learner_obs_size(learner) -> int:
@@ -167,6 +191,10 @@ def evaluation_path(run_dir: Path, res: dict) -> Path:
     """Where ``write_evaluation`` puts ``res``: RUN_DIR/eval-LAYOUT[xN]-DYNAMICS[-filter-aA-iN].json."""
     n = len(res["per_layout"])  # random:0 over 3 layouts is another evaluation than random:0 alone
     tag = f"{Path(res['layout']).stem.replace(':', '')}{f'x{n}' if n > 1 else ''}-{res['dynamics']}"
+    if res.get("task_given"):
+        from d2spo.zero_shot import task_tag
+
+        tag += f"-{task_tag(res['task'])}"
     if res["runtime_filter"]:
         tag += f"-filter-a{res['filter_alpha']:g}-i{res['filter_iters']}"
     return Path(run_dir) / f"eval-{tag}.json"

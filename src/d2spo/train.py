@@ -57,19 +57,11 @@ GENERALIST_MAX_STEPS = 400
 
 def _build_generalist(cfg: TrainConfig):
     """(env, params, learner) of ``--generalist``: the bank random:0 .. random:N-1, GeneralistD2SPO."""
-    import dataclasses
-
-    from d2spo.algos.generalist import GeneralistD2SPO
+    from d2spo.algos.generalist import build_generalist
     from d2spo.envs import layout_bank
-    from d2spo.envs.generalist import make_generalist_env
 
     bank = layout_bank.build_bank(range(cfg.generalist_layouts))
-    env_cfg = cfg.env_config()
-    env, params = make_generalist_env(env_cfg, cfg.task, bank, env_cfg.max_steps or GENERALIST_MAX_STEPS)
-    anneal = dataclasses.replace(cfg.anneal, enabled=False)  # the view keeps the true radius
-    learner = GeneralistD2SPO(env, params, cfg.td3, cfg.cbf, anneal, cfg.num_envs, cfg.chunk_steps, cfg.episodes,
-                              cfg.d2spo)
-    return env, params, learner
+    return build_generalist(cfg, bank, cfg.env.max_steps or GENERALIST_MAX_STEPS)
 
 
 def _rows_from_log(log: ChunkLog, first_episode: int, limit: int) -> list[tuple]:

@@ -139,6 +139,11 @@ class D2SPOLearner(TD3Learner):
         """O_s of a step, from the env's ``info``: this layout's obstacles, ``info["sensed"]`` of them."""
         return self.sensed(info["sensed"])
 
+    def filter_context(self, env_state) -> Sensed | None:
+        """The obstacles the runtime filter keeps clear of in ``env_state`` (batched or not); None:
+        all of this layout's (``execute``'s default)."""
+        return None
+
     def synthetic_sample(self, key: jax.Array):
         """A hypothetical pose among random boxes in this arena (pre-training data, not the layout)."""
         m = max(self.n_obstacles, 1)
@@ -185,10 +190,14 @@ class D2SPOLearner(TD3Learner):
                           base.steps, base.episodes)
 
     # -- the executed policy -------------------------------------------------------------
-    def execute(self, safety: SafetyState, obs: jax.Array, u_rl: jax.Array, pose: jax.Array) -> jax.Array:
+    def execute(self, safety: SafetyState, obs: jax.Array, u_rl: jax.Array, pose: jax.Array,
+                ctx: Sensed | None = None) -> jax.Array:
+        """π_Ω's action, then the runtime filter's (when on) with the obstacles ``ctx`` (default: all
+        of this layout's, ``filter_context``)."""
         u = safe_action(self.safety_nets, safety, self.x_of_obs(obs), u_rl)
         if self.d2.runtime_filter:
-            ctx = self.sensed(jnp.ones(u.shape[:-1] + (self.n_obstacles,), bool))
+            if ctx is None:
+                ctx = self.sensed(jnp.ones(u.shape[:-1] + (self.n_obstacles,), bool))
 
             def one(p, c, u0):
                 return safety_filter(self.safety_nets, safety.cbf, safety.nominal, p, c, u0, cfg=self.cbf_cfg,
@@ -204,7 +213,8 @@ class D2SPOLearner(TD3Learner):
         key, k_act, k_env, k_upd, k_data, k_safe = jax.random.split(c.key, 6)
         random_phase = c.steps * self.num_envs < self.cfg.learning_starts
         u_rl = explore(self.nets, c.agent, c.obs, k_act, random_phase, self.cfg.exploration_noise)
-        action = self.execute(c.safety, c.obs, u_rl, c.env_state.pose)
+        ctx = self.filter_context(c.env_state) if self.d2.runtime_filter else None
+        action = self.execute(c.safety, c.obs, u_rl, c.env_state.pose, ctx)
         params = self.anneal.env_params(self.params, c.episodes)
         env_state, obs, reward, cost, done, info = self.env.step_batch(k_env, c.env_state, action, params)
         buffer = replay.add_batch(c.buffer, Transition(c.obs, action, reward, cost, info["next_obs"],
@@ -277,4 +287,5 @@ class D2SPOLearner(TD3Learner):
     def act(self, policy, obs, env_state, key):
         actor, safety = policy
         u_rl = self.nets.actor.apply(actor, obs)
-        return self.execute(safety, obs, u_rl, env_state.pose)
+        ctx = self.filter_context(env_state) if self.d2.runtime_filter else None
+        return self.execute(safety, obs, u_rl, env_state.pose, ctx)

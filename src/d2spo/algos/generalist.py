@@ -12,7 +12,8 @@ per environment instead:
 * the cautious start's synthetic samples are drawn in arenas of ``generator.SIDE`` with walls as
   boxes, as the bank's layouts are.
 
-The runtime filter needs the layout's boxes when acting; it is not available here yet.
+* the runtime filter keeps clear of the boxes of each environment's own layout
+  (``filter_context``), in training and when acting.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ import jax.numpy as jnp
 
 from d2spo.algos.d2spo import D2SPOLearner
 from d2spo.envs import generator, geometry
-from d2spo.envs.generalist import N_BOXES, wall_boxes
+from d2spo.envs.generalist import N_BOXES, view, wall_boxes
 from d2spo.envs.geometry import Geometry
 from d2spo.envs.sensors import Sensed
 from d2spo.errors import ConfigError
@@ -36,8 +37,6 @@ class GeneralistD2SPO(D2SPOLearner):
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
-        if self.d2.runtime_filter:
-            raise ConfigError("d2spo.runtime_filter", "the generalist has no runtime filter yet")
         if self.n_obstacles != N_BOXES:
             raise ConfigError("env", "GeneralistD2SPO trains on envs.generalist.GeneralistEnv")
 
@@ -55,6 +54,16 @@ class GeneralistD2SPO(D2SPOLearner):
     def context(self, info: dict) -> Sensed:
         return Sensed(info["box_lo"], info["box_hi"], info["sensed"])
 
+    def filter_context(self, env_state) -> Sensed:
+        """Every box (obstacles and walls) of the layout of each environment of ``env_state``."""
+
+        def one(b):
+            g = view(self.params, b).geom
+            return Sensed(g.box_lo, g.box_hi, jnp.ones(g.box_lo.shape[:1], bool))
+
+        b = env_state.layout
+        return jax.vmap(one)(b) if b.ndim else one(b)
+
     def synthetic_sample(self, key: jax.Array):
         """A hypothetical pose among random boxes in a random arena of the generator's sizes, its
         walls as the last four boxes (as in ``envs.generalist.view``)."""
@@ -71,3 +80,18 @@ class GeneralistD2SPO(D2SPOLearner):
         box_hi = jnp.concatenate([centre + half, w_hi])
         mask = geometry.sensed_mask(pose_xy, Geometry(box_lo, box_hi, self.arena_lo, self.arena_hi), self.H)
         return jnp.concatenate([pose_xy, theta[None]]), Sensed(box_lo, box_hi, mask)
+
+
+def build_generalist(cfg, bank, max_steps: int):
+    """(env, params, learner) of a generalist config (``TrainConfig``, ``generalist`` set) on ``bank``
+    for ``cfg.task``, every episode at most ``max_steps`` long. The layouts' own radii label the
+    areas (no annealing)."""
+    import dataclasses
+
+    from d2spo.envs.generalist import make_generalist_env
+
+    env, params = make_generalist_env(cfg.env_config(), cfg.task, bank, max_steps)
+    anneal = dataclasses.replace(cfg.anneal, enabled=False)
+    learner = GeneralistD2SPO(env, params, cfg.td3, cfg.cbf, anneal, cfg.num_envs, cfg.chunk_steps, cfg.episodes,
+                              cfg.d2spo)
+    return env, params, learner

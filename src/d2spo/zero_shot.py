@@ -1,0 +1,99 @@
+"""Zero-shot evaluation of a generalist (``d2spo eval RUN --task FORMULA --layout L``; issue 16).
+
+A generalist (``d2spo train --generalist``) reads the subgoal in its own frame, never the layout's
+coordinates or the automaton's state index (``envs.generalist``), so its policy can run on any task
+over the areas A1..A4 and on any layout the field bank can hold: a square arena of at most
+``MAX_SIDE`` m, the four areas A1..A4 (not overlapping), at most ``layout_bank.M_MAX`` box
+obstacles. For every layout of an evaluation:
+
+1. the layout and the task are checked as for training a specialist there (``nav.make_env``): the
+   robot fits and reaches every area, the propositions name areas, the task can be done with the
+   letters the layout can produce, and the forbidden areas do not cut every route to a target.
+   Each failure is one ``ConfigError`` line (exit 2), never a silent 0%;
+2. its 32 distance fields are computed (``layout_bank.bank_of``, about 0.07 s);
+3. the policy runs ``episodes`` deterministic episodes on a one-layout bank. Every layout of an
+   evaluation has the same array shapes and the same episode limit (the longest any of them needs,
+   and at least the training limit), so one compilation serves them all.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import math
+
+import jax
+
+from d2spo.config import TrainConfig
+from d2spo.envs import layout_bank
+from d2spo.envs.layouts import Layout
+from d2spo.errors import ConfigError
+from d2spo.ltl.tasks import TASKS
+
+MAX_SIDE = 10.0
+"""Largest arena side (m) a generalist is evaluated on: the training distribution's largest
+(``envs.generator.SIDE``); the bank's 64-node grid resolves a 0.6 m gap up to it."""
+TOL = 1e-6
+"""Slack (m) when comparing an arena's side with ``MAX_SIDE``."""
+
+
+def generalist_layout(env_cfg, name: str, task: str) -> tuple[Layout, int]:
+    """The layout ``name`` checked for a generalist and for ``task`` (module docstring, step 1),
+    its areas in the order A1..A4, and the episode limit a specialist would get there."""
+    from d2spo.envs.nav import make_env
+    from d2spo.ltl.reward import PER_STATE
+
+    cfg = dataclasses.replace(env_cfg, layout=name, max_steps=None,
+                              reward=dataclasses.replace(env_cfg.reward, shaping_metric=PER_STATE))
+    env, params = make_env(cfg, task)  # the layout's and the task's checks; the specialist's episode limit
+    lay = env.layout
+    where = f"layout {lay.name!r}"
+    w, h = lay.arena
+    if abs(w - h) > TOL:
+        raise ConfigError("layout", f"{where}: a generalist runs on square arenas (its field bank), got {w:g} x {h:g} m")
+    if w > MAX_SIDE + TOL:
+        raise ConfigError("layout", f"{where}: arena side {w:g} m is larger than the generalist's {MAX_SIDE:g} m")
+    names = sorted(a.name for a in lay.areas)
+    wanted = [f"A{i + 1}" for i in range(layout_bank.N_AREAS)]
+    if names != wanted:
+        raise ConfigError("layout", f"{where}: a generalist reads the areas {', '.join(wanted)}; "
+                          f"this layout has {', '.join(names) or 'none'}")
+    areas = tuple(sorted(lay.areas, key=lambda a: a.name))
+    for i, a in enumerate(areas):
+        for b in areas[i + 1:]:
+            if math.dist(a.center, b.center) < a.radius + b.radius:
+                raise ConfigError("layout", f"{where}: areas {a.name} and {b.name} overlap; a generalist "
+                                  "plans one area at a time")
+    if len(lay.obstacles) > layout_bank.M_MAX:
+        raise ConfigError("layout", f"{where}: {len(lay.obstacles)} obstacles, more than the generalist's "
+                          f"{layout_bank.M_MAX}")
+    return dataclasses.replace(lay, areas=areas), int(params.max_steps)
+
+
+def task_tag(task: str) -> str:
+    """A file-name-safe name of a task: its name, or ``f-`` and a hash of the formula."""
+    if task in TASKS:
+        return task
+    return "f-" + hashlib.sha256(task.encode()).hexdigest()[:10]
+
+
+def rollouts(cfg: TrainConfig, policy, task: str, names: list[str], episodes: int, seed: int,
+             env_cfg) -> tuple[list[dict], int]:
+    """(rates per layout, episode limit) of the generalist ``policy`` (trained with ``cfg``; its
+    runtime filter as ``cfg.d2spo`` says) on ``task`` over the layouts ``names``, under the dynamics
+    of ``env_cfg`` (module docstring)."""
+    from d2spo.algos.generalist import build_generalist
+    from d2spo.rollout import make_rollout, rates
+    from d2spo.train import GENERALIST_MAX_STEPS
+
+    checked = [generalist_layout(env_cfg, name, task) for name in names]  # every refusal before any rollout
+    limit = max([cfg.env.max_steps or GENERALIST_MAX_STEPS] + [n for _, n in checked])
+    run = None
+    results = []
+    for lay, _ in checked:
+        env, params, learner = build_generalist(dataclasses.replace(cfg, env=env_cfg, task=task),
+                                                layout_bank.bank_of([lay]), limit)
+        if run is None:  # the params are an argument: one compilation for every layout
+            run = make_rollout(learner, env, episodes, limit)
+        results.append(rates(*run(params, policy, jax.random.PRNGKey(seed))))
+    return results, limit

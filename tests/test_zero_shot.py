@@ -1,0 +1,102 @@
+"""Zero-shot use of a generalist (d2spo/zero_shot.py, ``d2spo eval RUN --task F --layout L``) and its
+runtime filter (algos/generalist.py)."""
+
+from __future__ import annotations
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from d2spo.algos.d2spo import D2SPOConfig
+from d2spo.algos.generalist import build_generalist
+from d2spo.config import TrainConfig
+from d2spo.envs import EnvConfig, layout_bank, layouts
+from d2spo.envs.generalist import view
+from d2spo.errors import ConfigError
+from d2spo.zero_shot import generalist_layout, rollouts, task_tag
+
+
+def _cfg(**d2spo) -> TrainConfig:
+    return TrainConfig(algo="d2spo", task="phi1", generalist=True, generalist_layouts=1, num_envs=4,
+                       env=EnvConfig(preset="ideal"), d2spo=D2SPOConfig(pretrain=False, **d2spo))
+
+
+@pytest.fixture(scope="module")
+def policy():
+    cfg = _cfg()
+    lay, _ = generalist_layout(cfg.env, "random:3", "phi1")
+    _, _, learner = build_generalist(cfg, layout_bank.bank_of([lay]), 400)
+    return learner.policy(learner.init(jax.random.PRNGKey(0)))
+
+
+def _layout_file(tmp_path, **changes) -> str:
+    data = layouts.load("paper").to_json()
+    data.update(changes)
+    path = tmp_path / "lay.json"
+    path.write_text(json.dumps(data))
+    return str(path)
+
+
+def test_every_layout_of_an_evaluation_is_rolled_out_with_one_limit(policy):
+    cfg = _cfg()
+    names = ["paper", "random:11"]
+    res, limit = rollouts(cfg, policy, "phi2", names, 4, 0, cfg.env)
+    assert len(res) == 2 and all(r["episodes"] == 4 for r in res)
+    needs = [generalist_layout(cfg.env, n, "phi2")[1] for n in names]
+    assert limit == max([400] + needs)
+    assert all(r["mean_length"] <= limit for r in res)
+    again, _ = rollouts(cfg, policy, "phi2", names[::-1], 4, 0, cfg.env)  # deterministic, layout by layout
+    assert again[::-1] == res
+
+
+def test_the_layouts_areas_are_read_in_the_order_a1_to_a4(tmp_path):
+    data = layouts.load("paper").to_json()
+    data["areas"] = data["areas"][::-1]
+    path = tmp_path / "rev.json"
+    path.write_text(json.dumps(data))
+    lay, _ = generalist_layout(EnvConfig(), str(path), "phi1")
+    assert [a.name for a in lay.areas] == ["A1", "A2", "A3", "A4"]
+    assert lay.areas[0].center == tuple(layouts.load("paper").areas[0].center)
+
+
+@pytest.mark.parametrize("changes,task,match", [
+    ({"arena": [6.0, 5.0]}, "phi1", "square arenas"),
+    ({"arena": [12.0, 12.0]}, "phi1", "larger than the generalist's 10 m"),
+    ({"areas": [{"name": "A1", "center": [4.35, 0.8], "radius": 0.35}]}, "F A1", "areas A1, A2, A3, A4"),
+    ({"areas": [{"name": f"A{i + 1}", "center": c, "radius": 0.35}
+                for i, c in enumerate([[4.35, 0.8], [4.35, 1.2], [0.65, 4.35], [2.5, 2.5]])]}, "phi1", "overlap"),
+    ({}, "F B7", "propositions with no area"),
+    ({}, "F (A1 & A2)", "cannot be completed"),
+])
+def test_a_layout_or_task_the_generalist_cannot_do_is_refused(tmp_path, changes, task, match):
+    with pytest.raises(ConfigError, match=match):
+        generalist_layout(EnvConfig(), _layout_file(tmp_path, **changes), task)
+
+
+def test_a_walled_off_area_is_refused(tmp_path):
+    ring = [{"center": [4.35 + dx, 0.8 + dy], "half_extents": [hx, hy]}
+            for dx, dy, hx, hy in [(0, 0.6, 0.65, 0.1), (0, -0.6, 0.65, 0.1), (-0.6, 0, 0.1, 0.65)]]
+    obstacles = layouts.load("paper").to_json()["obstacles"][:1] + ring
+    with pytest.raises(ConfigError, match="A1"):
+        generalist_layout(EnvConfig(), _layout_file(tmp_path, obstacles=obstacles), "phi1")
+
+
+def test_task_tags_name_tasks_and_hash_formulas():
+    assert task_tag("phi2") == "phi2"
+    tag = task_tag("F A1 & F A2")
+    assert tag.startswith("f-") and tag == task_tag("F A1 & F A2") and tag != task_tag("F A2 & F A1")
+
+
+def test_the_runtime_filter_keeps_clear_of_each_environments_own_layout():
+    bank = layout_bank.build_bank([3, 4])
+    _, params, learner = build_generalist(_cfg(runtime_filter=True), bank, 400)
+    state, _ = learner.env.reset_batch(jax.random.PRNGKey(1), params, 8)
+    ctx = learner.filter_context(state)
+    for k in range(8):
+        g = view(params, state.layout[k]).geom
+        np.testing.assert_array_equal(np.asarray(ctx.box_lo[k]), np.asarray(g.box_lo))
+        assert bool(jnp.all(ctx.mask[k]))
+    assert len(set(np.asarray(state.layout).tolist())) == 2  # both layouts drawn: the contexts differ
