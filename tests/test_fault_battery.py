@@ -189,7 +189,8 @@ def tiny_run(tmp_path_factory):
 
 
 @pytest.mark.parametrize("args", [["--episodes", "0"], ["--episodes", "-1"], ["--layout-seeds", "0"],
-                                  ["--layout-seeds", "-1"], ["--layout-seeds", "3"], ["--seed", str(2**64)]])
+                                  ["--layout-seeds", "-1"], ["--layout-seeds", "3"], ["--seed", str(2**64)],
+                                  ["--task", "phi2"]])
 def test_eval_refuses_bad_counts_and_keeps_the_earlier_result(args, tiny_run, capsys):
     earlier = tiny_run / "eval-relaxed-default.json"
     earlier.write_text("earlier")

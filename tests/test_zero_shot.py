@@ -16,7 +16,7 @@ from d2spo.config import TrainConfig
 from d2spo.envs import EnvConfig, layout_bank, layouts
 from d2spo.envs.generalist import view
 from d2spo.errors import ConfigError
-from d2spo.zero_shot import generalist_layout, rollouts, task_tag
+from d2spo.zero_shot import generalist_layout, task_tag
 
 
 def _cfg(**d2spo) -> TrainConfig:
@@ -25,11 +25,29 @@ def _cfg(**d2spo) -> TrainConfig:
 
 
 @pytest.fixture(scope="module")
-def policy():
+def gen_run(tmp_path_factory):
+    """A generalist run directory with a checkpoint of zeros: as good as any policy for the plumbing."""
+    from d2spo.checkpoint import Checkpoints, run_fingerprint
+    from d2spo.config import config_to_dict
+
     cfg = _cfg()
-    lay, _ = generalist_layout(cfg.env, "random:3", "phi1")
-    _, _, learner = build_generalist(cfg, layout_bank.bank_of([lay]), 400)
-    return learner.policy(learner.init(jax.random.PRNGKey(0)))
+    out = tmp_path_factory.mktemp("gen") / "run"
+    out.mkdir()
+    (out / "config.json").write_text(json.dumps(config_to_dict(cfg)))
+    _, _, learner = build_generalist(cfg, layout_bank.build_bank([3]), 400)
+    shapes = jax.eval_shape(learner.init, jax.random.PRNGKey(0))  # zeros: a robot that stands still
+    Checkpoints(out, run_fingerprint(out)).save(jax.tree_util.tree_map(lambda t: jnp.zeros(t.shape, t.dtype), shapes),
+                                                {"episodes": 0, "env_steps": 0, "chunks": 0, "wall_seconds": 0.0})
+    return out
+
+
+def _main(args: list[str]) -> int:
+    from d2spo.cli import main
+
+    try:
+        return main(args)
+    except SystemExit as e:
+        return e.code
 
 
 def _layout_file(tmp_path, **changes) -> str:
@@ -40,16 +58,26 @@ def _layout_file(tmp_path, **changes) -> str:
     return str(path)
 
 
-def test_every_layout_of_an_evaluation_is_rolled_out_with_one_limit(policy):
-    cfg = _cfg()
-    names = ["paper", "random:11"]
-    res, limit = rollouts(cfg, policy, "phi2", names, 4, 0, cfg.env)
-    assert len(res) == 2 and all(r["episodes"] == 4 for r in res)
-    needs = [generalist_layout(cfg.env, n, "phi2")[1] for n in names]
-    assert limit == max([400] + needs)
-    assert all(r["mean_length"] <= limit for r in res)
-    again, _ = rollouts(cfg, policy, "phi2", names[::-1], 4, 0, cfg.env)  # deterministic, layout by layout
-    assert again[::-1] == res
+def test_eval_runs_a_generalist_on_another_task_and_unseen_layouts_with_one_limit(gen_run, capsys):
+    assert _main(["eval", str(gen_run), "--task", "phi2", "--layout", "random:11", "--layout-seeds", "2",
+                  "--episodes", "4", "--runtime-filter", "False"]) == 0
+    assert "task 'phi2' (zero-shot)" in " ".join(capsys.readouterr().out.split())
+    res = json.loads((gen_run / "eval-random11x2-ideal-phi2.json").read_text())
+    assert res["task"] == "phi2" and res["layouts"] == ["random:11", "random:12"] and not res["runtime_filter"]
+    assert [r["episodes"] for r in res["per_layout"]] == [4, 4]
+    needs = [generalist_layout(EnvConfig(preset="ideal"), n, "phi2")[1] for n in res["layouts"]]
+    assert res["max_steps"] == max([400] + needs)
+    assert all(r["mean_length"] <= res["max_steps"] for r in res["per_layout"])
+
+
+@pytest.mark.parametrize("args,match", [
+    (["--task", "F B7", "--layout", "paper"], "propositions with no area"),
+    (["--task", "phi2"], "give --layout"),
+])
+def test_eval_refuses_a_generalist_case_in_one_line(gen_run, capsys, args, match):
+    assert _main(["eval", str(gen_run), *args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and match in err[0], err
 
 
 def test_the_layouts_areas_are_read_in_the_order_a1_to_a4(tmp_path):
@@ -93,8 +121,8 @@ def test_task_tags_name_tasks_and_hash_formulas():
 def test_the_runtime_filter_keeps_clear_of_each_environments_own_layout():
     bank = layout_bank.build_bank([3, 4])
     _, params, learner = build_generalist(_cfg(runtime_filter=True), bank, 400)
-    state, _ = learner.env.reset_batch(jax.random.PRNGKey(1), params, 8)
-    ctx = learner.filter_context(state)
+    state, _ = jax.jit(learner.env.reset_batch, static_argnums=2)(jax.random.PRNGKey(1), params, 8)
+    ctx = jax.jit(learner.filter_context)(state)
     for k in range(8):
         g = view(params, state.layout[k]).geom
         np.testing.assert_array_equal(np.asarray(ctx.box_lo[k]), np.asarray(g.box_lo))

@@ -81,19 +81,34 @@ def rollouts(cfg: TrainConfig, policy, task: str, names: list[str], episodes: in
              env_cfg) -> tuple[list[dict], int]:
     """(rates per layout, episode limit) of the generalist ``policy`` (trained with ``cfg``; its
     runtime filter as ``cfg.d2spo`` says) on ``task`` over the layouts ``names``, under the dynamics
-    of ``env_cfg`` (module docstring)."""
+    of ``env_cfg`` (module docstring). Every layout is checked before any is rolled out."""
+    checked = [generalist_layout(env_cfg, name, task) for name in names]
+    out, limit = run_layouts(cfg, policy, task, checked, episodes, seed, env_cfg)
+    return [r for r, _ in out], limit
+
+
+def run_layouts(cfg: TrainConfig, policy, task: str, checked: list[tuple[Layout, int]], episodes: int, seed: int,
+                env_cfg, keep_paths: int = 0) -> tuple[list[tuple[dict, tuple | None]], int]:
+    """``rollouts`` on layouts ``generalist_layout`` has checked: per layout its rates and, with
+    ``keep_paths`` > 0, the first episodes' (poses [k, T + 1, 3], collided [k], completed [k])."""
+    import numpy as np
+
     from d2spo.algos.generalist import build_generalist
     from d2spo.rollout import make_rollout, rates
     from d2spo.train import GENERALIST_MAX_STEPS
 
-    checked = [generalist_layout(env_cfg, name, task) for name in names]  # every refusal before any rollout
     limit = max([cfg.env.max_steps or GENERALIST_MAX_STEPS] + [n for _, n in checked])
+    cfg = dataclasses.replace(cfg, env=env_cfg, task=task)
     run = None
-    results = []
+    out = []
     for lay, _ in checked:
-        env, params, learner = build_generalist(dataclasses.replace(cfg, env=env_cfg, task=task),
-                                                layout_bank.bank_of([lay]), limit)
+        env, params, learner = build_generalist(cfg, layout_bank.bank_of([lay]), limit)
         if run is None:  # the params are an argument: one compilation for every layout
             run = make_rollout(learner, env, episodes, limit)
-        results.append(rates(*run(params, policy, jax.random.PRNGKey(seed))))
-    return results, limit
+        collided, completed, ret, length, poses = run(params, policy, jax.random.PRNGKey(seed))
+        paths = None
+        if keep_paths:
+            k = keep_paths
+            paths = (np.asarray(poses[:k]), np.asarray(collided[:k]), np.asarray(completed[:k]))
+        out.append((rates(collided, completed, ret, length, poses), paths))
+    return out, limit

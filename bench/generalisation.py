@@ -1,0 +1,264 @@
+"""Zero-shot generalisation of one generalist: unseen random layouts x tasks, with and without the runtime filter.
+
+    .venv/bin/python bench/generalisation.py [--run RUN] [--specialist RUN] [--layouts 20]
+        [--first-seed 100000] [--tasks phi1 phi2 relaxed tour3 ...] [--episodes 50]
+        [--out runs/generalisation] [--results bench/RESULTS.md]
+
+* The generalist is ``--run`` (a ``d2spo train --generalist`` directory); without it one is trained
+  with the defaults into OUT/generalist (an interrupted one resumes).
+* The layouts are ``random:SEED`` for SEED = first-seed .. first-seed + layouts - 1: seeds the
+  generalist never trained on (refused if they overlap its bank random:0 .. random:N-1).
+* For each task and layout the pair is checked as for training (``zero_shot.generalist_layout``).
+  A pair that cannot be done (an area the forbidden ones wall off, ...) is left out of that task's
+  means and counted in the "refused" column, with the first reason given.
+* Every task runs with the runtime filter on and off (π_Ω alone). With ``--specialist`` (a run
+  trained on one layout, e.g. ϕ1 on ``paper``), that run is evaluated on the same layouts for its
+  own task, and both are evaluated on the specialist's training layout.
+
+Writes OUT/generalisation.json, three figures (OUT/success_per_task.png, OUT/success_per_layout.png,
+OUT/trajectories.png) and a dated table appended to ``--results`` ('-' prints only).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+from pathlib import Path
+
+import numpy as np
+
+from d2spo.errors import UserError
+from d2spo.ltl.tasks import SUITE
+
+DEFAULT_TASKS = ["phi1", "phi2", "relaxed", *[t for t in SUITE if t != "a1-and-a2"]]
+"""ϕ1, ϕ2, the relaxed task and every task of the suite that can be done (a1-and-a2 cannot)."""
+DEEPLTL = 0.931
+"""DeepLTL's mean success on ZoneEnv's finite-horizon test formulas (ICLR 2025, issue 16): the mark."""
+
+
+def generalist_run(args) -> Path:
+    if args.run is not None:
+        return args.run
+    from d2spo.config import TrainConfig
+    from d2spo.progress import train_with_progress
+
+    out = args.out / "generalist"
+    if not (out / "summary.json").is_file():
+        resume = out if (out / "checkpoint.json").is_file() else None
+        train_with_progress(TrainConfig(algo="d2spo", generalist=True), out, resume, show=True)
+    return out
+
+
+def evaluate_cases(run: Path, tasks: list[str], names: list[str], episodes: int, keep_paths: int) -> dict:
+    """{task: {"filter": {...}, "alone": {...}, "refused": {layout: reason}}} of the generalist."""
+    import dataclasses
+
+    from d2spo.evaluate import eval_env_config, load_policy
+    from d2spo.zero_shot import generalist_layout, run_layouts
+
+    cfg, _, policy, _ = load_policy(run)
+    if not cfg.generalist:
+        raise SystemExit(f"{run}: not a generalist run (d2spo train --generalist)")
+    env_cfg = eval_env_config(cfg, None)
+    out = {}
+    for task in tasks:
+        checked, refused = [], {}
+        for name in names:
+            try:
+                checked.append(generalist_layout(env_cfg, name, task))
+            except UserError as e:
+                refused[name] = str(e)
+        entry = {"refused": refused, "layouts": [lay.name for lay, _ in checked]}
+        for mode, on in (("filter", True), ("alone", False)):
+            c = dataclasses.replace(cfg, d2spo=dataclasses.replace(cfg.d2spo, runtime_filter=on))
+            res, limit = run_layouts(c, policy, task, checked, episodes, 0, env_cfg, keep_paths) if checked else ([], 0)
+            entry[mode] = {"per_layout": [r for r, _ in res], "max_steps": limit}
+            if mode == "filter" and keep_paths:
+                entry["paths"] = [p for _, p in res]
+        out[task] = entry
+        done = [r["completion_rate"] for r in entry["filter"]["per_layout"]]
+        print(f"{task}: {len(checked)} layouts, {len(refused)} refused; completion with filter "
+              f"{100 * np.mean(done) if done else float('nan'):.1f}%", flush=True)
+    return out
+
+
+def specialist_cases(run: Path, names: list[str], episodes: int) -> dict:
+    """The specialist on the same layouts (its own task) and on its own layout, filter on and off."""
+    from d2spo.evaluate import evaluate_run, load_run_config
+
+    cfg = load_run_config(run)
+    out = {"task": cfg.task, "layout": cfg.layout}
+    for mode, on in (("filter", True), ("alone", False)):
+        try:  # one compilation for all the layouts
+            first, n = names[0].partition(":")[2], len(names)
+            unseen = evaluate_run(run, episodes, f"random:{first}", layout_seeds=n, runtime_filter=on)["per_layout"]
+        except UserError:  # some layout refuses the task: one at a time, to say which
+            unseen = []
+            for name in names:
+                try:
+                    unseen.append(evaluate_run(run, episodes, name, runtime_filter=on)["per_layout"][0])
+                except UserError as e:
+                    unseen.append({"layout": name, "refused": str(e)})
+        out[mode] = {"unseen": unseen, "own": evaluate_run(run, episodes, None, runtime_filter=on)}
+    return out
+
+
+def mean(xs) -> float:
+    return float(np.mean(xs)) if len(xs) else float("nan")
+
+
+def table(cases: dict, n_layouts: int) -> list[str]:
+    lines = ["| task | layouts run / refused | completion, filter (%) | lowest layout, filter (%) | "
+             "safety, filter (%) | completion, π_Ω alone (%) | safety, π_Ω alone (%) |",
+             "|---|---:|---:|---:|---:|---:|---:|"]
+    for task, e in cases.items():
+        f, a = e["filter"]["per_layout"], e["alone"]["per_layout"]
+        pct = lambda rs, k: f"{100 * mean([r[k] for r in rs]):.1f}"  # noqa: E731
+        low = f"{100 * min(r['completion_rate'] for r in f):.0f}" if f else "-"
+        lines.append(f"| `{task}` | {len(f)} / {len(e['refused'])} | {pct(f, 'completion_rate')} | {low} | "
+                     f"{pct(f, 'safety_rate')} | {pct(a, 'completion_rate')} | {pct(a, 'safety_rate')} |")
+    allf = [r for e in cases.values() for r in e["filter"]["per_layout"]]
+    alla = [r for e in cases.values() for r in e["alone"]["per_layout"]]
+    task_means = [mean([r["completion_rate"] for r in e["filter"]["per_layout"]]) for e in cases.values()
+                  if e["filter"]["per_layout"]]
+    lines.append(f"| **all** (mean of task means) | {len(allf)} / {sum(len(e['refused']) for e in cases.values())} | "
+                 f"**{100 * mean(task_means):.1f}** | {100 * min(task_means):.0f} (task) | "
+                 f"{100 * mean([r['safety_rate'] for r in allf]):.2f} | "
+                 f"{100 * mean([r['completion_rate'] for r in alla]):.1f} | "
+                 f"{100 * mean([r['safety_rate'] for r in alla]):.2f} |")
+    return lines
+
+
+def plots(cases: dict, names: list[str], out: Path) -> list[Path]:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from d2spo.envs import layouts
+    from d2spo.envs.render import draw_layout
+    from d2spo.plots import draw_trajectories
+
+    tasks = list(cases)
+    paths = []
+    fig = Figure(figsize=(max(6.0, 0.7 * len(tasks)), 4.0))
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    x = np.arange(len(tasks))
+    for k, (mode, label) in enumerate((("filter", "with runtime filter"), ("alone", "π_Ω alone"))):
+        comp = [100 * mean([r["completion_rate"] for r in cases[t][mode]["per_layout"]]) for t in tasks]
+        safe = [100 * mean([r["safety_rate"] for r in cases[t][mode]["per_layout"]]) for t in tasks]
+        ax.bar(x + (k - 0.5) * 0.4, comp, 0.4, label=f"completion, {label}")
+        ax.plot(x + (k - 0.5) * 0.4, safe, "k^" if k == 0 else "kv", label=f"safety, {label}")
+    ax.axhline(100 * DEEPLTL, color="gray", linestyle="--", label="DeepLTL's mean success (no safety)")
+    ax.set_xticks(x, tasks, rotation=45, ha="right")
+    ax.set_ylabel("% of episodes")
+    ax.set_ylim(0, 105)
+    ax.set_title("Zero-shot on unseen layouts, per task (mean over layouts)")
+    ax.legend(fontsize=7, loc="lower left")
+    fig.tight_layout()
+    paths.append(out / "success_per_task.png")
+    fig.savefig(paths[-1], dpi=100)
+
+    grid = np.full((len(tasks), len(names)), np.nan)
+    for i, t in enumerate(tasks):
+        for lay, r in zip(cases[t]["layouts"], cases[t]["filter"]["per_layout"]):
+            grid[i, names.index(lay)] = 100 * r["completion_rate"]
+    fig = Figure(figsize=(max(6.0, 0.45 * len(names) + 2), 0.4 * len(tasks) + 2))
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    im = ax.imshow(grid, vmin=0, vmax=100, cmap="viridis", aspect="auto")
+    ax.set_xticks(range(len(names)), [n.split(":")[-1] for n in names], rotation=90, fontsize=7)
+    ax.set_yticks(range(len(tasks)), tasks, fontsize=8)
+    ax.set_xlabel("layout random:SEED (blank: the task cannot be done there)")
+    ax.set_title("Completion (%) with the runtime filter, per task and layout")
+    fig.colorbar(im, ax=ax)
+    fig.tight_layout()
+    paths.append(out / "success_per_layout.png")
+    fig.savefig(paths[-1], dpi=100)
+
+    shown = [(t, i) for t in ("phi1", "phi2") if t in cases and cases[t].get("paths") for i in range(2)]
+    if shown:
+        fig = Figure(figsize=(4.0 * len(shown), 4.2))
+        FigureCanvasAgg(fig)
+        for k, (t, i) in enumerate(shown):
+            if i >= len(cases[t]["paths"]):
+                continue
+            ax = fig.add_subplot(1, len(shown), k + 1)
+            name = cases[t]["layouts"][i]
+            draw_layout(layouts.load(name), ax, show_sensing=False)
+            draw_trajectories(ax, *cases[t]["paths"][i])
+            ax.set_title(f"{t} on {name} (unseen)", fontsize=9)
+        fig.tight_layout()
+        paths.append(out / "trajectories.png")
+        fig.savefig(paths[-1], dpi=100)
+    return paths
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--run", type=Path, help="a generalist run directory (default: train one into OUT/generalist)")
+    ap.add_argument("--specialist", type=Path, help="a run trained on one layout, evaluated on the same cases")
+    ap.add_argument("--layouts", type=int, default=20)
+    ap.add_argument("--first-seed", type=int, default=100_000)
+    ap.add_argument("--tasks", nargs="+", default=DEFAULT_TASKS, help="task names or formulas over A1..A4")
+    ap.add_argument("--episodes", type=int, default=50, help="deterministic episodes per (task, layout, filter)")
+    ap.add_argument("--trajectories", type=int, default=6, help="paths drawn per shown layout")
+    ap.add_argument("--out", type=Path, default=Path("runs/generalisation"))
+    ap.add_argument("--machine", default=f"{os.cpu_count()}-core {platform.machine()} CPU machine")
+    ap.add_argument("--results", default="bench/RESULTS.md", help="file to append the table to; '-' prints only")
+    args = ap.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    run = generalist_run(args)
+    from d2spo.evaluate import load_run_config
+
+    trained = load_run_config(run)
+    if args.first_seed < trained.generalist_layouts:
+        raise SystemExit(f"--first-seed {args.first_seed}: the generalist trained on random:0 .. "
+                         f"random:{trained.generalist_layouts - 1}; choose unseen seeds")
+    names = [f"random:{args.first_seed + i}" for i in range(args.layouts)]
+    cases = evaluate_cases(run, args.tasks, names, args.episodes, args.trajectories)
+    spec = specialist_cases(args.specialist, names, args.episodes) if args.specialist else None
+    own = None
+    if spec is not None:  # the generalist on the specialist's own layout and task
+        from d2spo.evaluate import evaluate_run
+
+        own = {mode: evaluate_run(run, args.episodes, spec["layout"], runtime_filter=on, task=spec["task"])
+               for mode, on in (("filter", True), ("alone", False))}
+    figures = plots(cases, names, args.out)
+    for c in cases.values():
+        c.pop("paths", None)
+    (args.out / "generalisation.json").write_text(json.dumps(
+        {"run": str(run), "layouts": names, "episodes": args.episodes, "cases": cases, "specialist": spec,
+         "generalist_on_specialist_layout": own}, indent=1))
+    lines = table(cases, len(names))
+    if spec is not None:
+        lines += ["", f"Specialist `{args.specialist}` ({spec['task']} on `{spec['layout']}`) and the generalist:",
+                  "", "| policy | where | completion, filter (%) | safety, filter (%) | completion, alone (%) | "
+                  "safety, alone (%) |", "|---|---|---:|---:|---:|---:|"]
+        for who, where, f, a in (
+                ("specialist", f"its own layout `{spec['layout']}`", spec["filter"]["own"], spec["alone"]["own"]),
+                ("generalist", f"`{spec['layout']}` (zero-shot)", own["filter"], own["alone"])):
+            lines.append(f"| {who} | {where} | {100 * f['completion_rate']:.1f} | {100 * f['safety_rate']:.1f} | "
+                         f"{100 * a['completion_rate']:.1f} | {100 * a['safety_rate']:.1f} |")
+        for mode in ("filter", "alone"):
+            ok = [r for r in spec[mode]["unseen"] if "refused" not in r]
+            lines.append(f"| specialist | the {len(ok)} unseen layouts, {spec['task']}, {mode} | "
+                         f"{100 * mean([r['completion_rate'] for r in ok]):.1f} | "
+                         f"{100 * mean([r['safety_rate'] for r in ok]):.1f} | | |")
+    section = "\n".join([
+        f"\n### Generalisation: one generalist on unseen layouts ({datetime.date.today().isoformat()})\n",
+        f"`bench/generalisation.py --run {run} --layouts {args.layouts} --first-seed {args.first_seed} "
+        f"--episodes {args.episodes}{f' --specialist {args.specialist}' if args.specialist else ''}`: layouts "
+        f"random:{args.first_seed} .. random:{args.first_seed + args.layouts - 1}, {args.episodes} deterministic "
+        f"episodes per (task, layout, filter). Machine: {args.machine}. Figures: "
+        + ", ".join(str(p) for p in figures) + ".\n", *lines, ""])
+    print(section)
+    if args.results != "-":
+        with open(args.results, "a") as f:
+            f.write(section)
+
+
+if __name__ == "__main__":
+    main()
