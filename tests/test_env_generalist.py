@@ -113,3 +113,43 @@ def test_the_generalist_flag_is_for_d2spo():
         TrainConfig(algo="tlgrl", generalist=True)
     with pytest.raises(ConfigError, match="generalist_layouts"):
         TrainConfig(generalist=True, generalist_layouts=0)
+
+
+def test_a_union_runs_each_automaton_from_its_own_initial_state():
+    from d2spo.ltl import translate
+    from d2spo.ltl.automaton import union
+
+    parts = [translate("(!A2 U A1) & F A2"), translate("F (A3 & X A1)"), translate("!A4 U A2")]
+    aut, initials = union(parts)
+    assert aut.aps == ("A1", "A2", "A3", "A4") and len(initials) == 3
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        word = [int(x) for x in rng.integers(0, 16, size=6)]
+        for a, q0 in zip(parts, initials):
+            mine = [a.letter([p for i, p in enumerate(aut.aps) if w >> i & 1 and p in a.aps]) for w in word]
+            own, joint = a.run(mine), aut.run(word, start=q0)
+            assert [a.status(q) for q in own] == [aut.status(q) for q in joint]
+            assert [q - q0 + a.initial for q in joint] == own  # component k's states, shifted
+
+
+def test_random_reach_avoid_tasks_are_distinct_doable_and_reproducible():
+    from d2spo.ltl import translate
+    from d2spo.ltl.tasks import reach_avoid_tasks
+
+    tasks = reach_avoid_tasks(24, seed=1)
+    assert tasks == reach_avoid_tasks(24, seed=1) != reach_avoid_tasks(24, seed=2)
+    assert len(set(tasks)) == 24
+    for f in tasks:
+        a = translate(f)
+        singles = [0] + [a.letter([p]) for p in a.aps]
+        assert 1 <= a.distances(singles)[a.initial] <= 4, f  # one area at a time: 1 to 4 visits
+
+
+def test_a_mixture_of_tasks_draws_each_tasks_initial_state(built):
+    bank, _, _ = built
+    env, params = make_generalist_env(EnvConfig(preset="ideal"), ["phi1", "F A4", "!A4 U (A2 & F A3)"], bank)
+    states, obs = jax.jit(env.reset_batch, static_argnums=2)(jax.random.PRNGKey(2), params, 48)
+    q = np.asarray(states.q)
+    assert set(q.tolist()) == set(np.asarray(params.initials).tolist())
+    progress = np.asarray(obs[:, env.observation_slices["progress"]])[:, 0]
+    np.testing.assert_allclose(progress, 1.0)  # every task starts at its own largest distance

@@ -60,6 +60,9 @@ class TrainConfig:
     (``envs.generalist``, ``algos.generalist``; d2spo only; issue 16, in progress)."""
     generalist_layouts: int = 256
     """With ``generalist``: train on the layouts random:0 .. random:N-1 (``envs.generator``)."""
+    generalist_tasks: int = 0
+    """With ``generalist``: also train on this many random reach-avoid sequences over A1..A4
+    (``ltl.tasks.reach_avoid_tasks``), each episode drawing one task of the mixture; 0: --task alone."""
     eval_untrained: bool = False
     """Also evaluate the initial policy (after the cautious start, before the first env step) on
     the same episodes, with the same compilation: summary.json's ``eval_untrained``. Needs a run
@@ -105,7 +108,7 @@ class TrainConfig:
             raise ConfigError("generalist", f"the generalist is trained with --algo d2spo, not {self.algo!r}")
         check_fields(self, count=("episodes", "num_envs", "chunk_steps", "checkpoint_every", "window",
                                   "generalist_layouts"),
-                     seed=("seed",), counts=("snapshots",), natural=("eval_episodes",))
+                     seed=("seed",), counts=("snapshots",), natural=("eval_episodes", "generalist_tasks"))
         if not isinstance(self.task, str) or not self.task.strip():
             raise ConfigError("task", f"expected a task name or an LTL formula, got {self.task!r}")
 

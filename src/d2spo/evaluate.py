@@ -32,7 +32,7 @@ def load_policy(run_dir: Path):
         raise RunDirError(f"{run_dir}: no such run directory")
     cfg = load_run_config(run_dir)
     # a generalist's checkpoint holds no layout: a one-layout bank gives the same shapes, fast
-    _, _, learner = build(dataclasses.replace(cfg, generalist_layouts=1) if cfg.generalist else cfg)
+    _, _, learner = build(dataclasses.replace(cfg, generalist_layouts=1, generalist_tasks=0) if cfg.generalist else cfg)
     template = jax.eval_shape(learner.init, jax.random.PRNGKey(0))  # shapes only: no pre-training
     carry, meta = load_checkpoint(run_dir, template, run_fingerprint(run_dir))
     return cfg, learner, learner.policy(carry), meta

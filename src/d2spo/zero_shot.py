@@ -98,7 +98,7 @@ def run_layouts(cfg: TrainConfig, policy, task: str, checked: list[tuple[Layout,
     from d2spo.train import GENERALIST_MAX_STEPS
 
     limit = max([cfg.env.max_steps or GENERALIST_MAX_STEPS] + [n for _, n in checked])
-    cfg = dataclasses.replace(cfg, env=env_cfg, task=task)
+    cfg = dataclasses.replace(cfg, env=env_cfg, task=task, generalist_tasks=0)  # this task alone
     run = None
     out = []
     for lay, _ in checked:

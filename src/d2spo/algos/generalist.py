@@ -84,13 +84,15 @@ class GeneralistD2SPO(D2SPOLearner):
 
 def build_generalist(cfg, bank, max_steps: int):
     """(env, params, learner) of a generalist config (``TrainConfig``, ``generalist`` set) on ``bank``
-    for ``cfg.task``, every episode at most ``max_steps`` long. The layouts' own radii label the
-    areas (no annealing)."""
+    for ``cfg.task`` and ``cfg.generalist_tasks`` random reach-avoid sequences, every episode at
+    most ``max_steps`` long. The layouts' own radii label the areas (no annealing)."""
     import dataclasses
 
     from d2spo.envs.generalist import make_generalist_env
+    from d2spo.ltl.tasks import reach_avoid_tasks
 
-    env, params = make_generalist_env(cfg.env_config(), cfg.task, bank, max_steps)
+    tasks = [cfg.task, *reach_avoid_tasks(cfg.generalist_tasks)] if cfg.generalist_tasks else cfg.task
+    env, params = make_generalist_env(cfg.env_config(), tasks, bank, max_steps)
     anneal = dataclasses.replace(cfg.anneal, enabled=False)
     learner = GeneralistD2SPO(env, params, cfg.td3, cfg.cbf, anneal, cfg.num_envs, cfg.chunk_steps, cfg.episodes,
                               cfg.d2spo)

@@ -83,6 +83,12 @@ class GeneralParams(EnvParams):
     """bool [Q, 4]: in automaton state q, entering area i (alone) rejects the task or moves away."""
     layout: jnp.ndarray
     """int32 []: the layout the base fields hold (``view``)."""
+    initials: jnp.ndarray
+    """int32 [T]: the initial state of each task of the mixture (one task: [1]); every episode
+    starts in one of them, drawn uniformly (``ltl.automaton.union``)."""
+    progress_scale: jnp.ndarray
+    """float32 [Q]: per state, the largest finite distance to acceptance of its own task (the
+    observation's ``progress`` divides by it)."""
 
 
 N_BOXES = layout_bank.M_MAX + 4
@@ -162,12 +168,16 @@ class GeneralistEnv(Env):
 
     def _reset_state(self, u: jnp.ndarray, params: GeneralParams) -> GeneralState:
         """A fresh episode (``reset``, and nav's step when one ends) from three uniforms in [-1, 1]:
-        u[0] draws the layout uniformly from the bank, u[1] the heading."""
-        n = params.bank.arena.shape[0]
-        b = jnp.clip(jnp.floor((u[0] + 1.0) * 0.5 * n).astype(jnp.int32), 0, n - 1)
+        u[0] draws the layout uniformly from the bank, u[1] the heading, u[2] the task of the mixture."""
+
+        def pick(x, n):
+            return jnp.clip(jnp.floor((x + 1.0) * 0.5 * n).astype(jnp.int32), 0, n - 1)
+
+        b = pick(u[0], params.bank.arena.shape[0])
         v = view(params, b)
         start = jnp.stack([v.start[0], v.start[1], jnp.pi * u[1]])
-        base = super()._reset_state(jnp.zeros(3), v.replace(start=start, start_jitter=jnp.zeros(3)))
+        aut = v.aut._replace(initial=params.initials[pick(u[2], params.initials.shape[0])])
+        base = super()._reset_state(jnp.zeros(3), v.replace(start=start, start_jitter=jnp.zeros(3), aut=aut))
         return GeneralState(**{f.name: getattr(base, f.name) for f in dataclasses.fields(EnvState)}, layout=b)
 
     # -- reward shaping and observation ------------------------------------------------------
@@ -199,9 +209,8 @@ class GeneralistEnv(Env):
         forbidden = jnp.concatenate([jnp.where(has, jnp.minimum(edge[j] / SCALE, 2.0), 0.0)[None], frame(toward),
                                      has[None]])
         aut = v.aut
-        finite = aut.distance < UNREACHABLE
-        worst = jnp.maximum(jnp.max(jnp.where(finite, aut.distance, 0)), 1)
-        progress = jnp.where(finite[state.q], aut.distance[state.q] / worst, 1.0)
+        finite = aut.distance[state.q] < UNREACHABLE
+        progress = jnp.where(finite, aut.distance[state.q] / v.progress_scale[state.q], 1.0)
         return jnp.concatenate([scan, clearance[None], target, forbidden, progress[None]]).astype(jnp.float32)
 
     def cbf_input(self, obs: jnp.ndarray, params: GeneralParams) -> jnp.ndarray:
@@ -227,35 +236,50 @@ def area_roles(automaton, aps: tuple[str, ...], event: bool, feasible_letters: l
 
 def make_generalist_env(cfg: EnvConfig, task: Any, bank: LayoutBank, max_steps: int = 400
                         ) -> tuple[GeneralistEnv, GeneralParams]:
-    """The generalist's env for a task (a name, a formula or an automaton over A1..A4) and a bank.
+    """The generalist's env for a task (a name, a formula or an automaton over A1..A4), or a
+    mixture of tasks (a list of them: each episode draws one, ``ltl.automaton.union``), and a bank.
 
-    nav's ``make_env`` on the first layout of the bank's kind builds the automaton, dynamics and
-    reward; ``max_steps`` is one limit for every layout (the longest routes of 10 m arenas need it).
+    nav's ``make_env`` on the first layout of the bank's kind with the first task builds the
+    dynamics and reward; ``max_steps`` is one limit for every layout (the longest routes of 10 m
+    arenas need it).
     """
+    from d2spo.ltl import task_formula, translate
+    from d2spo.ltl.automaton import AutomatonArrays, union
+
     n = int(bank.arena.shape[0])
     if n == 0 or bank.fields.ndim != 5:
         raise ConfigError("bank", "a layout bank with its fields is needed (layout_bank.build_bank)")
-    if isinstance(task, str):
-        from d2spo.ltl import task_formula, translate
-
-        task = translate(task_formula(task))
-    if not isinstance(task, Automaton):
-        raise ConfigError("task", "the generalist needs a task name, a formula or an Automaton")
-    unknown = sorted(set(task.aps) - {f"A{i + 1}" for i in range(N_AREAS)})
-    if unknown:
-        raise ConfigError("task", f"the generalist's layouts have areas A1..A4; the task names {unknown}")
-    base_env, base = make_env(dataclasses.replace(cfg, layout="random:0", max_steps=max_steps), task)
-    aut = task
+    tasks = list(task) if isinstance(task, (list, tuple)) else [task]
+    if not tasks:
+        raise ConfigError("task", "the generalist needs at least one task")
+    automata = []
+    for t in tasks:
+        a = translate(task_formula(t)) if isinstance(t, str) else t
+        if not isinstance(a, Automaton):
+            raise ConfigError("task", "the generalist needs task names, formulas or Automaton objects")
+        unknown = sorted(set(a.aps) - {f"A{i + 1}" for i in range(N_AREAS)})
+        if unknown:
+            raise ConfigError("task", f"the generalist's layouts have areas A1..A4; the task names {unknown}")
+        automata.append(a)
+    base_env, base = make_env(dataclasses.replace(cfg, layout="random:0", max_steps=max_steps), automata[0])
+    aut, initials = union(automata) if len(automata) > 1 else (automata[0], [automata[0].initial])
     singles = [0] + [aut.letter([a]) for a in aut.aps]  # bank layouts' areas never overlap
     target, forbidden = area_roles(aut, aut.aps, base.event, singles)
+    distance = np.array([UNREACHABLE if d is None else d for d in aut.distances(singles)])
+    scale = np.ones(aut.n_states, np.float32)  # per state, its own task's largest finite distance
+    bounds = np.cumsum([0] + [a.n_states for a in automata])
+    for lo, hi in zip(bounds[:-1], bounds[1:]):
+        finite = distance[lo:hi][distance[lo:hi] < UNREACHABLE]
+        scale[lo:hi] = max(int(finite.max()) if finite.size else 1, 1)
     bits = np.array([aut.letter([f"A{i + 1}"]) if f"A{i + 1}" in aut.aps else 0 for i in range(N_AREAS)], np.int32)
     fields = {f.name: getattr(base, f.name) for f in dataclasses.fields(EnvParams)}
-    fields.update(area_bits=jnp.asarray(bits), advance=jnp.asarray(target), relax_mask=jnp.ones_like(jnp.asarray(target)),
+    fields.update(aut=AutomatonArrays(*(jnp.asarray(x) for x in aut.arrays(singles))), area_bits=jnp.asarray(bits),
+                  advance=jnp.asarray(target), relax_mask=jnp.ones_like(jnp.asarray(target)),
                   geodesic=jnp.zeros((N_AREAS, 1, 1), jnp.float32), state_field=jnp.zeros((aut.n_states, 1, 1), jnp.float32))
     params = GeneralParams(**fields, bank=bank, target_areas=jnp.asarray(target), forbidden_areas=jnp.asarray(forbidden),
-                           layout=jnp.zeros((), jnp.int32))
+                           layout=jnp.zeros((), jnp.int32), initials=jnp.asarray(initials, jnp.int32),
+                           progress_scale=jnp.asarray(scale))
     params = view(params, jnp.zeros((), jnp.int32))
-    env = GeneralistEnv(base_env.aps, base_env.n_states, base_env.config, n)
+    env = GeneralistEnv(aut.aps, aut.n_states, base_env.config, n)
     env.automaton = aut
     return env, params
-

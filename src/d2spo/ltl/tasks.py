@@ -47,3 +47,32 @@ SUITE: tuple[str, ...] = ("tour3", "tour4", "strict4", "any-order3", "avoid-unti
 def task_formula(name_or_formula: str) -> str:
     """The formula of a named task, or the argument itself when it is not a task name."""
     return TASKS.get(name_or_formula, name_or_formula)
+
+
+def reach_avoid_tasks(n: int, seed: int = 0, areas: int = 4, longest: int = 4) -> list[str]:
+    """``n`` distinct random reach-avoid sequences over A1 .. A{areas}, a deterministic function of
+    ``seed``: visit t1, then t2, ... (1 to ``longest`` targets, each other than the one before),
+    and on the way to each, keep out of a random subset of the other areas (each with probability
+    1/3; never the leg's target or the area the robot has just reached). Written with U and F, e.g.
+    ``((!A3) U (A1 & F A2))``. The generalist trains on such a mixture (``--generalist-tasks``), so
+    that the named tasks above are formulas it never saw."""
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    out: list[str] = []
+    for _ in range(100 * n):
+        if len(out) == n:
+            break
+        legs, prev = [], None
+        for _ in range(int(rng.integers(1, longest + 1))):
+            t = int(rng.choice([a for a in range(1, areas + 1) if a != prev]))
+            avoid = [a for a in range(1, areas + 1) if a not in (t, prev) and rng.random() < 1 / 3]
+            legs.append((t, avoid))
+            prev = t
+        f = None
+        for t, avoid in reversed(legs):
+            goal = f"A{t}" if f is None else f"(A{t} & {f})"
+            f = f"F {goal}" if not avoid else f"(({' & '.join(f'!A{a}' for a in avoid)}) U {goal})"
+        if f not in out:
+            out.append(f)
+    return out
