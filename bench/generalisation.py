@@ -156,7 +156,7 @@ def plots(cases: dict, names: list[str], out: Path) -> list[Path]:
     ax.set_ylabel("% of episodes")
     ax.set_ylim(0, 105)
     ax.set_title("Zero-shot on unseen layouts, per task (mean over layouts)")
-    ax.legend(fontsize=7, loc="lower left")
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.3), ncol=3)
     fig.tight_layout()
     paths.append(out / "success_per_task.png")
     fig.savefig(paths[-1], dpi=100)
