@@ -153,3 +153,23 @@ def test_a_mixture_of_tasks_draws_each_tasks_initial_state(built):
     assert set(q.tolist()) == set(np.asarray(params.initials).tolist())
     progress = np.asarray(obs[:, env.observation_slices["progress"]])[:, 0]
     np.testing.assert_allclose(progress, 1.0)  # every task starts at its own largest distance
+
+
+def test_the_generalists_cbf_input_is_layout_free(built):
+    """x = b(z, O_s) depends on the scene around the robot only: moving the robot and every box by
+    the same offset (another place, another arena) leaves it unchanged."""
+    from d2spo.algos.generalist import GeneralistD2SPO
+    from d2spo.algos.td3 import TD3Config
+    from d2spo.ltl.anneal import AnnealConfig
+    from d2spo.safety.cbf import CBFConfig
+
+    bank, env, params = built
+    learner = GeneralistD2SPO(env, params, TD3Config(), CBFConfig(), AnnealConfig(enabled=False), 4, 10, 100)
+    g = view(params, jnp.int32(1)).geom
+    pose = jnp.asarray([*generator.generate(SEEDS[1]).start[:2], 0.7], jnp.float32)
+    sensed = Sensed(g.box_lo, g.box_hi, jnp.ones(g.box_lo.shape[:1], bool))
+    shift = jnp.asarray([37.5, -12.25], jnp.float32)
+    moved = Sensed(g.box_lo + shift, g.box_hi + shift, sensed.mask)
+    x = learner.features(pose, sensed)
+    np.testing.assert_allclose(np.asarray(learner.features(pose.at[:2].add(shift), moved)), np.asarray(x), atol=1e-4)
+    assert float(jnp.min(x)) < params.sensing_radius  # the scene is not empty: something is in range
