@@ -273,7 +273,7 @@ def _train_locked(cfg: TrainConfig, out: Path, built, resume: bool, progress: Pr
     _prepare_dir(out, cfg, resume)
     checkpoints = Checkpoints(out, run_fingerprint(out))
     key = jax.random.PRNGKey(cfg.seed)
-    chunk = jax.jit(learner.chunk, donate_argnums=0)
+    chunk = learner_program(learner, "chunk", donate=True)
     meta = None
     if resume and has_checkpoint(out):
         carry, meta = checkpoints.load(jax.eval_shape(learner.init, key))
@@ -284,7 +284,7 @@ def _train_locked(cfg: TrainConfig, out: Path, built, resume: bool, progress: Pr
         if resume:
             warnings.warn(f"{out}: no checkpoint was written before it stopped; training from the first episode",
                           RunDirWarning, stacklevel=3)
-        carry = jax.jit(learner.init)(key)
+        carry = learner_program(learner, "init")(key)
     untrained = None
     if cfg.eval_untrained and cfg.eval_episodes > 0 and meta is None:
         untrained = jax.tree_util.tree_map(jnp.copy, learner.policy(carry))  # ``chunk`` donates the carry
@@ -300,6 +300,38 @@ def _train_locked(cfg: TrainConfig, out: Path, built, resume: bool, progress: Pr
             run.save(learner, carry, force=True)
             return None
     return run.finish(learner, carry, env, params, progress, untrained)
+
+
+class _ParamsArgument:
+    """A jitted learner method that takes the env params as an argument instead of folding them
+    into the program as constants: the generalist's are the field bank (128 MiB for 256 layouts),
+    which XLA took tens of minutes to compile as constants. ``lower`` as a jitted function has."""
+
+    def __init__(self, learner, name: str, vmapped: bool, donate: bool):
+        from d2spo.rollout import acting_on
+
+        def run(x, params):
+            fn = getattr(acting_on(learner, params), name)
+            return (jax.vmap(fn) if vmapped else fn)(x)
+
+        self.params = learner.params
+        self.fn = jax.jit(run, donate_argnums=(0,) if donate else ())
+
+    def __call__(self, x):
+        return self.fn(x, self.params)
+
+    def lower(self, x):
+        return self.fn.lower(x, self.params)
+
+
+def learner_program(learner, name: str, vmapped: bool = False, donate: bool = False):
+    """The jitted ``learner.<name>`` (``init`` or ``chunk``), vmapped over seeds if asked, donating
+    its argument if asked. Learners with ``params_as_argument`` (the generalist) get their env
+    params as an argument (``_ParamsArgument``); the others keep them as constants, as before."""
+    if getattr(learner, "params_as_argument", False):
+        return _ParamsArgument(learner, name, vmapped, donate)
+    fn = getattr(learner, name)
+    return jax.jit(jax.vmap(fn) if vmapped else fn, donate_argnums=0 if donate else ())
 
 
 def _compiling(progress: list[ProgressFn | None], metas: list[dict | None], cfg: TrainConfig) -> float:
@@ -383,7 +415,7 @@ def _train_seeds_locked(cfgs: list[TrainConfig], outs: list[Path], built, progre
     prints = [run_fingerprint(o) for o in outs]
     checkpoints = Checkpoints(group, fingerprint(prints))
     keys = jnp.stack([jax.random.PRNGKey(c.seed) for c in cfgs])
-    chunk = jax.jit(jax.vmap(learner.chunk), donate_argnums=0)
+    chunk = learner_program(learner, "chunk", vmapped=True, donate=True)
     progress = progress or [None] * len(cfgs)
     if resume:
         remove_tmp_files(group)
@@ -396,7 +428,7 @@ def _train_seeds_locked(cfgs: list[TrainConfig], outs: list[Path], built, progre
         group.mkdir(parents=True, exist_ok=True)
         metas = [None] * len(cfgs)
         t_compile = _compiling(progress, metas, cfgs[0])
-        carry = jax.jit(jax.vmap(learner.init))(keys)
+        carry = learner_program(learner, "init", vmapped=True)(keys)
     overhead = _compiled(chunk, carry, t_enter, t_compile, progress, metas, cfgs[0])
     summaries: list[dict | None] = [read_json(o / "summary.json", "summary") if (o / "summary.json").is_file()
                                     else None for o in outs]

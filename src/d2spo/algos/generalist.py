@@ -35,6 +35,10 @@ BEYOND = 1.0e3
 class GeneralistD2SPO(D2SPOLearner):
     """D²SPO with the CBF input and O_s read per environment (module docstring)."""
 
+    params_as_argument = True
+    """The run loop passes the env params (the field bank) to ``init`` and ``chunk`` as an argument,
+    not as constants (``train.learner_program``)."""
+
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         if self.n_obstacles != N_BOXES:
