@@ -11,11 +11,14 @@ Field (i, f) at a grid node is the length of the shortest 8-neighbour grid path 
 area i's disk (the last step is the straight distance to the disk), where
 
 * a step costs its length times the mean of its two nodes' multipliers: 1 in the open,
-  ``geodesic.BLOCKED_COST`` (10) where the node is closer than ``clearance`` (0.3 m, the reward's
+  ``CLEARANCE_COST`` (2) where the node is closer than ``clearance`` (0.3 m, the reward's
   shaping clearance) to an obstacle or wall, and ``COLLIDE_COST`` (100) where it is closer than
-  the robot's radius (0.15 m). The third tier is not in ``envs.geodesic``: without it a thin wall
-  costs the same as the opening beside it, and the field would cross a corridor's wall (about 8 m
-  at 10x) rather than take a detour longer than that to an opening;
+  the robot's radius (0.15 m). The clearance tier is 2, not nav's 10: a 0.6-0.8 m opening lies
+  wholly in it, and at 10x the path length jumped by metres for a step sideways across the
+  opening's mouth (6 m for 0.2 m on ``random:2``), in the shaping reward and in the observation's
+  direction; the first generalist trained with 10x stopped in front of such openings. The third
+  tier is not in ``envs.geodesic``: without it a thin wall costs the same as the opening beside it,
+  and the field would cross a corridor's wall rather than take a long detour to an opening;
 * entering the disk of an area of subset f costs ``BLOCKED_COST`` arena diagonals (finite, as in
   ``envs.state_fields``: a target walled off by forbidden areas still has a field), leaving it
   nothing; coming closer than ``clearance`` to such a disk costs ``BLOCKED_COST`` times the approach.
@@ -27,7 +30,7 @@ The grid has ``G`` x ``G`` nodes over each layout's own square arena (spacing si
 0.079 m at 5 m, 0.159 m at 10 m), node (row y, column x) at (x, y) * spacing. ``G`` = 64 resolves
 the narrowest gap ``generator.GAP_WIDTH`` allows (0.6 m) at the largest arena (10 m): the node
 nearest the gap's centre line is at most half a spacing (0.08 m) off it, so the opening always holds
-a line of nodes with clearance >= 0.22 m > the robot radius (cost 10x), while the wall makes a band
+a line of nodes with clearance >= 0.22 m > the robot radius (cost 2x), while the wall makes a band
 of >= 0.4 m of 100x nodes that no step (0.16 m) jumps. It takes G >= 35 (spacing < 0.3 m); 64 keeps
 about four nodes across the opening (docs/layouts.md, "Field bank").
 
@@ -63,10 +66,14 @@ N_SUBSETS = 2 ** (N_AREAS - 1)
 M_MAX = generator.MAX_BOXES
 """Obstacle slots per layout (unused slots are masked)."""
 CLEARANCE = 0.3
-"""Nodes closer than this (m) to an obstacle or wall cost ``geodesic.BLOCKED_COST`` times their length
-(the default ``RewardConfig.shaping_clearance``); so does coming this close to a forbidden area."""
+"""Nodes closer than this (m) to an obstacle or wall cost ``CLEARANCE_COST`` times their length (the
+default ``RewardConfig.shaping_clearance``); coming this close to a forbidden area costs
+``geodesic.BLOCKED_COST`` times the approach."""
 ROBOT_RADIUS = 0.15
 """Nodes closer than this (m) to an obstacle or wall cost ``COLLIDE_COST`` times (default preset's robot)."""
+CLEARANCE_COST = 2.0
+"""Multiplier of the path length through nodes closer than ``CLEARANCE`` to an obstacle or wall
+(module docstring: why 2)."""
 COLLIDE_COST = 100.0
 """Multiplier of the path length through nodes where the robot would collide."""
 TOL = 1e-4
@@ -167,7 +174,7 @@ def step_costs(arena, box_lo, box_hi, box_mask, area_center, area_radius, grid: 
     out = jnp.maximum(jnp.maximum(box_lo - p, 0.0), p - box_hi)  # [G, G, M, 2]
     boxes = jnp.where(box_mask, jnp.linalg.norm(out, axis=-1), jnp.inf).min(-1)
     clear = jnp.minimum(jnp.minimum(jnp.minimum(px, py), jnp.minimum(w - px, h - py)), boxes)
-    mult = jnp.where(clear < ROBOT_RADIUS, COLLIDE_COST, jnp.where(clear < CLEARANCE, geodesic.BLOCKED_COST, 1.0))
+    mult = jnp.where(clear < ROBOT_RADIUS, COLLIDE_COST, jnp.where(clear < CLEARANCE, CLEARANCE_COST, 1.0))
     gap = jnp.maximum(jnp.linalg.norm(p[..., 0, :][None] - area_center[:, None, None], axis=-1)
                       - area_radius[:, None, None], 0.0)  # [4, G, G]: distance to each disk
     forbids = jnp.asarray(_FORBIDS)[..., None, None]  # [4, 8, 4, 1, 1]
