@@ -52,7 +52,7 @@ def train_with_progress(cfg: TrainConfig, out: Path | None, resume: Path | None,
     with progress_display(console, show) as display:
         on_event = display.add(_label(cfg), cfg.episodes)
         summary = train(cfg, out, resume=resume is not None, progress=on_event)
-    Console().print(summary_table(summary, f"{cfg.algo} on {cfg.task} / {cfg.layout} (seed {cfg.seed}) → {out}"))
+    Console().print(summary_table(summary, f"{cfg.algo} on {cfg.task} / {summary.get('layout', cfg.layout)} (seed {cfg.seed}) → {out}"))
     return 0
 
 
@@ -68,7 +68,7 @@ def train_seeds_with_progress(cfgs: list[TrainConfig], outs: list[Path], show: b
         callbacks = [display.add(f"{_label(c)} s{c.seed}", c.episodes) for c in cfgs]
         summaries = train_seeds(cfgs, outs, progress=callbacks)
     for cfg, out, summary in zip(cfgs, outs, summaries):
-        Console().print(summary_table(summary, f"{cfg.algo} on {cfg.task} / {cfg.layout} (seed {cfg.seed}) → {out}"))
+        Console().print(summary_table(summary, f"{cfg.algo} on {cfg.task} / {summary.get('layout', cfg.layout)} (seed {cfg.seed}) → {out}"))
     return summaries
 
 
