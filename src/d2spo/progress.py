@@ -12,6 +12,8 @@ from d2spo.config import TrainConfig
 def default_out(cfg: TrainConfig) -> Path:
     task = cfg.task if cfg.task.replace("-", "").isalnum() else "custom"
     layout = Path(cfg.layout).stem if cfg.layout.endswith(".json") else cfg.layout.replace(":", "")
+    if cfg.generalist:
+        layout = f"generalist{cfg.generalist_layouts}"
     return Path("runs") / f"{cfg.algo}-{task}-{layout}-s{cfg.seed}"
 
 
