@@ -109,6 +109,8 @@ class TrainConfig:
         check_fields(self, count=("episodes", "num_envs", "chunk_steps", "checkpoint_every", "window",
                                   "generalist_layouts"),
                      seed=("seed",), counts=("snapshots",), natural=("eval_episodes", "generalist_tasks"))
+        if self.d2spo.actor_through_safety is None:  # on for one layout, off for the generalist
+            object.__setattr__(self, "d2spo", dataclasses.replace(self.d2spo, actor_through_safety=not self.generalist))
         if not isinstance(self.task, str) or not self.task.strip():
             raise ConfigError("task", f"expected a task name or an LTL formula, got {self.task!r}")
 

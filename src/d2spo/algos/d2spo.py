@@ -68,18 +68,22 @@ class D2SPOConfig:
     """Initialise f_n from the textbook unicycle with the nominal speed limits (then fit it to data)."""
     runtime_filter: bool = False
     """Correct π_Ω's action to the closest one satisfying the learned barrier condition (beyond the paper)."""
-    actor_through_safety: bool = True
+    actor_through_safety: bool | None = None
     """TD3's actor loss is -Q(z, π_Ω(x, π(z))) (+ proposal_weight ||π(z) - π_Ω(x, π(z))||²) instead of
     -Q(z, π(z)). The buffer holds executed actions (Algorithm 1, line 9), so Q(z, π(z)) at a proposal
     π_Ω overrides is an extrapolation; without this the actor drifted to saturated proposals (full
-    reverse into a wall) that π_Ω kept cancelling, and the robot stood still. Not in the paper."""
+    reverse into a wall) that π_Ω kept cancelling, and the robot stood still. Not in the paper.
+    None (the default): on, except for the generalist (``TrainConfig`` writes the choice into
+    config.json), whose completion fell from 0.78 to 0.30 with it and stayed near 0.9 without it
+    (bench/RESULTS.md, session 9)."""
     proposal_weight: float = 1.0
     """Weight of ||π(z) - π_Ω(x, π(z))||² in the actor loss (with actor_through_safety)."""
     synthetic_box_half: tuple[float, float] = (0.15, 0.45)
     """Half-size range (m) of the random boxes of the synthetic pre-training data."""
 
     def __post_init__(self) -> None:
-        check_fields(self, "d2spo", count=("update_every",), non_negative=("proposal_weight",),
+        check_fields(self, "d2spo", nullable=("actor_through_safety",), count=("update_every",),
+                     non_negative=("proposal_weight",),
                      flag=("pretrain", "kinematic_prior", "runtime_filter", "actor_through_safety"))
         lo_hi = self.synthetic_box_half
         if not (isinstance(lo_hi, tuple) and len(lo_hi) == 2 and all(isinstance(v, (int, float)) for v in lo_hi)
@@ -223,7 +227,7 @@ class D2SPOLearner(TD3Learner):
                            obs=c.obs, action=action, u_rl=u_rl)
         data, data_stats = sd.update_datasets(c.data, k_data, tr, features_fn=self.features, cfg=self.cbf_cfg)
         execute_fn = None
-        if self.d2.actor_through_safety:
+        if self.d2.actor_through_safety is not False:  # None: on (TrainConfig resolves it per learner)
             def execute_fn(o, u):  # π_Ω with this step's safety parameters, differentiable in u
                 return safe_action(self.safety_nets, c.safety, self.x_of_obs(o), u)
         agent, metrics = learn_from_buffer(self.nets, c.agent, buffer, k_upd, c.steps + 1, self.num_envs, self.cfg,
