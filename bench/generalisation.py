@@ -59,7 +59,8 @@ def evaluate_cases(run: Path, tasks: list[str], names: list[str], episodes: int,
     from d2spo.evaluate import eval_env_config, load_policy
     from d2spo.zero_shot import generalist_layout, run_layouts
 
-    cfg, _, policy, _ = load_policy(run)
+    cfg, _, policy, meta = load_policy(run)
+    print(f"{run}: the policy of its checkpoint after {meta.get('episodes')} training episodes", flush=True)
     if not cfg.generalist:
         raise SystemExit(f"{run}: not a generalist run (d2spo train --generalist)")
     env_cfg = eval_env_config(cfg, None)
