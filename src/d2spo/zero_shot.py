@@ -91,24 +91,27 @@ def run_layouts(cfg: TrainConfig, policy, task: str, checked: list[tuple[Layout,
                 env_cfg, keep_paths: int = 0) -> tuple[list[tuple[dict, tuple | None]], int]:
     """``rollouts`` on layouts ``generalist_layout`` has checked: per layout its rates and, with
     ``keep_paths`` > 0, the first episodes' (poses [k, T + 1, 3], collided [k], completed [k])."""
+    import jax.numpy as jnp
     import numpy as np
 
     from d2spo.algos.generalist import build_generalist
+    from d2spo.envs.generalist import view
     from d2spo.rollout import make_rollout, rates
     from d2spo.train import GENERALIST_MAX_STEPS
 
     limit = max([cfg.env.max_steps or GENERALIST_MAX_STEPS] + [n for _, n in checked])
     cfg = dataclasses.replace(cfg, env=env_cfg, task=task, generalist_tasks=0)  # this task alone
-    run = None
     out = []
-    for lay, _ in checked:
-        env, params, learner = build_generalist(cfg, layout_bank.bank_of([lay]), limit)
-        if run is None:  # the params are an argument: one compilation for every layout
+    for k, (lay, _) in enumerate(checked):
+        bank = layout_bank.bank_of([lay])
+        if k == 0:  # one env, learner and compilation; the other layouts only swap the bank in
+            env, params, learner = build_generalist(cfg, bank, limit)
             run = make_rollout(learner, env, episodes, limit)
+        else:
+            params = view(params.replace(bank=bank), jnp.zeros((), jnp.int32))
         collided, completed, ret, length, poses = run(params, policy, jax.random.PRNGKey(seed))
         paths = None
         if keep_paths:
-            k = keep_paths
-            paths = (np.asarray(poses[:k]), np.asarray(collided[:k]), np.asarray(completed[:k]))
+            paths = tuple(np.asarray(a[:keep_paths]) for a in (poses, collided, completed))
         out.append((rates(collided, completed, ret, length, poses), paths))
     return out, limit
