@@ -52,15 +52,17 @@ def generalist_run(args) -> Path:
     return out
 
 
-def evaluate_cases(run: Path, tasks: list[str], names: list[str], episodes: int, keep_paths: int) -> dict:
-    """{task: {"filter": {...}, "alone": {...}, "refused": {layout: reason}}} of the generalist."""
+def evaluate_cases(run: Path, tasks: list[str], names: list[str], episodes: int, keep_paths: int) -> tuple[dict, str]:
+    """({task: {"filter": {...}, "alone": {...}, "refused": {layout: reason}}}, which policy) of the
+    generalist (its validated best where it has one: ``evaluate.load_policy``)."""
     import dataclasses
 
     from d2spo.evaluate import eval_env_config, load_policy
     from d2spo.zero_shot import generalist_layout, run_layouts
 
     cfg, _, policy, meta = load_policy(run)
-    print(f"{run}: the policy of its checkpoint after {meta.get('episodes')} training episodes", flush=True)
+    print(f"{run}: its {meta['policy']} policy (checkpoint after {meta.get('episodes')} training episodes)",
+          flush=True)
     if not cfg.generalist:
         raise SystemExit(f"{run}: not a generalist run (d2spo train --generalist)")
     env_cfg = eval_env_config(cfg, None)
@@ -83,7 +85,7 @@ def evaluate_cases(run: Path, tasks: list[str], names: list[str], episodes: int,
         done = [r["completion_rate"] for r in entry["filter"]["per_layout"]]
         print(f"{task}: {len(checked)} layouts, {len(refused)} refused; completion with filter "
               f"{100 * np.mean(done) if done else float('nan'):.1f}%", flush=True)
-    return out
+    return out, meta["policy"]
 
 
 def specialist_cases(run: Path, names: list[str], episodes: int) -> dict:
@@ -219,7 +221,7 @@ def main() -> None:
         raise SystemExit(f"--first-seed {args.first_seed}: the generalist trained on random:0 .. "
                          f"random:{trained.generalist_layouts - 1}; choose unseen seeds")
     names = [f"random:{args.first_seed + i}" for i in range(args.layouts)]
-    cases = evaluate_cases(run, args.tasks, names, args.episodes, args.trajectories)
+    cases, which = evaluate_cases(run, args.tasks, names, args.episodes, args.trajectories)
     spec = specialist_cases(args.specialist, names, args.episodes) if args.specialist else None
     own = None
     if spec is not None:  # the generalist on the specialist's own layout and task
@@ -231,7 +233,7 @@ def main() -> None:
     for c in cases.values():
         c.pop("paths", None)
     (args.out / "generalisation.json").write_text(json.dumps(
-        {"run": str(run), "layouts": names, "episodes": args.episodes, "cases": cases, "specialist": spec,
+        {"run": str(run), "policy": which, "layouts": names, "episodes": args.episodes, "cases": cases, "specialist": spec,
          "generalist_on_specialist_layout": own}, indent=1))
     lines = table(cases, len(names))
     if spec is not None:
@@ -253,7 +255,7 @@ def main() -> None:
         f"`bench/generalisation.py --run {run} --layouts {args.layouts} --first-seed {args.first_seed} "
         f"--episodes {args.episodes}{f' --specialist {args.specialist}' if args.specialist else ''}`: layouts "
         f"random:{args.first_seed} .. random:{args.first_seed + args.layouts - 1}, {args.episodes} deterministic "
-        f"episodes per (task, layout, filter). Machine: {args.machine}. Figures: "
+        f"episodes per (task, layout, filter); the generalist's {which} policy. Machine: {args.machine}. Figures: "
         + ", ".join(str(p) for p in figures) + ".\n", *lines, ""])
     print(section)
     if args.results != "-":

@@ -224,3 +224,59 @@ def test_eval_rates_measure_the_distance_driven():
     assert r["mean_distance"] == pytest.approx(3.5) and r["safety_rate"] == 0.5 and r["completion_rate"] == 0.5
     assert "mean_distance" not in rates(np.array([False]), np.array([True]), np.array([1.0]), np.array([3]))
 
+
+
+def test_validation_keeps_the_earliest_best_policy_and_a_resume_keeps_it(tmp_path):
+    """``_Run.validate`` (the generalist's model selection) with a stub validation: every
+    ``validate_every`` episodes a score is recorded; the kept policy is the first of the highest."""
+    from flax import serialization
+
+    from d2spo.checkpoint import Checkpoints
+    from d2spo.train import _Run, best_policy_path
+
+    scores = iter([0.2, 0.5, 0.5, 0.3])
+
+    class Stub:
+        layouts = "random:50000..50001"
+
+        def __call__(self, policy):
+            s = next(scores)
+            return {"success_rate": s, "completion_rate": s, "safety_rate": 1.0}
+
+    class Learner:
+        @staticmethod
+        def policy(carry):
+            return carry
+
+    cfg = tiny(validate_every=10)
+    out = tmp_path / "run"
+    out.mkdir()
+    run = _Run(cfg, out, None, Checkpoints(out, "x"), validation=Stub())
+    metas = {}
+    for k in range(4):
+        run.writer.append([(10 * k + i, 0.0, 0.0, 0, 0, 0, 40, 0.0, 0.0) for i in range(10)])
+        run.meta["episodes"] = len(run.writer)
+        run.save(Learner, {"w": np.full(2, float(k), np.float32)})
+        metas[len(run.writer)] = json.loads(json.dumps(run.meta))
+    assert [e["episodes"] for e in run.meta["validation"]] == [10, 20, 30, 40]
+    assert [e["success_rate"] for e in run.meta["validation"]] == [0.2, 0.5, 0.5, 0.3]
+    assert run.meta["best"]["episodes"] == 20  # the first of the two 0.5s
+    kept = serialization.from_bytes({"w": np.zeros(2, np.float32)}, best_policy_path(out).read_bytes())
+    np.testing.assert_array_equal(kept["w"], [1.0, 1.0])
+    again = _Run(cfg, out, metas[20], Checkpoints(out, "x"), validation=Stub())
+    assert again.next_validation == 30 and again.meta["best"]["episodes"] == 20
+
+
+def test_the_generalists_episodes_default_and_validation_seeds():
+    from d2spo.config import GENERALIST_EPISODES, PAPER_EPISODES, VALIDATION_SEED
+
+    assert TrainConfig().episodes == PAPER_EPISODES
+    assert TrainConfig(generalist=True).episodes == GENERALIST_EPISODES
+    assert TrainConfig(generalist=True, episodes=123).episodes == 123
+    with pytest.raises(ConfigError, match="validation set"):
+        TrainConfig(generalist=True, generalist_layouts=VALIDATION_SEED + 1)
+    with pytest.raises(ConfigError, match="validate_every"):
+        TrainConfig(generalist=True, validate_every=0)
+    old = config_to_dict(TrainConfig(generalist=True))
+    del old["validation_layouts"]  # a generalist trained before validation kept its last policy
+    assert config_from_dict(old).validation_layouts == 0

@@ -3,6 +3,7 @@ runtime filter (algos/generalist.py)."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import jax
@@ -128,3 +129,42 @@ def test_the_runtime_filter_keeps_clear_of_each_environments_own_layout():
         np.testing.assert_array_equal(np.asarray(ctx.box_lo[k]), np.asarray(g.box_lo))
         assert bool(jnp.all(ctx.mask[k]))
     assert len(set(np.asarray(state.layout).tolist())) == 2  # both layouts drawn: the contexts differ
+
+
+def test_eval_runs_the_validated_policy_unless_the_last_is_asked_for(gen_run, tmp_path):
+    import shutil
+
+    from flax import serialization
+
+    from d2spo.checkpoint import Checkpoints, load_checkpoint, run_fingerprint
+    from d2spo.evaluate import load_policy
+    from d2spo.train import best_policy_path
+
+    run = tmp_path / "run"
+    shutil.copytree(gen_run, run)
+    cfg, learner, last, meta = load_policy(run)
+    assert meta["policy"].startswith("last")  # no validation in this run
+    ones = jax.tree_util.tree_map(lambda t: np.ones(t.shape, t.dtype), last)
+    best_policy_path(run).write_bytes(serialization.to_bytes(ones))
+    carry, meta = load_checkpoint(run, jax.eval_shape(learner.init, jax.random.PRNGKey(0)), run_fingerprint(run))
+    Checkpoints(run, run_fingerprint(run)).save(carry, dict(meta, best={"episodes": 7, "success_rate": 0.5}))
+    _, _, best, meta = load_policy(run)
+    assert meta["policy"] == "best on validation (after 7 episodes)"
+    assert all(np.all(x == 1) for x in jax.tree_util.tree_leaves(best))
+    _, _, again, meta = load_policy(run, "last")
+    assert meta["policy"].startswith("last") and all(np.all(x == 0) for x in jax.tree_util.tree_leaves(again))
+    with pytest.raises(ConfigError, match="best, last"):
+        load_policy(run, "first")
+
+
+def test_the_validation_layouts_are_held_out():
+    from d2spo.config import VALIDATION_SEED
+    from d2spo.envs import generator
+    from d2spo.train import _Validation
+
+    cfg = dataclasses.replace(_cfg(), validation_layouts=2, validation_episodes=4)
+    env, params, learner = build_generalist(cfg, layout_bank.build_bank([0]), 400)
+    v = _Validation(cfg, env, params, learner)
+    assert v.layouts == f"random:{VALIDATION_SEED}..{VALIDATION_SEED + 1}"
+    want = [generator.generate(VALIDATION_SEED + i).arena[0] for i in range(2)]
+    np.testing.assert_allclose(np.asarray(v.params.bank.arena)[:, 0], want, rtol=1e-6)

@@ -224,6 +224,9 @@ class EvalCmd:
     """D²SPO only: linearise-and-project iterations of the runtime filter; default: as trained."""
     filter_alpha: float | None = None
     """D²SPO only: coefficient of α in the runtime filter's condition (smaller brakes earlier); default: as trained."""
+    policy: str = "best"
+    """best: a generalist's policy kept on its validation layouts (`--validation-layouts`), where the run
+    has one, else the last; last: the newest checkpoint's."""
     dynamics_fields: Annotated[DynamicsFlags, tyro.conf.arg(name="")] = DynamicsFlags()
 
     def run(self) -> int:
@@ -232,7 +235,7 @@ class EvalCmd:
 
         res = evaluate_run(self.run_dir, self.episodes, self.layout, self.dynamics, self.seed, self.layout_seeds,
                            self.runtime_filter, self.filter_iters, self.filter_alpha, self.dynamics_fields.given(),
-                           self.task)
+                           self.task, self.policy)
         print_evaluation(res, write_evaluation(self.run_dir, res), filter_asked=self.runtime_filter)
         return 0
 

@@ -28,6 +28,15 @@ from d2spo.fields import check_fields
 from d2spo.ltl.anneal import AnnealConfig
 from d2spo.safety.cbf import CBFConfig
 
+PAPER_EPISODES = 20_000
+"""Training episodes of a run on one layout (the paper's)."""
+GENERALIST_EPISODES = 4_000
+"""Training episodes of a generalist (``--generalist``): its validated policy peaks within them
+(bench/RESULTS.md, issue 16), and the run fits the issue's 30 minutes."""
+VALIDATION_SEED = 50_000
+"""First seed of the generalist's validation layouts (training uses random:0 .., the benchmark
+random:100000 ..)."""
+
 
 @dataclass(frozen=True)
 class TrainConfig:
@@ -38,8 +47,8 @@ class TrainConfig:
     baselines td3-lag, sac-lag, rcrl, ppo-lag, cpo (same reward and annealed radius as tlgrl)."""
     task: str = "phi1"
     """Task name (phi1, phi1-printed, phi2, relaxed) or an LTL formula."""
-    episodes: int = 20_000
-    """Training episodes (the paper: 20000)."""
+    episodes: int | None = None
+    """Training episodes; default 20000 (the paper), or ``GENERALIST_EPISODES`` with ``generalist``."""
     seed: int = 0
     """Random seed; a run is deterministic given its seed and config."""
     num_envs: int = 16
@@ -63,6 +72,16 @@ class TrainConfig:
     generalist_tasks: int = 0
     """With ``generalist``: also train on this many random reach-avoid sequences over A1..A4
     (``ltl.tasks.reach_avoid_tasks``), each episode drawing one task of the mixture; 0: --task alone."""
+    validation_layouts: int = 16
+    """With ``generalist``: every ``validate_every`` episodes the policy runs ``validation_episodes``
+    deterministic episodes on the held-out layouts random:VALIDATION_SEED .. +N-1 (never trained on,
+    never in the benchmark's), and the best (fewest failures, the earliest on a tie) is kept as
+    DIR/policy-best.msgpack: what ``d2spo eval`` runs. 0: no validation; the last policy is used."""
+    validation_episodes: int = 64
+    """With ``generalist``: episodes of each validation (run in parallel; layouts drawn from the
+    validation set, the same episodes every time)."""
+    validate_every: int = 250
+    """With ``generalist``: validate the policy every this many training episodes."""
     eval_untrained: bool = False
     """Also evaluate the initial policy (after the cautious start, before the first env step) on
     the same episodes, with the same compilation: summary.json's ``eval_untrained``. Needs a run
@@ -106,9 +125,15 @@ class TrainConfig:
             raise ConfigError("algo", f"unknown algorithm {self.algo!r}; choose one of {list(known_algos())}")
         if self.generalist and self.algo != "d2spo":
             raise ConfigError("generalist", f"the generalist is trained with --algo d2spo, not {self.algo!r}")
+        if self.episodes is None:  # the paper's 20000 for one layout; the generalist's own default
+            object.__setattr__(self, "episodes", GENERALIST_EPISODES if self.generalist else PAPER_EPISODES)
         check_fields(self, count=("episodes", "num_envs", "chunk_steps", "checkpoint_every", "window",
-                                  "generalist_layouts"),
-                     seed=("seed",), counts=("snapshots",), natural=("eval_episodes", "generalist_tasks"))
+                                  "generalist_layouts", "validation_episodes", "validate_every"),
+                     seed=("seed",), counts=("snapshots",),
+                     natural=("eval_episodes", "generalist_tasks", "validation_layouts"))
+        if self.generalist and self.generalist_layouts > VALIDATION_SEED:
+            raise ConfigError("generalist_layouts", f"at most {VALIDATION_SEED}: the layouts from random:"
+                              f"{VALIDATION_SEED} on are the validation set")
         if self.d2spo.actor_through_safety is None:  # on for one layout, off for the generalist
             object.__setattr__(self, "d2spo", dataclasses.replace(self.d2spo, actor_through_safety=not self.generalist))
         if not isinstance(self.task, str) or not self.task.strip():
@@ -156,6 +181,7 @@ FORMER_DEFAULTS: dict[tuple[str, ...], Any] = {
     ("env", "reward", "shaping_clearance"): None,  # the default became 0.3 after the field was added
     ("env", "reward", "shaping_metric"): "geodesic",  # today's default is geodesic-per-state (issue 15)
     ("anneal", "relax"): "all",  # the field came with the option "targets", which became the default
+    ("validation_layouts",): 0,  # generalists trained before validation kept their last policy
 }
 """Settings whose default has changed, with the value a config.json that does not mention them was
 trained with (the field did not exist yet, and its old behaviour is this value)."""

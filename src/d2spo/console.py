@@ -86,7 +86,8 @@ def print_evaluation(res: dict, path: Path, filter_asked: bool | None) -> None:
         if res["runtime_filter"] and filter_asked is None:
             filt += " (not the training layout/dynamics; --runtime-filter False for π_Ω alone)"
     task = f", task {res['task']!r} (zero-shot)" if res.get("task_given") else ""
-    t = Table(title=f"{res['run']} on {res['layout']} / {res['dynamics']} ({res['episodes']} episodes{filt}{task})")
+    which = f", {res['policy']} policy" if str(res.get("policy", "")).startswith("best") else ""
+    t = Table(title=f"{res['run']}{which} on {res['layout']} / {res['dynamics']} ({res['episodes']} episodes{filt}{task})")
     for name in ("layout", "safety_rate", "completion_rate", "mean_return", "distance driven"):
         t.add_column(name, justify="left" if name == "layout" else "right")
 

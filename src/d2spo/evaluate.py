@@ -22,11 +22,18 @@ from d2spo.errors import ConfigError, NaNError, RunDirError
 from d2spo.fields import check_fields
 from d2spo.rollout import make_rollout, rates
 from d2spo.runio import atomic_write_json
-from d2spo.train import build, load_run_config
+from d2spo.train import best_policy_path, build, load_best_policy, load_run_config
+
+POLICY_CHOICES = ("best", "last")
+"""Which policy of a run ``load_policy`` returns (``d2spo eval --policy``)."""
 
 
-def load_policy(run_dir: Path):
-    """(cfg, learner, policy, meta) of a finished or checkpointed run."""
+def load_policy(run_dir: Path, which: str = "best"):
+    """(cfg, learner, policy, meta) of a finished or checkpointed run. ``which``: "best" is a
+    validated generalist's kept policy (``TrainConfig.validation_layouts``) where there is one, else
+    the last; "last" is the newest checkpoint's. ``meta["policy"]`` says which was taken."""
+    if which not in POLICY_CHOICES:
+        raise ConfigError("policy", f"expected one of {', '.join(POLICY_CHOICES)}, got {which!r}")
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise RunDirError(f"{run_dir}: no such run directory")
@@ -35,6 +42,12 @@ def load_policy(run_dir: Path):
     _, _, learner = build(dataclasses.replace(cfg, generalist_layouts=1, generalist_tasks=0) if cfg.generalist else cfg)
     template = jax.eval_shape(learner.init, jax.random.PRNGKey(0))  # shapes only: no pre-training
     carry, meta = load_checkpoint(run_dir, template, run_fingerprint(run_dir))
+    meta = dict(meta)
+    best = meta.get("best")
+    if which == "best" and best is not None and best_policy_path(run_dir).is_file():
+        meta["policy"] = f"best on validation (after {best['episodes']} episodes)"
+        return cfg, learner, load_best_policy(run_dir, learner), meta
+    meta["policy"] = f"last (after {meta.get('episodes')} episodes)"
     return cfg, learner, learner.policy(carry), meta
 
 
@@ -100,14 +113,14 @@ def filter_choice(cfg: TrainConfig, layout: str | None, preset: str | None, aske
 def evaluate_run(run_dir: Path, episodes: int = 100, layout: str | None = None, preset: str | None = None,
                  seed: int = 0, layout_seeds: int = 1, runtime_filter: bool | None = None,
                  filter_iters: int | None = None, filter_alpha: float | None = None,
-                 dynamics: dict[str, float] | None = None, task: str | None = None) -> dict:
+                 dynamics: dict[str, float] | None = None, task: str | None = None, policy: str = "best") -> dict:
     """Safety and completion of the run's final policy, deterministic, on its own layout and dynamics
     or others. ``runtime_filter=None``: as trained on the training layout and dynamics, and on for a
     D²SPO policy evaluated on another layout or dynamics (π_Ω alone is far less safe on layouts it
     never saw: docs/cbf.md); True/False force it. ``preset``: a dynamics preset or JSON file;
     ``dynamics``: per-field values on top of it (``eval_env_config``). ``task``: another task (a
     name or a formula) for a generalist run, zero-shot (``d2spo.zero_shot``); a generalist needs
-    ``layout``."""
+    ``layout``. ``policy``: "best" or "last" (``load_policy``)."""
     from d2spo.algos import has_runtime_filter
     from d2spo.envs.dynamics import DYNAMICS_FIELDS
 
@@ -118,7 +131,8 @@ def evaluate_run(run_dir: Path, episodes: int = 100, layout: str | None = None, 
     if layout_seeds != 1 and not (layout or "").startswith("random"):
         raise ConfigError("layout_seeds", f"only applies with --layout random[:SEED] or random5[:SEED], got {layout_seeds} "
                           f"with layout {layout or 'as trained'!r}")
-    cfg, learner, policy, _ = load_policy(run_dir)
+    cfg, learner, policy_params, meta = load_policy(run_dir, policy)
+    policy, which = policy_params, meta["policy"]
     if task is not None and not cfg.generalist and task != cfg.task:
         raise ConfigError("task", f"only a generalist (d2spo train --generalist) runs another task than it "
                           f"learnt; this run learnt {cfg.task!r}")
@@ -148,7 +162,7 @@ def evaluate_run(run_dir: Path, episodes: int = 100, layout: str | None = None, 
     else:
         results, limit = _specialist_rollouts(cfg, learner, policy, layouts, episodes, seed, preset, dynamics), None
     out = {
-        "run": str(run_dir), "episodes": episodes * len(layouts), "layout": layout or cfg.layout,
+        "run": str(run_dir), "policy": which, "episodes": episodes * len(layouts), "layout": layout or cfg.layout,
         "layouts": [lay or cfg.layout for lay in layouts], "dynamics": dynamics_label(preset, dynamics, cfg.env.preset),
         "dynamics_values": {k: getattr(env_cfg.resolved(), k) for k in DYNAMICS_FIELDS}, "seed": seed,
         "task": task or cfg.task, "task_given": task is not None and task != cfg.task,
@@ -195,6 +209,8 @@ def evaluation_path(run_dir: Path, res: dict) -> Path:
         from d2spo.zero_shot import task_tag
 
         tag += f"-{task_tag(res['task'])}"
+    if str(res.get("policy", "")).startswith("best"):  # a validated generalist's kept policy
+        tag += "-best"
     if res["runtime_filter"]:
         tag += f"-filter-a{res['filter_alpha']:g}-i{res['filter_iters']}"
     return Path(run_dir) / f"eval-{tag}.json"

@@ -148,8 +148,8 @@ class _Run:
     snapshots, checkpoints and the summary. ``train`` has one; ``train_seeds`` one per seed."""
 
     def __init__(self, cfg: TrainConfig, out: Path, meta: dict | None, checkpoints: Checkpoints,
-                 overhead: dict | None = None):
-        self.cfg, self.out, self.checkpoints = cfg, Path(out), checkpoints
+                 overhead: dict | None = None, validation: _Validation | None = None):
+        self.cfg, self.out, self.checkpoints, self.validation = cfg, Path(out), checkpoints, validation
         self.meta = dict(meta or {"episodes": 0, "env_steps": 0, "chunks": 0, "wall_seconds": 0.0})
         # Time outside the training loop, summed over the sessions of a resumed run (0 in checkpoints
         # written before these were counted): compiling the learner, and the rest (building the env).
@@ -159,6 +159,8 @@ class _Run:
         self.tb = _tensorboard(self.out / "tb")
         every = cfg.checkpoint_every
         self.next_ckpt = (self.meta["episodes"] // every + 1) * every
+        if validation is not None:
+            self.next_validation = (self.meta["episodes"] // cfg.validate_every + 1) * cfg.validate_every
         self.t_start = time.perf_counter() - self.meta["wall_seconds"]
         self.guard = _NaNGuard(cfg.chunk_steps)
 
@@ -204,6 +206,8 @@ class _Run:
         for n in self.cfg.snapshots:
             if n_done >= n and not snapshot_path(self.out, n).exists():
                 save_snapshot(self.out, n, learner.policy(carry))
+        if self.validation is not None and (n_done >= self.next_validation or self.done):
+            self.validate(learner.policy(carry))
         if force or n_done >= self.next_ckpt or self.done:
             self.writer.sync()
             self.checkpoints.save(carry, self.meta)
@@ -211,6 +215,26 @@ class _Run:
             self.next_ckpt = (n_done // every + 1) * every
             return True
         return False
+
+    def validate(self, policy) -> None:
+        """Run the validation (``_Validation``) on ``policy`` and keep it as DIR/policy-best.msgpack if
+        it fails fewer validation episodes than every earlier one; the scores go into the counters."""
+        n_done = len(self.writer)
+        history = self.meta.setdefault("validation", [])
+        if history and history[-1]["episodes"] == n_done:
+            return
+        t = time.perf_counter()
+        entry = {"episodes": n_done, **self.validation(policy)}
+        best = self.meta.get("best")
+        if best is None or entry["success_rate"] > best["success_rate"]:
+            atomic_write_bytes(best_policy_path(self.out), serialization.to_bytes(jax.device_get(policy)))
+            self.meta["best"] = entry
+        history.append(entry)
+        self.meta["validation_seconds"] = self.meta.get("validation_seconds", 0.0) + time.perf_counter() - t
+        every = self.cfg.validate_every
+        self.next_validation = (n_done // every + 1) * every
+        if self.tb is not None:
+            self.tb.add_scalar("charts/validation_success", entry["success_rate"], self.meta["env_steps"])
 
     def finish(self, learner, carry, env, params, progress: ProgressFn | None = None, untrained=None) -> dict:
         """summary.json. Wall times: ``wall_seconds`` is the training loop alone (no compilation; the
@@ -239,6 +263,12 @@ class _Run:
             summary["eval"] = rates(*rollout(params, learner.policy(carry), key))
             if untrained is not None:  # ``cfg.eval_untrained``: the same episodes, the same compilation
                 summary["eval_untrained"] = rates(*rollout(params, untrained, key))
+            if self.meta.get("best") is not None:  # the validated policy, on the same episodes
+                summary["eval_best"] = rates(*rollout(params, load_best_policy(self.out, learner), key))
+        if self.validation is not None:
+            summary["validation"] = {"layouts": self.validation.layouts, "episodes": cfg.validation_episodes,
+                                     "seconds": round(self.meta.get("validation_seconds", 0.0), 2),
+                                     "best": self.meta.get("best"), "history": self.meta.get("validation", [])}
         total = (wall + self.meta.get("compile_seconds", 0.0) + self.meta.get("setup_seconds", 0.0)
                  + time.perf_counter() - t_eval)
         summary["wall_seconds_total"] = round(total, 2)
@@ -289,7 +319,8 @@ def _train_locked(cfg: TrainConfig, out: Path, built, resume: bool, progress: Pr
     if cfg.eval_untrained and cfg.eval_episodes > 0 and meta is None:
         untrained = jax.tree_util.tree_map(jnp.copy, learner.policy(carry))  # ``chunk`` donates the carry
     overhead = _compiled(chunk, carry, t_enter, t_compile, [progress], [meta], cfg)
-    run = _Run(cfg, out, meta, checkpoints, overhead)
+    validation = _Validation(cfg, env, params, learner) if cfg.generalist and cfg.validation_layouts else None
+    run = _Run(cfg, out, meta, checkpoints, overhead, validation)
     chunks_this_call = 0
     while not run.done:
         carry, log = chunk(carry)
@@ -459,6 +490,50 @@ def _train_seeds_locked(cfgs: list[TrainConfig], outs: list[Path], built, progre
 
     shutil.rmtree(group, ignore_errors=True)
     return summaries
+
+
+class _Validation:
+    """The generalist's model selection (``TrainConfig.validation_layouts``): ``policy -> rates`` of
+    ``validation_episodes`` deterministic episodes on the held-out layouts random:VALIDATION_SEED ..,
+    the training task(s), the same episodes (key) every time. ``success_rate`` is the fraction of
+    episodes that complete the task without a collision: what the best policy is chosen by."""
+
+    def __init__(self, cfg: TrainConfig, env, params, learner):
+        from d2spo.config import VALIDATION_SEED
+        from d2spo.envs import layout_bank
+        from d2spo.envs.generalist import view
+
+        n = cfg.validation_layouts
+        self.layouts = f"random:{VALIDATION_SEED}..{VALIDATION_SEED + n - 1}"
+        bank = layout_bank.build_bank(range(VALIDATION_SEED, VALIDATION_SEED + n))
+        self.params = view(params.replace(bank=bank), jnp.zeros((), jnp.int32))
+        self.rollout = make_rollout(learner, env, cfg.validation_episodes, int(params.max_steps))
+        self.key = jax.random.PRNGKey(cfg.seed + 20_000)
+
+    def __call__(self, policy) -> dict:
+        collided, completed, *rest = self.rollout(self.params, policy, self.key)
+        out = rates(collided, completed, *rest)
+        ok = np.asarray(completed) & ~np.asarray(collided)
+        return {"success_rate": float(np.mean(ok)), "completion_rate": out["completion_rate"],
+                "safety_rate": out["safety_rate"]}
+
+
+BEST_POLICY = "policy-best.msgpack"
+"""A validated generalist's best policy (``_Run.validate``), in the run directory."""
+
+
+def best_policy_path(run_dir: Path) -> Path:
+    return Path(run_dir) / BEST_POLICY
+
+
+def load_best_policy(run_dir: Path, learner, key: jax.Array | None = None):
+    """The policy ``_Run.validate`` kept; shapes come from the learner (nothing is trained)."""
+    path = best_policy_path(run_dir)
+    if not path.is_file():
+        raise RunDirError(f"{run_dir}: no validated policy ({path.name})")
+    key = jax.random.PRNGKey(0) if key is None else key
+    template = jax.eval_shape(lambda k: learner.policy(learner.init(k)), key)
+    return serialization.from_bytes(template, path.read_bytes())
 
 
 def snapshot_path(run_dir: Path, episodes: int) -> Path:
