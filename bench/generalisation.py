@@ -15,6 +15,9 @@
   trained on one layout, e.g. ϕ1 on ``paper``), that run is evaluated on the same layouts for its
   own task, and both are evaluated on the specialist's training layout.
 
+Each task's results are kept in OUT/cases/ as soon as they are measured: a rerun with the same run,
+policy, layouts and episodes (an interrupted one, or one adding ``--specialist``) reuses them.
+
 Writes OUT/generalisation.json, three figures (OUT/success_per_task.png, OUT/success_per_layout.png,
 OUT/trajectories.png) and a dated table appended to ``--results`` ('-' prints only).
 """
@@ -52,9 +55,41 @@ def generalist_run(args) -> Path:
     return out
 
 
-def evaluate_cases(run: Path, tasks: list[str], names: list[str], episodes: int, keep_paths: int) -> tuple[dict, str]:
+def _cache_file(cache: Path, task: str) -> Path:
+    from d2spo.zero_shot import task_tag
+
+    return cache / f"{task_tag(task)}.json"
+
+
+def cached(cache: Path, task: str, key: tuple) -> dict | None:
+    """A task's results stored by an earlier call with the same key (run, policy, layouts,
+    episodes, paths kept), or None: an interrupted benchmark resumes, and adding ``--specialist``
+    later does not evaluate the generalist again."""
+    path = _cache_file(cache, task)
+    if not path.is_file():
+        return None
+    try:
+        stored = json.loads(path.read_text())
+    except ValueError:  # a damaged file is evaluated again
+        return None
+    return stored["entry"] if stored.get("key") == json.loads(json.dumps(list(key))) else None
+
+
+def store(cache: Path, task: str, key: tuple, entry: dict) -> None:
+    from d2spo.runio import atomic_write_bytes
+
+    cache.mkdir(parents=True, exist_ok=True)
+    paths = entry.get("paths")
+    body = dict(entry, paths=[[np.asarray(a).tolist() for a in p] if p is not None else None for p in paths]) \
+        if paths is not None else entry
+    atomic_write_bytes(_cache_file(cache, task), json.dumps({"key": list(key), "entry": body}).encode())
+
+
+def evaluate_cases(run: Path, tasks: list[str], names: list[str], episodes: int, keep_paths: int,
+                   cache: Path) -> tuple[dict, str]:
     """({task: {"filter": {...}, "alone": {...}, "refused": {layout: reason}}}, which policy) of the
-    generalist (its validated best where it has one: ``evaluate.load_policy``)."""
+    generalist (its validated best where it has one: ``evaluate.load_policy``). Each task's results
+    go to ``cache`` as soon as they are measured (``cached``)."""
     import dataclasses
 
     from d2spo.evaluate import eval_env_config, load_policy
@@ -68,6 +103,11 @@ def evaluate_cases(run: Path, tasks: list[str], names: list[str], episodes: int,
     env_cfg = eval_env_config(cfg, None)
     out = {}
     for task in tasks:
+        done = cached(cache, task, (str(run), meta["policy"], names, episodes, keep_paths))
+        if done is not None:
+            out[task] = done
+            print(f"{task}: taken from {cache} (same run, policy, layouts and episodes)", flush=True)
+            continue
         checked, refused = [], {}
         for name in names:
             try:
@@ -82,13 +122,14 @@ def evaluate_cases(run: Path, tasks: list[str], names: list[str], episodes: int,
             if mode == "filter" and keep_paths:
                 entry["paths"] = [p for _, p in res]
         out[task] = entry
+        store(cache, task, (str(run), meta["policy"], names, episodes, keep_paths), entry)
         done = [r["completion_rate"] for r in entry["filter"]["per_layout"]]
         print(f"{task}: {len(checked)} layouts, {len(refused)} refused; completion with filter "
               f"{100 * np.mean(done) if done else float('nan'):.1f}%", flush=True)
     return out, meta["policy"]
 
 
-def specialist_cases(run: Path, names: list[str], episodes: int) -> dict:
+def specialist_cases(run: Path, names: list[str], episodes: int, own_episodes: int) -> dict:
     """The specialist on the same layouts (its own task) and on its own layout, filter on and off."""
     from d2spo.evaluate import evaluate_run, load_run_config
 
@@ -105,7 +146,7 @@ def specialist_cases(run: Path, names: list[str], episodes: int) -> dict:
                     unseen.append(evaluate_run(run, episodes, name, runtime_filter=on)["per_layout"][0])
                 except UserError as e:
                     unseen.append({"layout": name, "refused": str(e)})
-        out[mode] = {"unseen": unseen, "own": evaluate_run(run, episodes, None, runtime_filter=on)}
+        out[mode] = {"unseen": unseen, "own": evaluate_run(run, own_episodes, None, runtime_filter=on)}
     return out
 
 
@@ -191,7 +232,7 @@ def plots(cases: dict, names: list[str], out: Path) -> list[Path]:
             ax = fig.add_subplot(1, len(shown), k + 1)
             name = cases[t]["layouts"][i]
             draw_layout(layouts.load(name), ax, show_sensing=False)
-            draw_trajectories(ax, *cases[t]["paths"][i])
+            draw_trajectories(ax, *(np.asarray(a) for a in cases[t]["paths"][i]))
             ax.set_title(f"{t} on {name} (unseen)", fontsize=9)
         fig.tight_layout()
         paths.append(out / "trajectories.png")
@@ -207,6 +248,9 @@ def main() -> None:
     ap.add_argument("--first-seed", type=int, default=100_000)
     ap.add_argument("--tasks", nargs="+", default=DEFAULT_TASKS, help="task names or formulas over A1..A4")
     ap.add_argument("--episodes", type=int, default=50, help="deterministic episodes per (task, layout, filter)")
+    ap.add_argument("--own-layout", default="paper", help="without --specialist: the layout on which the "
+                    "generalist also runs its training task (with one: the specialist's layout)")
+    ap.add_argument("--own-episodes", type=int, default=100, help="episodes on that one layout")
     ap.add_argument("--trajectories", type=int, default=6, help="paths drawn per shown layout")
     ap.add_argument("--out", type=Path, default=Path("runs/generalisation"))
     ap.add_argument("--machine", default=f"{os.cpu_count()}-core {platform.machine()} CPU machine")
@@ -221,14 +265,15 @@ def main() -> None:
         raise SystemExit(f"--first-seed {args.first_seed}: the generalist trained on random:0 .. "
                          f"random:{trained.generalist_layouts - 1}; choose unseen seeds")
     names = [f"random:{args.first_seed + i}" for i in range(args.layouts)]
-    cases, which = evaluate_cases(run, args.tasks, names, args.episodes, args.trajectories)
-    spec = specialist_cases(args.specialist, names, args.episodes) if args.specialist else None
-    own = None
-    if spec is not None:  # the generalist on the specialist's own layout and task
-        from d2spo.evaluate import evaluate_run
+    cases, which = evaluate_cases(run, args.tasks, names, args.episodes, args.trajectories, args.out / "cases")
+    spec = specialist_cases(args.specialist, names, args.episodes, args.own_episodes) if args.specialist else None
+    # The generalist on the specialist's own layout and task; without a specialist, on --own-layout
+    # with its training task (the specialist's numbers are then not measured).
+    from d2spo.evaluate import evaluate_run
 
-        own = {mode: evaluate_run(run, args.episodes, spec["layout"], runtime_filter=on, task=spec["task"])
-               for mode, on in (("filter", True), ("alone", False))}
+    own_layout, own_task = (spec["layout"], spec["task"]) if spec is not None else (args.own_layout, trained.task)
+    own = {mode: evaluate_run(run, args.own_episodes, own_layout, runtime_filter=on, task=own_task)
+           for mode, on in (("filter", True), ("alone", False))}
     figures = plots(cases, names, args.out)
     for c in cases.values():
         c.pop("paths", None)
@@ -236,15 +281,18 @@ def main() -> None:
         {"run": str(run), "policy": which, "layouts": names, "episodes": args.episodes, "cases": cases, "specialist": spec,
          "generalist_on_specialist_layout": own}, indent=1))
     lines = table(cases, len(names))
+    who = f"Specialist `{args.specialist}` ({spec['task']} on `{spec['layout']}`) and the generalist" \
+        if spec is not None else f"The generalist on `{own_layout}` ({own_task}; no specialist given)"
+    lines += ["", f"{who}, {args.own_episodes} episodes on the one layout:",
+              "", "| policy | where | completion, filter (%) | safety, filter (%) | completion, alone (%) | "
+              "safety, alone (%) |", "|---|---|---:|---:|---:|---:|"]
+    rows = [("specialist", f"its own layout `{spec['layout']}`", spec["filter"]["own"], spec["alone"]["own"])] \
+        if spec is not None else []
+    rows.append(("generalist", f"`{own_layout}`, {own_task}", own["filter"], own["alone"]))
+    for who, where, f, a in rows:
+        lines.append(f"| {who} | {where} | {100 * f['completion_rate']:.1f} | {100 * f['safety_rate']:.1f} | "
+                     f"{100 * a['completion_rate']:.1f} | {100 * a['safety_rate']:.1f} |")
     if spec is not None:
-        lines += ["", f"Specialist `{args.specialist}` ({spec['task']} on `{spec['layout']}`) and the generalist:",
-                  "", "| policy | where | completion, filter (%) | safety, filter (%) | completion, alone (%) | "
-                  "safety, alone (%) |", "|---|---|---:|---:|---:|---:|"]
-        for who, where, f, a in (
-                ("specialist", f"its own layout `{spec['layout']}`", spec["filter"]["own"], spec["alone"]["own"]),
-                ("generalist", f"`{spec['layout']}` (zero-shot)", own["filter"], own["alone"])):
-            lines.append(f"| {who} | {where} | {100 * f['completion_rate']:.1f} | {100 * f['safety_rate']:.1f} | "
-                         f"{100 * a['completion_rate']:.1f} | {100 * a['safety_rate']:.1f} |")
         for mode in ("filter", "alone"):
             ok = [r for r in spec[mode]["unseen"] if "refused" not in r]
             lines.append(f"| specialist | the {len(ok)} unseen layouts, {spec['task']}, {mode} | "
