@@ -273,6 +273,11 @@ def test_the_generalists_episodes_default_and_validation_seeds():
     assert TrainConfig().episodes == PAPER_EPISODES
     assert TrainConfig(generalist=True).episodes == GENERALIST_EPISODES
     assert TrainConfig(generalist=True, episodes=123).episodes == 123
+    from d2spo.config import GENERALIST_TASKS
+
+    assert (TrainConfig().generalist_tasks, TrainConfig(generalist=True).generalist_tasks) == (0, GENERALIST_TASKS)
+    assert TrainConfig(generalist=True, generalist_tasks=0).generalist_tasks == 0
+    assert config_from_dict(config_to_dict(TrainConfig(generalist=True))).generalist_tasks == GENERALIST_TASKS
     with pytest.raises(ConfigError, match="validation set"):
         TrainConfig(generalist=True, generalist_layouts=VALIDATION_SEED + 1)
     with pytest.raises(ConfigError, match="validate_every"):
