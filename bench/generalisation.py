@@ -61,9 +61,20 @@ def _cache_file(cache: Path, task: str) -> Path:
     return cache / f"{task_tag(task)}.json"
 
 
+def policy_hash(policy) -> str:
+    """A digest of the policy's weights: a run trained again in the same directory is not taken for
+    the one whose results were stored."""
+    import hashlib
+
+    import jax
+    from flax import serialization
+
+    return hashlib.sha256(serialization.to_bytes(jax.device_get(policy))).hexdigest()[:16]
+
+
 def cached(cache: Path, task: str, key: tuple) -> dict | None:
-    """A task's results stored by an earlier call with the same key (run, policy, layouts,
-    episodes, paths kept), or None: an interrupted benchmark resumes, and adding ``--specialist``
+    """A task's results stored by an earlier call with the same key (run, policy and its weights,
+    layouts, episodes, paths kept), or None: an interrupted benchmark resumes, and adding ``--specialist``
     later does not evaluate the generalist again."""
     path = _cache_file(cache, task)
     if not path.is_file():
@@ -101,9 +112,10 @@ def evaluate_cases(run: Path, tasks: list[str], names: list[str], episodes: int,
     if not cfg.generalist:
         raise SystemExit(f"{run}: not a generalist run (d2spo train --generalist)")
     env_cfg = eval_env_config(cfg, None)
+    key = (str(run), meta["policy"], policy_hash(policy), names, episodes, keep_paths)
     out = {}
     for task in tasks:
-        done = cached(cache, task, (str(run), meta["policy"], names, episodes, keep_paths))
+        done = cached(cache, task, key)
         if done is not None:
             out[task] = done
             print(f"{task}: taken from {cache} (same run, policy, layouts and episodes)", flush=True)
@@ -122,7 +134,7 @@ def evaluate_cases(run: Path, tasks: list[str], names: list[str], episodes: int,
             if mode == "filter" and keep_paths:
                 entry["paths"] = [p for _, p in res]
         out[task] = entry
-        store(cache, task, (str(run), meta["policy"], names, episodes, keep_paths), entry)
+        store(cache, task, key, entry)
         done = [r["completion_rate"] for r in entry["filter"]["per_layout"]]
         print(f"{task}: {len(checked)} layouts, {len(refused)} refused; completion with filter "
               f"{100 * np.mean(done) if done else float('nan'):.1f}%", flush=True)
