@@ -313,7 +313,9 @@ def main() -> None:
     section = "\n".join([
         f"\n### Generalisation: one generalist on unseen layouts ({datetime.date.today().isoformat()})\n",
         f"`bench/generalisation.py --run {run} --layouts {args.layouts} --first-seed {args.first_seed} "
-        f"--episodes {args.episodes}{f' --specialist {args.specialist}' if args.specialist else ''}`: layouts "
+        f"--episodes {args.episodes}{f' --specialist {args.specialist}' if args.specialist else ''}"
+        f"{f' --own-layout {args.own_layout}' if args.own_layout != 'paper' and not args.specialist else ''}"
+        f"{f' --own-episodes {args.own_episodes}' if args.own_episodes != 100 else ''}`: layouts "
         f"random:{args.first_seed} .. random:{args.first_seed + args.layouts - 1}, {args.episodes} deterministic "
         f"episodes per (task, layout, filter); the generalist's {which} policy. Machine: {args.machine}. Figures: "
         + ", ".join(str(p) for p in figures) + ".\n", *lines, ""])
