@@ -90,10 +90,8 @@ def store(cache: Path, task: str, key: tuple, entry: dict) -> None:
     from d2spo.runio import atomic_write_bytes
 
     cache.mkdir(parents=True, exist_ok=True)
-    paths = entry.get("paths")
-    body = dict(entry, paths=[[np.asarray(a).tolist() for a in p] if p is not None else None for p in paths]) \
-        if paths is not None else entry
-    atomic_write_bytes(_cache_file(cache, task), json.dumps({"key": list(key), "entry": body}).encode())
+    body = json.dumps({"key": list(key), "entry": entry}, default=lambda a: np.asarray(a).tolist())  # the paths' arrays
+    atomic_write_bytes(_cache_file(cache, task), body.encode())
 
 
 def evaluate_cases(run: Path, tasks: list[str], names: list[str], episodes: int, keep_paths: int,

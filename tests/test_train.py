@@ -268,13 +268,11 @@ def test_validation_keeps_the_earliest_best_policy_and_a_resume_keeps_it(tmp_pat
 
 
 def test_the_generalists_episodes_default_and_validation_seeds():
-    from d2spo.config import GENERALIST_EPISODES, PAPER_EPISODES, VALIDATION_SEED
+    from d2spo.config import GENERALIST_EPISODES, GENERALIST_TASKS, PAPER_EPISODES, VALIDATION_SEED
 
     assert TrainConfig().episodes == PAPER_EPISODES
     assert TrainConfig(generalist=True).episodes == GENERALIST_EPISODES
     assert TrainConfig(generalist=True, episodes=123).episodes == 123
-    from d2spo.config import GENERALIST_TASKS
-
     assert (TrainConfig().generalist_tasks, TrainConfig(generalist=True).generalist_tasks) == (0, GENERALIST_TASKS)
     assert TrainConfig(generalist=True, generalist_tasks=0).generalist_tasks == 0
     assert config_from_dict(config_to_dict(TrainConfig(generalist=True))).generalist_tasks == GENERALIST_TASKS
