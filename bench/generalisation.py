@@ -1,7 +1,7 @@
 """Zero-shot generalisation of one generalist: unseen random layouts x tasks, with and without the runtime filter.
 
-    .venv/bin/python bench/generalisation.py [--run RUN] [--specialist RUN] [--layouts 20]
-        [--first-seed 100000] [--tasks phi1 phi2 relaxed tour3 ...] [--episodes 50]
+    .venv/bin/python bench/generalisation.py [--run RUN] [--specialist RUN] [--per-layout RUN ...]
+        [--layouts 20] [--first-seed 100000] [--tasks phi1 phi2 relaxed tour3 ...] [--episodes 50]
         [--out runs/generalisation] [--results bench/RESULTS.md]
 
 * The generalist is ``--run`` (a ``d2spo train --generalist`` directory); without it one is trained
@@ -14,6 +14,10 @@
 * Every task runs with the runtime filter on and off (π_Ω alone). With ``--specialist`` (a run
   trained on one layout, e.g. ϕ1 on ``paper``), that run is evaluated on the same layouts for its
   own task, and both are evaluated on the specialist's training layout.
+* ``--per-layout`` takes specialists trained on some of the unseen layouts themselves (e.g.
+  ``d2spo train --algo d2spo --task phi1 --layout random:100007``). Each is evaluated on its own
+  (layout, task) case, beside the generalist's result on that same case: what training a policy for
+  the case would have bought. OUT/per_layout_specialists.png draws them.
 
 Each task's results are kept in OUT/cases/ as soon as they are measured: a rerun with the same run,
 policy, layouts and episodes (an interrupted one, or one adding ``--specialist``) reuses them.
@@ -160,6 +164,69 @@ def specialist_cases(run: Path, names: list[str], episodes: int, own_episodes: i
     return out
 
 
+def per_layout_cases(runs: list[Path], names: list[str], episodes: int) -> list[dict]:
+    """Each specialist trained on one of the benchmark's layouts, on its own (layout, task) case,
+    filter on and off, ``episodes`` deterministic episodes (as the generalist's cases)."""
+    from d2spo.evaluate import evaluate_run, load_run_config
+
+    out = []
+    for run in runs:
+        cfg = load_run_config(run)
+        if cfg.generalist or cfg.layout not in names:
+            raise SystemExit(f"--per-layout {run}: trained on {'many layouts' if cfg.generalist else cfg.layout!r}, "
+                             f"not on one of the benchmark's layouts {names[0]} .. {names[-1]}")
+        res = {mode: evaluate_run(run, episodes, None, runtime_filter=on) for mode, on in (("filter", True), ("alone", False))}
+        print(f"per-layout specialist {run} ({cfg.task} on {cfg.layout}): completion with filter "
+              f"{100 * res['filter']['completion_rate']:.1f}%", flush=True)
+        out.append({"run": str(run), "task": cfg.task, "layout": cfg.layout, **res})
+    return out
+
+
+def generalist_on(cases: dict, task: str, layout: str, mode: str) -> dict | None:
+    """The generalist's result on one (task, layout) case, or None (task not run, or layout refused)."""
+    entry = cases.get(task)
+    if entry is None or layout not in entry["layouts"]:
+        return None
+    return entry[mode]["per_layout"][entry["layouts"].index(layout)]
+
+
+def per_layout_table(per: list[dict], cases: dict) -> list[str]:
+    lines = ["| case (task on layout) | specialist: completion / safety, filter (%) | generalist: completion / "
+             "safety, filter (%) | specialist: completion / safety, alone (%) | generalist: completion / safety, "
+             "alone (%) | specialist's run |", "|---|---:|---:|---:|---:|---|"]
+    pair = lambda r: "-" if r is None else f"{100 * r['completion_rate']:.1f} / {100 * r['safety_rate']:.1f}"  # noqa: E731
+    for p in per:
+        g = {mode: generalist_on(cases, p["task"], p["layout"], mode) for mode in ("filter", "alone")}
+        lines.append(f"| {p['task']} on `{p['layout']}` | {pair(p['filter'])} | {pair(g['filter'])} | "
+                     f"{pair(p['alone'])} | {pair(g['alone'])} | `{p['run']}` |")
+    return lines
+
+
+def per_layout_plot(per: list[dict], cases: dict, out: Path) -> Path:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(max(5.0, 1.4 * len(per) + 2), 4.0))
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    x = np.arange(len(per))
+    for k, (who, label) in enumerate((("specialist", "per-layout specialist"), ("generalist", "generalist (zero-shot)"))):
+        rs = [p["filter"] if who == "specialist" else generalist_on(cases, p["task"], p["layout"], "filter") for p in per]
+        ax.bar(x + (k - 0.5) * 0.4, [np.nan if r is None else 100 * r["completion_rate"] for r in rs], 0.4,
+               label=f"completion, {label}")
+        ax.plot(x + (k - 0.5) * 0.4, [np.nan if r is None else 100 * r["safety_rate"] for r in rs], "k^" if k == 0 else "kv",
+                label=f"safety, {label}")
+    ax.set_xticks(x, [f"{p['task']}\n{p['layout']}" for p in per], fontsize=8)
+    ax.set_ylabel("% of episodes (runtime filter on)")
+    ax.set_ylim(0, 105)
+    ax.set_title("Each case's own specialist against the generalist")
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.2), ncol=2)
+    fig.tight_layout()
+    path = out / "per_layout_specialists.png"
+    fig.savefig(path, dpi=100)
+    return path
+
+
 def mean(xs) -> float:
     return float(np.mean(xs)) if len(xs) else float("nan")
 
@@ -254,6 +321,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--run", type=Path, help="a generalist run directory (default: train one into OUT/generalist)")
     ap.add_argument("--specialist", type=Path, help="a run trained on one layout, evaluated on the same cases")
+    ap.add_argument("--per-layout", type=Path, nargs="+", default=[], metavar="RUN",
+                    help="specialists each trained on one of the unseen layouts, evaluated on their own case")
     ap.add_argument("--layouts", type=int, default=20)
     ap.add_argument("--first-seed", type=int, default=100_000)
     ap.add_argument("--tasks", nargs="+", default=DEFAULT_TASKS, help="task names or formulas over A1..A4")
@@ -277,6 +346,7 @@ def main() -> None:
     names = [f"random:{args.first_seed + i}" for i in range(args.layouts)]
     cases, which = evaluate_cases(run, args.tasks, names, args.episodes, args.trajectories, args.out / "cases")
     spec = specialist_cases(args.specialist, names, args.episodes, args.own_episodes) if args.specialist else None
+    per = per_layout_cases(args.per_layout, names, args.episodes)
     # The generalist on the specialist's own layout and task; without a specialist, on --own-layout
     # with its training task (the specialist's numbers are then not measured).
     from d2spo.evaluate import evaluate_run
@@ -284,12 +354,12 @@ def main() -> None:
     own_layout, own_task = (spec["layout"], spec["task"]) if spec is not None else (args.own_layout, trained.task)
     own = {mode: evaluate_run(run, args.own_episodes, own_layout, runtime_filter=on, task=own_task)
            for mode, on in (("filter", True), ("alone", False))}
-    figures = plots(cases, names, args.out)
+    figures = plots(cases, names, args.out) + ([per_layout_plot(per, cases, args.out)] if per else [])
     for c in cases.values():
         c.pop("paths", None)
     (args.out / "generalisation.json").write_text(json.dumps(
         {"run": str(run), "policy": which, "layouts": names, "episodes": args.episodes, "cases": cases, "specialist": spec,
-         "generalist_on_specialist_layout": own}, indent=1))
+         "generalist_on_specialist_layout": own, "per_layout_specialists": per}, indent=1))
     lines = table(cases, len(names))
     who = f"Specialist `{args.specialist}` ({spec['task']} on `{spec['layout']}`) and the generalist" \
         if spec is not None else f"The generalist on `{own_layout}` ({own_task}; no specialist given)"
@@ -308,10 +378,14 @@ def main() -> None:
             lines.append(f"| specialist | the {len(ok)} unseen layouts, {spec['task']}, {mode} | "
                          f"{100 * mean([r['completion_rate'] for r in ok]):.1f} | "
                          f"{100 * mean([r['safety_rate'] for r in ok]):.1f} | | |")
+    if per:
+        lines += ["", f"Per-layout specialists on their own case, {args.episodes} episodes each, beside the "
+                  "generalist's episodes on the same case:", "", *per_layout_table(per, cases)]
     section = "\n".join([
         f"\n### Generalisation: one generalist on unseen layouts ({datetime.date.today().isoformat()})\n",
         f"`bench/generalisation.py --run {run} --layouts {args.layouts} --first-seed {args.first_seed} "
         f"--episodes {args.episodes}{f' --specialist {args.specialist}' if args.specialist else ''}"
+        f"{' --per-layout ' + ' '.join(map(str, args.per_layout)) if args.per_layout else ''}"
         f"{f' --own-layout {args.own_layout}' if args.own_layout != 'paper' and not args.specialist else ''}"
         f"{f' --own-episodes {args.own_episodes}' if args.own_episodes != 100 else ''}`: layouts "
         f"random:{args.first_seed} .. random:{args.first_seed + args.layouts - 1}, {args.episodes} deterministic "

@@ -22,7 +22,8 @@ from d2spo.train import build, train
 
 def relaxed(**kw) -> TrainConfig:
     cfg = TrainConfig(algo="ppo-lag", task="relaxed", **kw)
-    return dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, layout="relaxed"))
+    # 200-step episodes (the default limit is 300): some end in every 250-step rollout
+    return dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, layout="relaxed", max_steps=200))
 
 
 def test_clipped_surrogate_on_hand_values():

@@ -104,7 +104,7 @@ def test_config_errors():
 
 def test_rcrl_trains_on_relaxed_without_nans_and_improves(tmp_path):
     cfg = TrainConfig(algo="rcrl", task="relaxed", episodes=300, num_envs=16, chunk_steps=50, eval_episodes=32,
-                      window=100, env=EnvConfig(layout="relaxed"), rcrl=RCRLConfig(sac=TINY)).check()
+                      window=100, env=EnvConfig(layout="relaxed", max_steps=200), rcrl=RCRLConfig(sac=TINY)).check()
     assert_trains_without_nans_and_improves(cfg, tmp_path / "run")
 
 

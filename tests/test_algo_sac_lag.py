@@ -81,5 +81,5 @@ def test_config_errors():
 
 def test_sac_lag_trains_on_relaxed_without_nans_and_improves(tmp_path):
     cfg = TrainConfig(algo="sac-lag", task="relaxed", episodes=300, num_envs=16, chunk_steps=50, eval_episodes=32,
-                      window=100, env=EnvConfig(layout="relaxed"), sac_lag=SACLagConfig(sac=TINY)).check()
+                      window=100, env=EnvConfig(layout="relaxed", max_steps=200), sac_lag=SACLagConfig(sac=TINY)).check()
     assert_trains_without_nans_and_improves(cfg, tmp_path / "run")

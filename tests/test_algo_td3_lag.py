@@ -91,5 +91,5 @@ def test_config_errors():
 
 def test_td3_lag_trains_on_relaxed_without_nans_and_improves(tmp_path):
     cfg = TrainConfig(algo="td3-lag", task="relaxed", episodes=300, num_envs=16, chunk_steps=50, eval_episodes=32,
-                      window=100, env=EnvConfig(layout="relaxed"), td3_lag=TD3LagConfig(td3=TINY)).check()
+                      window=100, env=EnvConfig(layout="relaxed", max_steps=200), td3_lag=TD3LagConfig(td3=TINY)).check()
     assert_trains_without_nans_and_improves(cfg, tmp_path / "run")

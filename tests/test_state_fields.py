@@ -208,20 +208,30 @@ def test_check_time_warns_when_a_task_cannot_fit_in_an_episode_and_when_tight():
                                 "'phi2'")
 
 
-def test_default_step_limit_gives_a_long_task_room_and_leaves_short_ones_at_200():
+def test_default_step_limit_gives_a_long_task_room_and_a_short_one_the_base():
     phi1, phi2 = (translate(task_formula(t)) for t in ("phi1", "phi2"))
     need = {t: state_fields.route_length(a, PAPER, "event", 0.15) / 0.1 for t, a in (("phi1", phi1), ("phi2", phi2))}
-    assert need["phi1"] <= state_fields.TIGHT_FRACTION * 200 < need["phi2"]  # phi1 fits, phi2 is tight
-    assert state_fields.default_max_steps(phi1, PAPER, "event", 0.15, 0.1, 1.0) == 200
-    auto = state_fields.default_max_steps(phi2, PAPER, "event", 0.15, 0.1, 1.0)
+    # the former base, 200 steps (old config.json files): phi1 fits, phi2 is tight and gets twice its route
+    assert need["phi1"] <= state_fields.TIGHT_FRACTION * 200 < need["phi2"]
+    assert state_fields.default_max_steps(phi1, PAPER, "event", 0.15, 0.1, 1.0, 200) == 200
+    auto = state_fields.default_max_steps(phi2, PAPER, "event", 0.15, 0.1, 1.0, 200)
     assert auto % 50 == 0 and state_fields.ROOM * need["phi2"] <= auto < state_fields.ROOM * need["phi2"] + 50
+    # today's base, 300: both fit; at half the speed phi2 needs twice the steps and gets twice its route
+    assert EnvConfig().base_max_steps == 300
+    assert need["phi2"] <= state_fields.TIGHT_FRACTION * 300 < 2 * need["phi2"]
+    for aut in (phi1, phi2):
+        assert state_fields.default_max_steps(aut, PAPER, "event", 0.15, 0.1, 1.0, 300) == 300
+    slow = state_fields.default_max_steps(phi2, PAPER, "event", 0.15, 0.1, 0.5, 300)
+    assert slow % 50 == 0 and 2 * state_fields.ROOM * need["phi2"] <= slow < 2 * state_fields.ROOM * need["phi2"] + 50
     with warnings.catch_warnings():  # the automatic limit is never tight
         warnings.simplefilter("error")
         state_fields.check_time(phi2, PAPER, "event", 0.15, auto, 0.1, 1.0, "'phi2'")
+        state_fields.check_time(phi2, PAPER, "event", 0.15, slow, 0.1, 0.5, "'phi2'")
     # the env takes it when max_steps is unset, and an explicit limit wins
-    assert int(make_env(EnvConfig(layout="paper", preset="ideal"), "phi2")[1].max_steps) == auto
+    assert int(make_env(EnvConfig(layout="paper", preset="ideal", base_max_steps=200), "phi2")[1].max_steps) == auto
     env, explicit = make_env(EnvConfig(layout="paper", preset="ideal", max_steps=200), "phi2")
     assert int(explicit.max_steps) == 200
     with pytest.warns(TaskWarning, match="may run out of time"):  # what training checks: tight
         check_episode_time(env, explicit, "'phi2'")
-    assert int(make_env(EnvConfig(layout="paper", preset="ideal"), "phi1")[1].max_steps) == 200
+    assert int(make_env(EnvConfig(layout="paper", preset="ideal", base_max_steps=200), "phi1")[1].max_steps) == 200
+    assert int(make_env(EnvConfig(layout="paper", preset="ideal"), "phi1")[1].max_steps) == 300

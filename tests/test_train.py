@@ -148,6 +148,9 @@ def test_old_config_keeps_the_default_it_was_trained_with():
     cfg = config_from_dict(old)
     assert cfg.env.reward.shaping_clearance is None and TrainConfig().env.reward.shaping_clearance == 0.3
     assert cfg.cbf.filter_alpha_coef == TrainConfig().cbf.filter_alpha_coef
+    # the episode limit of an unset max_steps: 200 steps before base_max_steps existed
+    del old["env"]["base_max_steps"]
+    assert config_from_dict(old).env.base_max_steps == 200 and TrainConfig().env.base_max_steps == 300
 
 
 def test_effective_differences_ignore_what_the_learner_does_not_read():

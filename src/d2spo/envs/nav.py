@@ -397,9 +397,10 @@ def make_env(cfg: EnvConfig, task: Any = "phi1") -> tuple[Env, EnvParams]:
     speed = cfg.v_max * cfg.v_gain
     max_steps = cfg.max_steps
     if max_steps is None and not isinstance(automaton, Automaton):  # an object with arrays() only: no routes
-        max_steps = state_fields.DEFAULT_MAX_STEPS
+        max_steps = cfg.base_max_steps
     if max_steps is None:
-        max_steps = state_fields.default_max_steps(automaton, layout, cfg.label_mode, cfg.robot_radius, cfg.dt, speed)
+        max_steps = state_fields.default_max_steps(automaton, layout, cfg.label_mode, cfg.robot_radius, cfg.dt, speed,
+                                                   cfg.base_max_steps)
     if cfg.reward.shaping_metric == PER_STATE:
         name = task if isinstance(task, str) else "the task"
         state_fields.check_task(automaton, layout, cfg.label_mode, cfg.robot_radius, repr(name))

@@ -346,9 +346,6 @@ at full speed. A trained policy drives more than the shortest route: on `paper` 
 episodes take a median of 123 steps for a 10.1 m route (1.22x)."""
 
 
-DEFAULT_MAX_STEPS = 200
-"""The episode's step limit when the task's shortest route fits in ``TIGHT_FRACTION`` of it (phi1,
-relaxed and most tasks on ``paper``; ``default_max_steps``)."""
 ROOM = 2.0
 """``default_max_steps`` gives a longer task this many times its shortest route at full speed."""
 
@@ -359,14 +356,14 @@ def _route(aut: Automaton, layout: Layout, label_mode: str, robot_radius: float)
 
 
 def default_max_steps(aut: Automaton, layout: Layout, label_mode: str, robot_radius: float, dt: float,
-                      v_max: float) -> int:
-    """The step limit of ``EnvConfig.max_steps=None``: ``DEFAULT_MAX_STEPS``, or, when the task's
-    shortest route at ``v_max`` needs more than ``TIGHT_FRACTION`` of those steps, ``ROOM`` times
-    the route's steps rounded up to a multiple of 50 (phi2 on ``paper``: 140 steps -> 300).
-    ``DEFAULT_MAX_STEPS`` too when no route exists (``check_time`` then says so)."""
+                      v_max: float, base: int) -> int:
+    """The step limit of ``EnvConfig.max_steps=None``: ``base`` (``EnvConfig.base_max_steps``), or,
+    when the task's shortest route at ``v_max`` needs more than ``TIGHT_FRACTION`` of those steps,
+    ``ROOM`` times the route's steps rounded up to a multiple of 50 (then over ``base``). ``base``
+    too when no route exists (``check_time`` then says so)."""
     need = _route(aut, layout, label_mode, robot_radius) / (v_max * dt)
-    if not math.isfinite(need) or need <= TIGHT_FRACTION * DEFAULT_MAX_STEPS:
-        return DEFAULT_MAX_STEPS
+    if not math.isfinite(need) or need <= TIGHT_FRACTION * base:
+        return int(base)
     return int(50 * math.ceil(ROOM * need / 50))
 
 
