@@ -17,7 +17,10 @@
 * ``--per-layout`` takes specialists trained on some of the unseen layouts themselves (e.g.
   ``d2spo train --algo d2spo --task phi1 --layout random:100007``). Each is evaluated on its own
   (layout, task) case, beside the generalist's result on that same case: what training a policy for
-  the case would have bought. OUT/per_layout_specialists.png draws them.
+  the case would have bought. OUT/per_layout_specialists.png draws them. ``--train-per-layout
+  TASK@LAYOUT ...`` trains such specialists first (defaults, into OUT/specialists; reused when
+  finished, resumed when interrupted): about 10 min for a 5 m layout and 35 min for a 10 m one on
+  a 2-core CPU, so all 20 x 13 cases (about 70 CPU-hours) are left to the user's choice.
 
 Each task's results are kept in OUT/cases/ as soon as they are measured: a rerun with the same run,
 policy, layouts and episodes (an interrupted one, or one adding ``--specialist``) reuses them.
@@ -162,6 +165,28 @@ def specialist_cases(run: Path, names: list[str], episodes: int, own_episodes: i
                     unseen.append({"layout": name, "refused": str(e)})
         out[mode] = {"unseen": unseen, "own": evaluate_run(run, own_episodes, None, runtime_filter=on)}
     return out
+
+
+def train_per_layout(cases: list[str], names: list[str], out: Path) -> list[Path]:
+    """Train (or resume, or reuse) a D²SPO specialist with the defaults for each TASK@LAYOUT case,
+    into OUT/specialists/TASK-LAYOUT; the layout must be one of the benchmark's."""
+    from d2spo.config import TrainConfig
+    from d2spo.envs import EnvConfig
+    from d2spo.progress import train_with_progress
+
+    pairs = [case.partition("@")[::2] for case in cases]
+    for case, (task, layout) in zip(cases, pairs, strict=True):
+        if not task or layout not in names:
+            raise SystemExit(f"--train-per-layout {case!r}: expected TASK@LAYOUT with LAYOUT one of the benchmark's "
+                             f"layouts {names[0]} .. {names[-1]}")
+    runs = []
+    for task, layout in pairs:
+        d = out / "specialists" / f"{task}-{layout.replace(':', '')}"
+        if not (d / "summary.json").is_file():
+            resume = d if (d / "checkpoint.json").is_file() else None
+            train_with_progress(TrainConfig(algo="d2spo", task=task, env=EnvConfig(layout=layout)), d, resume, show=True)
+        runs.append(d)
+    return runs
 
 
 def per_layout_cases(runs: list[Path], names: list[str], episodes: int) -> list[dict]:
@@ -323,6 +348,8 @@ def main() -> None:
     ap.add_argument("--specialist", type=Path, help="a run trained on one layout, evaluated on the same cases")
     ap.add_argument("--per-layout", type=Path, nargs="+", default=[], metavar="RUN",
                     help="specialists each trained on one of the unseen layouts, evaluated on their own case")
+    ap.add_argument("--train-per-layout", nargs="+", default=[], metavar="TASK@LAYOUT",
+                    help="train a specialist with the defaults for each case (into OUT/specialists), then as --per-layout")
     ap.add_argument("--layouts", type=int, default=20)
     ap.add_argument("--first-seed", type=int, default=100_000)
     ap.add_argument("--tasks", nargs="+", default=DEFAULT_TASKS, help="task names or formulas over A1..A4")
@@ -344,9 +371,10 @@ def main() -> None:
         raise SystemExit(f"--first-seed {args.first_seed}: the generalist trained on random:0 .. "
                          f"random:{trained.generalist_layouts - 1}; choose unseen seeds")
     names = [f"random:{args.first_seed + i}" for i in range(args.layouts)]
+    trained_here = train_per_layout(args.train_per_layout, names, args.out)
     cases, which = evaluate_cases(run, args.tasks, names, args.episodes, args.trajectories, args.out / "cases")
     spec = specialist_cases(args.specialist, names, args.episodes, args.own_episodes) if args.specialist else None
-    per = per_layout_cases(args.per_layout, names, args.episodes)
+    per = per_layout_cases([*args.per_layout, *trained_here], names, args.episodes)
     # The generalist on the specialist's own layout and task; without a specialist, on --own-layout
     # with its training task (the specialist's numbers are then not measured).
     from d2spo.evaluate import evaluate_run
@@ -386,6 +414,7 @@ def main() -> None:
         f"`bench/generalisation.py --run {run} --layouts {args.layouts} --first-seed {args.first_seed} "
         f"--episodes {args.episodes}{f' --specialist {args.specialist}' if args.specialist else ''}"
         f"{' --per-layout ' + ' '.join(map(str, args.per_layout)) if args.per_layout else ''}"
+        f"{' --train-per-layout ' + ' '.join(args.train_per_layout) if args.train_per_layout else ''}"
         f"{f' --own-layout {args.own_layout}' if args.own_layout != 'paper' and not args.specialist else ''}"
         f"{f' --own-episodes {args.own_episodes}' if args.own_episodes != 100 else ''}`: layouts "
         f"random:{args.first_seed} .. random:{args.first_seed + args.layouts - 1}, {args.episodes} deterministic "
