@@ -115,7 +115,7 @@ def evaluate_cases(run: Path, tasks: list[str], names: list[str], episodes: int,
     print(f"{run}: its {meta['policy']} policy (checkpoint after {meta.get('episodes')} training episodes)",
           flush=True)
     if not cfg.generalist:
-        raise SystemExit(f"{run}: not a generalist run (d2spo train --generalist)")
+        raise UserError(f"{run}: not a generalist run (d2spo train --generalist)")
     env_cfg = eval_env_config(cfg, None)
     key = (str(run), meta["policy"], policy_hash(policy), names, episodes, keep_paths)
     out = {}
@@ -171,14 +171,15 @@ def train_per_layout(cases: list[str], names: list[str], out: Path) -> list[Path
     """Train (or resume, or reuse) a D²SPO specialist with the defaults for each TASK@LAYOUT case,
     into OUT/specialists/TASK-LAYOUT; the layout must be one of the benchmark's."""
     from d2spo.config import TrainConfig
-    from d2spo.envs import EnvConfig
+    from d2spo.envs import EnvConfig, make_env
     from d2spo.progress import train_with_progress
 
     pairs = [case.partition("@")[::2] for case in cases]
     for case, (task, layout) in zip(cases, pairs, strict=True):
         if not task or layout not in names:
-            raise SystemExit(f"--train-per-layout {case!r}: expected TASK@LAYOUT with LAYOUT one of the benchmark's "
-                             f"layouts {names[0]} .. {names[-1]}")
+            raise UserError(f"--train-per-layout {case!r}: expected TASK@LAYOUT with LAYOUT one of the benchmark's "
+                            f"layouts {names[0]} .. {names[-1]}")
+        make_env(EnvConfig(layout=layout), task)  # a task the layout refuses stops here, before any training
     runs = []
     for task, layout in pairs:
         d = out / "specialists" / f"{task}-{layout.replace(':', '')}"
@@ -198,7 +199,7 @@ def per_layout_cases(runs: list[Path], names: list[str], episodes: int) -> list[
     for run in runs:
         cfg = load_run_config(run)
         if cfg.generalist or cfg.layout not in names:
-            raise SystemExit(f"--per-layout {run}: trained on {'many layouts' if cfg.generalist else cfg.layout!r}, "
+            raise UserError(f"--per-layout {run}: trained on {'many layouts' if cfg.generalist else cfg.layout!r}, "
                              f"not on one of the benchmark's layouts {names[0]} .. {names[-1]}")
         res = {mode: evaluate_run(run, episodes, None, runtime_filter=on) for mode, on in (("filter", True), ("alone", False))}
         print(f"per-layout specialist {run} ({cfg.task} on {cfg.layout}): completion with filter "
@@ -368,7 +369,7 @@ def main() -> None:
 
     trained = load_run_config(run)
     if args.first_seed < trained.generalist_layouts:
-        raise SystemExit(f"--first-seed {args.first_seed}: the generalist trained on random:0 .. "
+        raise UserError(f"--first-seed {args.first_seed}: the generalist trained on random:0 .. "
                          f"random:{trained.generalist_layouts - 1}; choose unseen seeds")
     names = [f"random:{args.first_seed + i}" for i in range(args.layouts)]
     trained_here = train_per_layout(args.train_per_layout, names, args.out)
@@ -427,4 +428,10 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except UserError as e:  # a wrong run, layout range or case: one line, exit 2 (as the CLI)
+        import sys
+
+        print(f"generalisation.py: {e}", file=sys.stderr)
+        raise SystemExit(2) from None
