@@ -128,7 +128,7 @@ def evaluate_cases(run: Path, tasks: list[str], names: list[str], episodes: int,
         checked, refused = [], {}
         for name in names:
             try:
-                checked.append(generalist_layout(env_cfg, name, task))
+                checked.append(generalist_layout(env_cfg, name, task, cfg.cbf.d))
             except UserError as e:
                 refused[name] = str(e)
         entry = {"refused": refused, "layouts": [lay.name for lay, _ in checked]}

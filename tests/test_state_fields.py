@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from d2spo.envs import EnvConfig, geodesic, layouts, make_env, state_fields
-from d2spo.envs.nav import check_episode_time
+from d2spo.envs.nav import check_barrier_margin, check_episode_time
 from d2spo.errors import ConfigError, TaskWarning
 from d2spo.ltl import task_formula, translate
 from d2spo.ltl.reward import RewardConfig
@@ -235,3 +235,17 @@ def test_default_step_limit_gives_a_long_task_room_and_a_short_one_the_base():
         check_episode_time(env, explicit, "'phi2'")
     assert int(make_env(EnvConfig(layout="paper", preset="ideal", base_max_steps=200), "phi1")[1].max_steps) == 200
     assert int(make_env(EnvConfig(layout="paper", preset="ideal"), "phi1")[1].max_steps) == 300
+
+
+def test_barrier_margin_warns_when_every_route_passes_closer_than_d():
+    """random:100012: phi2's only routes squeeze between A4 (forbidden on the way to A1) and a box, at
+    a clearance of about 0.27 m; the barrier's d = 0.3 m is more, 0.25 m less. paper's 0.75 m
+    passages leave every route 0.3 m."""
+    env, _ = make_env(EnvConfig(layout="random:100012"), "phi2")
+    with pytest.warns(TaskWarning, match=r"without entering A2, A3, A4 .* keeping 0.3 m .*--cbf.d"):
+        check_barrier_margin(env, 0.3, "'phi2'")
+    paper, _ = make_env(EnvConfig(layout="paper"), "phi2")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_barrier_margin(env, 0.25, "'phi2'")
+        check_barrier_margin(paper, 0.3, "'phi2'")

@@ -69,7 +69,8 @@ def test_outputs_and_summary(tmp_path, capsys):
     # `d2spo eval` on it: prints and writes the rates, with the distance driven
     from d2spo.cli import main
 
-    assert main(["eval", str(run), "--episodes", "4"]) == 0
+    assert main(["eval", str(run), "--episodes", "4", "--plot", str(tmp_path / "ev.png")]) == 0
+    assert (tmp_path / "ev.png").read_bytes()[:4] == b"\x89PNG"
     ev = json.loads((run / "eval-relaxed-default.json").read_text())
     assert ev["episodes"] == 4 and [p["layout"] for p in ev["per_layout"]] == ["relaxed"]
     assert ev["mean_distance"] > 0.0 and ev["runtime_filter"] is None  # tlgrl has no filter
@@ -83,9 +84,11 @@ def test_outputs_and_summary(tmp_path, capsys):
     (tmp_path / "bad.json").write_text(json.dumps({**robot, "v_gain": -1}))
     assert main(["eval", str(run), "--dynamics", str(tmp_path / "bad.json")]) == 2
     assert main(["eval", str(run), "--noise-xy", "-1"]) == 2
+    assert main(["eval", str(run), "--plot", str(tmp_path / "no" / "ev.png")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [f"d2spo: error: dynamics.v_gain: must be positive, got -1 (in {tmp_path / 'bad.json'})",
-                   "d2spo: error: noise_xy: must be non-negative, got -1.0"]
+                   "d2spo: error: noise_xy: must be non-negative, got -1.0",
+                   f"d2spo: error: plot: {tmp_path / 'no' / 'ev.png'}: the folder {tmp_path / 'no'} does not exist"]
 
 
 def test_same_seed_same_run_and_resume_is_exact(tmp_path):

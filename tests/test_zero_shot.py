@@ -59,11 +59,15 @@ def _layout_file(tmp_path, **changes) -> str:
     return str(path)
 
 
-def test_eval_runs_a_generalist_on_another_task_and_unseen_layouts_with_one_limit(gen_run, capsys):
+def test_eval_runs_a_generalist_on_another_task_and_unseen_layouts_with_one_limit(gen_run, capsys, tmp_path):
     assert _main(["eval", str(gen_run), "--task", "phi2", "--layout", "random:11", "--layout-seeds", "2",
-                  "--episodes", "4", "--runtime-filter", "False"]) == 0
-    assert "task 'phi2' (zero-shot)" in " ".join(capsys.readouterr().out.split())
+                  "--episodes", "4", "--runtime-filter", "False", "--plot", str(tmp_path / "ev.png"),
+                  "--plot-episodes", "2"]) == 0
+    out = " ".join(capsys.readouterr().out.split())
+    assert "task 'phi2' (zero-shot)" in out and f"wrote {tmp_path / 'ev.png'}" in out
+    assert (tmp_path / "ev.png").read_bytes()[:4] == b"\x89PNG"
     res = json.loads((gen_run / "eval-random11x2-ideal-phi2.json").read_text())
+    assert "paths" not in res  # the trajectories go to the picture only
     assert res["task"] == "phi2" and res["layouts"] == ["random:11", "random:12"] and not res["runtime_filter"]
     assert [r["episodes"] for r in res["per_layout"]] == [4, 4]
     needs = [generalist_layout(EnvConfig(preset="ideal"), n, "phi2")[1] for n in res["layouts"]]

@@ -227,16 +227,37 @@ class EvalCmd:
     policy: str = "best"
     """best: a generalist's policy kept on its validation layouts (`--validation-layouts`), where the run
     has one, else the last; last: the newest checkpoint's."""
+    plot: Path | None = None
+    """Also draw the trajectories of the first --plot-episodes episodes on each layout (the first 6
+    layouts of --layout-seeds), coloured by outcome, into this PNG file."""
+    plot_episodes: int = 8
+    """With --plot: episodes drawn per layout."""
     dynamics_fields: Annotated[DynamicsFlags, tyro.conf.arg(name="")] = DynamicsFlags()
 
     def run(self) -> int:
         from d2spo.console import print_evaluation
         from d2spo.evaluate import evaluate_run, write_evaluation
 
+        keep = 0
+        if self.plot is not None:  # checked before the rollouts, which may take minutes
+            from d2spo.fields import check_fields
+
+            check_fields(self, count=("plot_episodes",))
+            if not self.plot.parent.is_dir():
+                raise ConfigError("plot", f"{self.plot}: the folder {self.plot.parent} does not exist")
+            keep = self.plot_episodes
         res = evaluate_run(self.run_dir, self.episodes, self.layout, self.dynamics, self.seed, self.layout_seeds,
                            self.runtime_filter, self.filter_iters, self.filter_alpha, self.dynamics_fields.given(),
-                           self.task, self.policy)
+                           self.task, self.policy, keep_paths=keep)
+        paths = res.pop("paths", None)
         print_evaluation(res, write_evaluation(self.run_dir, res), filter_asked=self.runtime_filter)
+        if paths is not None:
+            from d2spo.plots import evaluation_figure
+
+            filt = "" if res["runtime_filter"] is None else f", runtime filter {'on' if res['runtime_filter'] else 'off'}"
+            evaluation_figure(self.plot, paths, res["per_layout"],
+                              f"{self.run_dir.name}: {res['task']} / {res['dynamics']}{filt}")
+            print(f"wrote {self.plot}")
         return 0
 
 

@@ -113,14 +113,17 @@ def filter_choice(cfg: TrainConfig, layout: str | None, preset: str | None, aske
 def evaluate_run(run_dir: Path, episodes: int = 100, layout: str | None = None, preset: str | None = None,
                  seed: int = 0, layout_seeds: int = 1, runtime_filter: bool | None = None,
                  filter_iters: int | None = None, filter_alpha: float | None = None,
-                 dynamics: dict[str, float] | None = None, task: str | None = None, policy: str = "best") -> dict:
+                 dynamics: dict[str, float] | None = None, task: str | None = None, policy: str = "best",
+                 keep_paths: int = 0) -> dict:
     """Safety and completion of the run's final policy, deterministic, on its own layout and dynamics
     or others. ``runtime_filter=None``: as trained on the training layout and dynamics, and on for a
     D²SPO policy evaluated on another layout or dynamics (π_Ω alone is far less safe on layouts it
     never saw: docs/cbf.md); True/False force it. ``preset``: a dynamics preset or JSON file;
     ``dynamics``: per-field values on top of it (``eval_env_config``). ``task``: another task (a
     name or a formula) for a generalist run, zero-shot (``d2spo.zero_shot``); a generalist needs
-    ``layout``. ``policy``: "best" or "last" (``load_policy``)."""
+    ``layout``. ``policy``: "best" or "last" (``load_policy``). ``keep_paths`` > 0 adds ``"paths"``:
+    per layout, (Layout, poses [k, T + 1, 3], collided [k], completed [k]) of its first ``keep_paths``
+    episodes, for ``plots.evaluation_figure`` (arrays: drop the key before writing JSON)."""
     from d2spo.algos import has_runtime_filter
     from d2spo.envs.dynamics import DYNAMICS_FIELDS
 
@@ -158,9 +161,11 @@ def evaluate_run(run_dir: Path, episodes: int = 100, layout: str | None = None, 
     if cfg.generalist:
         from d2spo.zero_shot import rollouts
 
-        results, limit = rollouts(cfg, policy, task or cfg.task, layouts, episodes, seed, env_cfg)
+        results, limit = rollouts(cfg, policy, task or cfg.task, layouts, episodes, seed, env_cfg, keep_paths)
     else:
-        results, limit = _specialist_rollouts(cfg, learner, policy, layouts, episodes, seed, preset, dynamics), None
+        results, limit = _specialist_rollouts(cfg, learner, policy, layouts, episodes, seed, preset, dynamics,
+                                              keep_paths), None
+    paths = [r.pop("paths") for r in results] if keep_paths else None
     out = {
         "run": str(run_dir), "policy": which, "episodes": episodes * len(layouts), "layout": layout or cfg.layout,
         "layouts": [lay or cfg.layout for lay in layouts], "dynamics": dynamics_label(preset, dynamics, cfg.env.preset),
@@ -174,13 +179,16 @@ def evaluate_run(run_dir: Path, episodes: int = 100, layout: str | None = None, 
         **{k: float(np.mean([r[k] for r in results]))
            for k in ("safety_rate", "completion_rate", "mean_return", "mean_distance")},
     }
+    if paths is not None:
+        out["paths"] = paths
     return out
 
 
 def _specialist_rollouts(cfg: TrainConfig, learner, policy, layouts: list[str | None], episodes: int, seed: int,
-                         preset: str | None, dynamics: dict[str, float] | None) -> list[dict]:
+                         preset: str | None, dynamics: dict[str, float] | None, keep_paths: int = 0) -> list[dict]:
     """Rates per layout of a policy that reads its layout's coordinates (every learner but the
-    generalist): the observation must keep its size (number of areas, automaton states)."""
+    generalist): the observation must keep its size (number of areas, automaton states). With
+    ``keep_paths`` each also holds ``"paths"`` (``evaluate_run``)."""
     results = []
     compiled: dict = {}  # one compiled rollout per shape of the env params (random5 layouts share one)
     for lay in layouts:
@@ -193,7 +201,11 @@ def _specialist_rollouts(cfg: TrainConfig, learner, policy, layouts: list[str | 
         shape = (tree, tuple((x.shape, x.dtype) for x in leaves))
         if shape not in compiled:
             compiled[shape] = make_rollout(other, env, episodes, int(params.max_steps))
-        results.append(rates(*compiled[shape](params, policy, jax.random.PRNGKey(seed))))
+        res = compiled[shape](params, policy, jax.random.PRNGKey(seed))
+        results.append(rates(*res))
+        if keep_paths:
+            poses, collided, completed = (np.asarray(a[:keep_paths]) for a in (res[4], res[0], res[1]))
+            results[-1]["paths"] = (env.layout, poses, collided, completed)
     return results
 
 

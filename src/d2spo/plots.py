@@ -120,6 +120,34 @@ def draw_policy_figure(learner, policy, env, params, episodes: int = 8, seed: in
     return fig, {"safety_rate": float(1 - collided.mean()), "completion_rate": float(completed.mean())}
 
 
+EVAL_PLOT_LAYOUTS = 6
+"""``d2spo eval --plot`` draws at most this many layouts (the first ones of ``--layout-seeds``)."""
+
+
+def evaluation_figure(path: Path, paths: Sequence[tuple], per_layout: Sequence[dict], suptitle: str) -> Path:
+    """``d2spo eval --plot``: for each of the first ``EVAL_PLOT_LAYOUTS`` layouts, the layout and the
+    trajectories of its first episodes (``paths``: (Layout, poses, collided, completed) per layout,
+    from ``evaluate_run(keep_paths=k)``), titled with that layout's rates over all its episodes."""
+    from matplotlib.lines import Line2D
+
+    shown = list(zip(paths, per_layout, strict=True))[:EVAL_PLOT_LAYOUTS]
+    ncols = min(3, len(shown))
+    fig = _figure(ncols, -(-len(shown) // ncols), size=4.6)
+    names = {"completed": "task completed", "collided": "collision", "neither": "out of time"}
+    for k, ((layout, poses, collided, completed), rates) in enumerate(shown):
+        ax = fig.add_subplot(-(-len(shown) // ncols), ncols, k + 1)
+        draw_layout(layout, ax, show_sensing=False)
+        draw_trajectories(ax, poses, collided, completed)
+        ax.set_title(f"{layout.name}: {rates['completion_rate']:.0%} completed, {rates['safety_rate']:.0%} safe\n"
+                     f"({rates['episodes']} episodes; {poses.shape[0]} drawn)", fontsize=9)
+        if k == 0:
+            add_legend(ax, [Line2D([], [], color=c, label=f"{names[o]} (x: end)") for o, c in OUTCOME_COLORS.items()])
+    fig.suptitle(suptitle)
+    fig.tight_layout()
+    fig.savefig(str(path), dpi=90)
+    return Path(path)
+
+
 # ---------------------------------------------------------------------- Figs. 2-3: reward curves
 def smoothing_window(n_episodes: int, smooth: int = 200) -> int:
     """Episodes per moving-average point: ``smooth``, but at most a fifth of a short run, so that a

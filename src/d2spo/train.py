@@ -22,7 +22,7 @@ from flax import serialization
 from d2spo.algos.base import ChunkLog
 from d2spo.checkpoint import Checkpoints, fingerprint, has_checkpoint, run_fingerprint
 from d2spo.config import TrainConfig, config_differences, config_from_dict, config_to_dict
-from d2spo.envs.nav import check_episode_time
+from d2spo.envs.nav import check_barrier_margin, check_episode_time
 from d2spo.errors import ConfigError, NaNError, RunDirError, RunDirWarning
 from d2spo.rollout import make_rollout, rates
 from d2spo.runio import (
@@ -276,6 +276,15 @@ class _Run:
         return summary
 
 
+def check_barrier(cfg: TrainConfig, env) -> None:
+    """For a learner that executes π_Ω (D²SPO, SL): a warning when no route of the task keeps the
+    barrier's margin ``cfg.cbf.d`` (``nav.check_barrier_margin``), before training."""
+    from d2spo.algos import has_runtime_filter
+
+    if has_runtime_filter(cfg.algo):
+        check_barrier_margin(env, cfg.cbf.d, repr(cfg.task))
+
+
 def train(
     cfg: TrainConfig, out: Path, resume: bool = False, progress: ProgressFn | None = None,
     stop_after_chunks: int | None = None,
@@ -289,6 +298,7 @@ def train(
     t_enter = time.perf_counter()
     out = Path(out)
     built = build(cfg)  # a config that cannot be built is refused before anything is written
+    check_barrier(cfg, built[0])
     check_episode_time(built[0], built[1], repr(cfg.task))
     if resume and cfg.eval_untrained and has_checkpoint(out):
         raise ConfigError("eval_untrained", "the initial policy of a resumed run is gone; "
@@ -429,6 +439,7 @@ def train_seeds(
     t_enter = time.perf_counter()
     outs = [Path(o) for o in outs]
     built = build(cfgs[0])
+    check_barrier(cfgs[0], built[0])
     check_episode_time(built[0], built[1], repr(cfgs[0].task))
     with contextlib.ExitStack() as locks:
         for out in outs:

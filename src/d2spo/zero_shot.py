@@ -37,15 +37,18 @@ TOL = 1e-6
 """Slack (m) when comparing an arena's side with ``MAX_SIDE``."""
 
 
-def generalist_layout(env_cfg, name: str, task: str) -> tuple[Layout, int]:
+def generalist_layout(env_cfg, name: str, task: str, margin: float = 0.0) -> tuple[Layout, int]:
     """The layout ``name`` checked for a generalist and for ``task`` (module docstring, step 1),
-    its areas in the order A1..A4, and the episode limit a specialist would get there."""
-    from d2spo.envs.nav import make_env
+    its areas in the order A1..A4, and the episode limit a specialist would get there. ``margin``:
+    the generalist's barrier margin d: a warning when no route keeps it (``nav.check_barrier_margin``;
+    0: not checked)."""
+    from d2spo.envs.nav import check_barrier_margin, make_env
     from d2spo.ltl.reward import PER_STATE
 
     cfg = dataclasses.replace(env_cfg, layout=name, max_steps=None,
                               reward=dataclasses.replace(env_cfg.reward, shaping_metric=PER_STATE))
     env, params = make_env(cfg, task)  # the layout's and the task's checks; the specialist's episode limit
+    check_barrier_margin(env, margin, repr(task))
     lay = env.layout
     where = f"layout {lay.name!r}"
     w, h = lay.arena
@@ -78,12 +81,17 @@ def task_tag(task: str) -> str:
 
 
 def rollouts(cfg: TrainConfig, policy, task: str, names: list[str], episodes: int, seed: int,
-             env_cfg) -> tuple[list[dict], int]:
+             env_cfg, keep_paths: int = 0) -> tuple[list[dict], int]:
     """(rates per layout, episode limit) of the generalist ``policy`` (trained with ``cfg``; its
     runtime filter as ``cfg.d2spo`` says) on ``task`` over the layouts ``names``, under the dynamics
-    of ``env_cfg`` (module docstring). Every layout is checked before any is rolled out."""
-    checked = [generalist_layout(env_cfg, name, task) for name in names]
-    out, limit = run_layouts(cfg, policy, task, checked, episodes, seed, env_cfg)
+    of ``env_cfg`` (module docstring). Every layout is checked before any is rolled out. With
+    ``keep_paths`` each layout's rates also hold ``"paths"``: (Layout, poses, collided, completed)
+    of its first episodes."""
+    checked = [generalist_layout(env_cfg, name, task, cfg.cbf.d) for name in names]
+    out, limit = run_layouts(cfg, policy, task, checked, episodes, seed, env_cfg, keep_paths)
+    if keep_paths:
+        for (r, p), (lay, _) in zip(out, checked, strict=True):
+            r["paths"] = (lay, *p)
     return [r for r, _ in out], limit
 
 

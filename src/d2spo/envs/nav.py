@@ -449,6 +449,32 @@ def make_env(cfg: EnvConfig, task: Any = "phi1") -> tuple[Env, EnvParams]:
     return env, params
 
 
+def check_barrier_margin(env: Env, margin: float, name: str) -> None:
+    """A ``TaskWarning`` when every route that completes the task passes closer than ``margin`` (a
+    learned barrier's d: D²SPO's barrier keeps the robot's centre about d from every sensed obstacle
+    and wall) to an obstacle or wall, although a robot of the env's radius gets through: e.g. a gap
+    of 0.35 m between an obstacle and an area the task forbids. A warning, not an error: the learned
+    h lets the robot a little closer than d (a generalist completes routes that need 0.29 m), and
+    routes that need 0.27 m were not learnt (bench/RESULTS.md, session 11). Checked before a barrier
+    learner trains (``train.train``) and when a generalist runs zero-shot (``zero_shot``)."""
+    import warnings
+
+    from d2spo.errors import ConfigError, TaskWarning
+
+    cfg = env.config
+    if env.automaton is None or env.layout is None or margin <= cfg.robot_radius:  # a bank: per layout elsewhere
+        return
+    robot = "a robot that keeps its centre this far from obstacles and walls"
+    try:
+        state_fields.check_task(env.automaton, env.layout, cfg.label_mode, margin, name, robot=robot)
+    except ConfigError as e:
+        why = str(e).removeprefix("task: ").replace(" cannot be completed on ", " on ", 1).replace(
+            f" {robot} cannot", " the robot cannot")
+        warnings.warn(f"{why} while keeping {margin:g} m from every obstacle and wall (the barrier's margin d, "
+                      "--cbf.d): every route passes closer, where the barrier may hold the robot back", TaskWarning,
+                      stacklevel=2)
+
+
 def check_episode_time(env: Env, params: EnvParams, name: str) -> None:
     """``state_fields.check_time`` for an env from ``make_env``: a ``TaskWarning`` when the task's
     shortest route cannot fit in (or needs most of) the episode. Training calls it once; evaluating

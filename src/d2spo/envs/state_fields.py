@@ -293,8 +293,11 @@ def _reachable(delta: np.ndarray, letters: np.ndarray, free: np.ndarray, start: 
     return [bool(r.any()) for r in reached]
 
 
-def check_task(aut: Automaton, layout: Layout, label_mode: str, robot_radius: float, name: str) -> None:
+def check_task(aut: Automaton, layout: Layout, label_mode: str, robot_radius: float, name: str,
+               robot: str | None = None) -> None:
     """ConfigError unless a robot of ``robot_radius`` can drive from the start to an accepting state.
+    ``robot`` names that robot in the error (default: "a robot of radius R m"); with ``robot_radius``
+    set to a barrier's margin it is the check of ``nav.check_barrier_margin``.
 
     Propositions must name areas of the layout. Then a breadth-first search over (automaton state,
     grid cell), with 4-neighbour moves between cells the robot can occupy (``layouts.free_grid``,
@@ -324,7 +327,8 @@ def check_task(aut: Automaton, layout: Layout, label_mode: str, robot_radius: fl
     goal = " or ".join(sf.targets[q]) or "an area that makes progress"
     why = f" without entering {', '.join(sf.forbidden[q])} (forbidden there)" if sf.forbidden[q] else ""
     raise ConfigError("task", f"{name} cannot be completed on layout {layout.name!r}: in automaton state {q} "
-                      f"({aut.state_formulas[q]}) a robot of radius {robot_radius:g} m cannot reach {goal}{why}")
+                      f"({aut.state_formulas[q]}) {robot or f'a robot of radius {robot_radius:g} m'} cannot "
+                      f"reach {goal}{why}")
 
 
 def default_fields(aut: Automaton, layout_name: str, label_mode: str):
