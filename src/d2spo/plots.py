@@ -1,6 +1,7 @@
 """Every figure of d2spo, drawn from data: run directories, their episode curves and snapshots.
 
 * the policy figure of ``d2spo demo``: trajectories on the layout and the learned CBF;
+* ``d2spo eval --plot``'s trajectories per layout (``evaluation_figure``);
 * Figs. 2–3 (``reward_figure``): moving-average return per method, mean and ± 1 std over seeds;
 * Fig. 4 (``cbf_figure``): the learned h as a surface and as level sets, one run per layout;
 * Fig. 5 (``snapshot_figure``): the executed policy's trajectories at the run's policy snapshots;
