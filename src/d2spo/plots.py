@@ -133,7 +133,8 @@ def evaluation_figure(path: Path, paths: Sequence[tuple], per_layout: Sequence[d
 
     shown = list(zip(paths, per_layout, strict=True))[:EVAL_PLOT_LAYOUTS]
     ncols = min(3, len(shown))
-    fig = _figure(ncols, -(-len(shown) // ncols), size=4.6)
+    fig = Figure(figsize=(max(4.6 * ncols, 7.0), 4.6 * -(-len(shown) // ncols)))  # one panel: room for the title
+    FigureCanvasAgg(fig)
     names = {"completed": "task completed", "collided": "collision", "neither": "out of time"}
     for k, ((layout, poses, collided, completed), rates) in enumerate(shown):
         ax = fig.add_subplot(-(-len(shown) // ncols), ncols, k + 1)
@@ -143,7 +144,7 @@ def evaluation_figure(path: Path, paths: Sequence[tuple], per_layout: Sequence[d
                      f"({rates['episodes']} episodes; {poses.shape[0]} drawn)", fontsize=9)
         if k == 0:
             add_legend(ax, [Line2D([], [], color=c, label=f"{names[o]} (x: end)") for o, c in OUTCOME_COLORS.items()])
-    fig.suptitle(suptitle)
+    fig.suptitle(suptitle, fontsize=11)
     fig.tight_layout()
     fig.savefig(str(path), dpi=90)
     return Path(path)
