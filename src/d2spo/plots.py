@@ -30,6 +30,8 @@ from d2spo.envs.render import OBSTACLE_COLOR, START_COLOR, add_legend, draw_layo
 
 OUTCOME_COLORS = {"completed": "tab:purple", "collided": "tab:red", "neither": "tab:orange"}
 """Trajectory colours: the task completed (true labelling), a collision, or the episode ran out."""
+OUTCOME_NAMES = {"completed": "task completed", "collided": "collision", "neither": "out of time"}
+"""How the legends name each outcome of ``OUTCOME_COLORS``."""
 
 
 def policy_trajectories(learner, policy, env, params, episodes: int, seed: int, rollout=None):
@@ -107,8 +109,7 @@ def draw_policy_figure(learner, policy, env, params, episodes: int = 8, seed: in
     draw_trajectories(ax, poses, collided, completed)
     ax.set_title(title or f"{completed.mean():.0%} completed, {1 - collided.mean():.0%} safe "
                           f"({poses.shape[0]} episodes)")
-    names = {"completed": "task completed", "collided": "collision", "neither": "out of time"}
-    add_legend(ax, [Line2D([], [], color=c, label=f"trajectory: {names[k]} (x: end)")
+    add_legend(ax, [Line2D([], [], color=c, label=f"trajectory: {OUTCOME_NAMES[k]} (x: end)")
                     for k, c in OUTCOME_COLORS.items()])
     if has_cbf:
         ax = fig.add_subplot(1, 2, 2)
@@ -133,17 +134,17 @@ def evaluation_figure(path: Path, paths: Sequence[tuple], per_layout: Sequence[d
 
     shown = list(zip(paths, per_layout, strict=True))[:EVAL_PLOT_LAYOUTS]
     ncols = min(3, len(shown))
-    fig = Figure(figsize=(max(4.6 * ncols, 7.0), 4.6 * -(-len(shown) // ncols)))  # one panel: room for the title
+    nrows = -(-len(shown) // ncols)
+    fig = Figure(figsize=(max(4.6 * ncols, 7.0), 4.6 * nrows))  # one panel: room for the title
     FigureCanvasAgg(fig)
-    names = {"completed": "task completed", "collided": "collision", "neither": "out of time"}
     for k, ((layout, poses, collided, completed), rates) in enumerate(shown):
-        ax = fig.add_subplot(-(-len(shown) // ncols), ncols, k + 1)
+        ax = fig.add_subplot(nrows, ncols, k + 1)
         draw_layout(layout, ax, show_sensing=False)
         draw_trajectories(ax, poses, collided, completed)
         ax.set_title(f"{layout.name}: {rates['completion_rate']:.0%} completed, {rates['safety_rate']:.0%} safe\n"
                      f"({rates['episodes']} episodes; {poses.shape[0]} drawn)", fontsize=9)
         if k == 0:
-            add_legend(ax, [Line2D([], [], color=c, label=f"{names[o]} (x: end)") for o, c in OUTCOME_COLORS.items()])
+            add_legend(ax, [Line2D([], [], color=c, label=f"{OUTCOME_NAMES[o]} (x: end)") for o, c in OUTCOME_COLORS.items()])
     fig.suptitle(suptitle, fontsize=11)
     fig.tight_layout()
     fig.savefig(str(path), dpi=90)

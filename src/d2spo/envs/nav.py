@@ -464,12 +464,10 @@ def check_barrier_margin(env: Env, margin: float, name: str) -> None:
     cfg = env.config
     if env.automaton is None or env.layout is None or margin <= cfg.robot_radius:  # a bank: per layout elsewhere
         return
-    robot = "a robot that keeps its centre this far from obstacles and walls"
     try:
-        state_fields.check_task(env.automaton, env.layout, cfg.label_mode, margin, name, robot=robot)
+        state_fields.check_task(env.automaton, env.layout, cfg.label_mode, margin, name, robot="the robot")
     except ConfigError as e:
-        why = str(e).removeprefix("task: ").replace(" cannot be completed on ", " on ", 1).replace(
-            f" {robot} cannot", " the robot cannot")
+        why = str(e).removeprefix("task: ").replace(" cannot be completed on ", " on ", 1)
         warnings.warn(f"{why} while keeping {margin:g} m from every obstacle and wall (the barrier's margin d, "
                       "--cbf.d): every route passes closer, where the barrier may hold the robot back", TaskWarning,
                       stacklevel=2)
