@@ -91,6 +91,35 @@ def test_table3_trains_once_reuses_and_reports(tmp_path):
     assert "Table III" in report and "| LPPO | 2 |" in report and "--seeds 3" in report and "2 of 3 runs" in report
 
 
+def test_runs_finished_by_another_process_meanwhile_are_kept(tmp_path, monkeypatch):
+    """Two ``reproduce`` processes on one OUT: a group the other process finished after this one
+    listed its work is reused when its turn comes, never started again (which deleted the finished
+    runs, session 12)."""
+    specs = [rp.RunSpec("ppo-lag", "relaxed", "relaxed", s, TINY_EPISODES) for s in (0, 1)]
+    for s in specs:
+        d = rp.run_dir(tmp_path, s)
+        d.mkdir(parents=True)
+        (d / "summary.json").write_text("{}")
+        (d / "episodes.csv").write_text("the other process's episodes\n")
+    real, listed = rp.is_finished, []
+
+    def unfinished_when_listed(out, spec):  # the listing comes before the other process finishes
+        if len(listed) < len(specs):
+            listed.append(spec)
+            return False
+        return real(out, spec)
+
+    monkeypatch.setattr(rp, "is_finished", unfinished_when_listed)
+    logs = []
+    rp.run_local(specs, tmp_path, progress=False, log=logs.append)
+    assert logs[0].startswith("0 of 2 runs already finished")
+    assert any("finished meanwhile" in line for line in logs)
+    for s in specs:
+        assert (rp.run_dir(tmp_path, s) / "episodes.csv").read_text() == "the other process's episodes\n"
+    rp._discard_unstarted(rp.run_dir(tmp_path, specs[0]))  # a finished run is never discarded
+    assert (rp.run_dir(tmp_path, specs[0]) / "summary.json").is_file()
+
+
 def test_report_says_per_section_how_it_was_rendered(tmp_path):
     """Tables and figures rendered by different invocations (different seeds) each keep their own
     provenance line in the report; the last invocation does not overwrite the earlier ones."""

@@ -183,8 +183,10 @@ def _rendered_history(out: Path, targets: list[str], seeds: int, episodes: int, 
 
 
 def _discard_unstarted(d: Path) -> None:
-    """A run directory without a checkpoint to resume from is started again from scratch."""
-    if d.exists():
+    """A run directory without a checkpoint to resume from is started again from scratch. A finished
+    one is kept: another ``reproduce`` on the same OUT may have finished it since this one listed
+    what to train."""
+    if d.exists() and not (d / "summary.json").is_file():
         import shutil
 
         shutil.rmtree(d)
@@ -268,6 +270,10 @@ def run_local(specs: list[RunSpec], out: Path, progress: bool = True, log: Calla
         seeds = ", ".join(str(x.seed) for x in members)
         log(f"[{i}/{len(groups)}] {m.algo} {m.task} {m.layout}{f' ({m.preset})' if m.preset else ''}, "
             f"seed{'s' if len(members) > 1 else ''} {seeds} ({m.episodes} episodes)")
+        members = [x for x in members if not is_finished(out, x)]  # another process may have finished some
+        if not members:
+            log("  finished meanwhile (another process on the same OUT): reused")
+            continue
         if len(members) == 1:
             train_one(m, str(out), progress)
         else:
