@@ -203,3 +203,14 @@ def test_ray_backend_on_a_local_instance(tmp_path):
     assert "0 of 1 runs already finished" in done.stdout and "1 Ray task\n" in done.stdout
     # the same directory layout as the local backend: the table reads it
     assert "| LPPO | 1 |" in (out / "table3.md").read_text()
+
+
+def test_the_report_names_the_cpu_model(tmp_path):
+    """XLA compiles for the CPU it runs on: the report says which one (family and model from Linux)."""
+    from d2spo.report import cpu_model
+
+    info = tmp_path / "cpuinfo"
+    info.write_text("processor\t: 0\nvendor_id\t: AuthenticAMD\ncpu family\t: 25\nmodel\t\t: 17\n"
+                    "model name\t: AMD EPYC\n\nprocessor\t: 1\nmodel name\t: another\n")
+    assert cpu_model(str(info)) == "AMD EPYC (family 25, model 17)"
+    assert cpu_model(str(tmp_path / "missing")) != ""

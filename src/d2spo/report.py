@@ -19,12 +19,34 @@ SECTIONS = (
 )
 
 
+def cpu_model(cpuinfo: str = "/proc/cpuinfo") -> str:
+    """The CPU's model name with its family and model numbers where Linux gives them (XLA compiles
+    for the CPU it runs on, so the same seed can round differently on another CPU type), else
+    ``platform.processor()``."""
+    fields: dict[str, str] = {}
+    try:
+        with open(cpuinfo) as f:
+            for line in f:
+                key, sep, value = line.partition(":")
+                if not sep:
+                    if fields:
+                        break  # the first processor's block is enough
+                    continue
+                fields.setdefault(key.strip(), value.strip())
+    except OSError:
+        pass
+    name = fields.get("model name") or platform.processor() or "unknown CPU"
+    if "cpu family" in fields and "model" in fields:
+        name += f" (family {fields['cpu family']}, model {fields['model']})"
+    return name
+
+
 def machine() -> str:
     import os
 
     import jax
 
-    return (f"{platform.machine()}, {os.cpu_count()} CPU cores, jax {jax.__version__} on "
+    return (f"{platform.machine()}, {cpu_model()}, {os.cpu_count()} CPU cores, jax {jax.__version__} on "
             f"{jax.devices()[0].platform}, Python {platform.python_version()}")
 
 
