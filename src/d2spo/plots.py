@@ -135,8 +135,7 @@ def evaluation_figure(path: Path, paths: Sequence[tuple], per_layout: Sequence[d
     shown = list(zip(paths, per_layout, strict=True))[:EVAL_PLOT_LAYOUTS]
     ncols = min(3, len(shown))
     nrows = -(-len(shown) // ncols)
-    fig = Figure(figsize=(max(4.6 * ncols, 7.0), 4.6 * nrows))  # one panel: room for the title
-    FigureCanvasAgg(fig)
+    fig = _figure(ncols, nrows, size=4.6, min_width=7.0)  # one panel: room for the title
     for k, ((layout, poses, collided, completed), rates) in enumerate(shown):
         ax = fig.add_subplot(nrows, ncols, k + 1)
         draw_layout(layout, ax, show_sensing=False)
@@ -267,8 +266,8 @@ def snapshot_figure(path: Path, run_dir: Path, trajectories: int = 8) -> Path:
     return Path(path)
 
 
-def _figure(ncols: int, nrows: int = 1, size: float = 4.5) -> Figure:
-    fig = Figure(figsize=(size * ncols, size * nrows))
+def _figure(ncols: int, nrows: int = 1, size: float = 4.5, min_width: float = 0.0) -> Figure:
+    fig = Figure(figsize=(max(size * ncols, min_width), size * nrows))
     FigureCanvasAgg(fig)
     return fig
 

@@ -270,8 +270,7 @@ def run_local(specs: list[RunSpec], out: Path, progress: bool = True, log: Calla
         seeds = ", ".join(str(x.seed) for x in members)
         log(f"[{i}/{len(groups)}] {m.algo} {m.task} {m.layout}{f' ({m.preset})' if m.preset else ''}, "
             f"seed{'s' if len(members) > 1 else ''} {seeds} ({m.episodes} episodes)")
-        members = [x for x in members if not is_finished(out, x)]  # another process may have finished some
-        if not members:
+        if all(is_finished(out, x) for x in members):  # another process on the same OUT finished them
             log("  finished meanwhile (another process on the same OUT): reused")
             continue
         if len(members) == 1:
