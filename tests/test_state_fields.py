@@ -249,3 +249,47 @@ def test_barrier_margin_warns_when_every_route_passes_closer_than_d():
         warnings.simplefilter("error")
         check_barrier_margin(env, 0.25, "'phi2'")
         check_barrier_margin(paper, 0.3, "'phi2'")
+
+
+def _steepest(sf: state_fields.StateFields, q: int, layout, robot_radius: float) -> float:
+    """Largest |field difference| / distance between 4-neighbour grid nodes where the robot fits."""
+    f = sf.field[q]
+    ny, nx = f.shape
+    xs, ys = np.linspace(0.0, layout.arena[0], nx), np.linspace(0.0, layout.arena[1], ny)
+    lo = np.array([o.lo for o in layout.obstacles]).reshape(-1, 2)
+    hi = np.array([o.hi for o in layout.obstacles]).reshape(-1, 2)
+    fits = geodesic.clearance(xs, ys, lo, hi, layout.arena) >= robot_radius
+    spacing = xs[1] - xs[0]
+    across = np.abs(np.diff(f, axis=1))[fits[:, 1:] & fits[:, :-1]]
+    along = np.abs(np.diff(f, axis=0))[fits[1:] & fits[:-1]]
+    return float(max(across.max(), along.max()) / spacing)
+
+
+def test_the_field_rises_at_most_clearance_cost_per_metre_where_the_robot_fits():
+    # phi2 state 6 (A2 next, nothing forbidden): between two nodes where the robot fits, the field
+    # differs by at most the dearer way from one to the other, 2x the distance in the clearance band.
+    # At 10x (until 2026-11-25) it rose 10 m per metre sideways across the mouth of the 0.79 m
+    # openings round A4, where D²SPO's policy dithered.
+    aut = translate(task_formula("phi2"))
+    mild = state_fields.state_fields(aut, PAPER, "event", **RewardConfig().field_costs(0.15))
+    steep = state_fields.state_fields(aut, PAPER, "event", 0.3, 0.15, clearance_cost=10.0, collide_cost=10.0)
+    assert mild.targets[6] == ("A2",) and mild.forbidden[6] == ()
+    assert _steepest(mild, 6, PAPER, 0.15) <= geodesic.CLEARANCE_COST + 1e-3
+    assert _steepest(steep, 6, PAPER, 0.15) > 8.0
+    # the env trains on the fields of its reward config
+    _, params = make_env(EnvConfig(layout="paper"), task="phi2")
+    np.testing.assert_array_equal(np.asarray(params.state_field), mild.field)
+
+
+def test_reward_defaults_are_the_field_banks_costs_and_old_configs_keep_theirs():
+    from d2spo.config import TrainConfig, config_from_dict, config_to_dict
+
+    assert RewardConfig().shaping_clearance_cost == geodesic.CLEARANCE_COST
+    assert RewardConfig().shaping_collide_cost == geodesic.COLLIDE_COST
+    data = config_to_dict(TrainConfig())
+    for key in ("shaping_clearance_cost", "shaping_collide_cost"):
+        del data["env"]["reward"][key]  # a config.json written before the fields existed
+    old = config_from_dict(data).env.reward
+    assert (old.shaping_clearance_cost, old.shaping_collide_cost) == (10.0, 10.0)
+    with pytest.raises(ConfigError, match="shaping_clearance_cost"):
+        RewardConfig(shaping_clearance_cost=0.5)

@@ -190,7 +190,9 @@ FORMER_DEFAULTS: dict[tuple[str, ...], Any] = {
     ("env", "reward", "shaping_metric"): "geodesic",  # today's default is geodesic-per-state (issue 15)
     ("anneal", "relax"): "all",  # the field came with the option "targets", which became the default
     ("validation_layouts",): 0,  # generalists trained before validation kept their last policy
-    ("env", "base_max_steps"): 200,  # an unset max_steps gave 200 steps before issue 15's passages
+    ("env", "base_max_steps"): 200,
+    ("env", "reward", "shaping_clearance_cost"): 10.0,  # the per-state field's clearance band cost 10x until 2026-11-25
+    ("env", "reward", "shaping_collide_cost"): 10.0,  # an unset max_steps gave 200 steps before issue 15's passages
 }
 """Settings whose default has changed, with the value a config.json that does not mention them was
 trained with (the field did not exist yet, and its old behaviour is this value)."""
@@ -215,7 +217,8 @@ def config_from_dict(data: dict) -> TrainConfig:
     return _build(TrainConfig, _with_former_defaults(data), "")
 
 
-_SHAPING_FIELDS = ("shaping", "shaping_metric", "shaping_clearance", "shaping_gamma")
+_SHAPING_FIELDS = ("shaping", "shaping_metric", "shaping_clearance", "shaping_clearance_cost", "shaping_collide_cost",
+                   "shaping_gamma")
 
 
 def effective_config(cfg: TrainConfig) -> dict:

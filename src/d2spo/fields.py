@@ -38,6 +38,7 @@ KINDS: dict[str, tuple[Any, str]] = {
     "finite": (_is_number, "a finite number"),
     "positive": (lambda v: _is_number(v) and v > 0, "a finite number > 0"),
     "non_negative": (lambda v: _is_number(v) and v >= 0, "a finite number >= 0"),
+    "at_least_one": (lambda v: _is_number(v) and v >= 1, "a finite number >= 1"),
     "discount": (lambda v: _is_number(v) and 0 < v <= 1, "in (0, 1]"),
     "rate": (lambda v: _is_number(v) and 0 < v <= 1, "in (0, 1]"),
     "fraction": (lambda v: _is_number(v) and 0 <= v <= 1, "in [0, 1]"),

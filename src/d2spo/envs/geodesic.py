@@ -27,6 +27,12 @@ SPACING = 0.05
 """Grid spacing in metres."""
 BLOCKED_COST = 10.0
 """Multiplier of the path length through nodes where the robot would touch an obstacle or a wall."""
+CLEARANCE_COST = 2.0
+"""The per-state fields' and the field bank's multiplier of the path length through nodes closer
+than the shaping clearance to an obstacle or a wall (``envs.state_fields``, ``envs.layout_bank``;
+the default ``RewardConfig.shaping_clearance_cost``)."""
+COLLIDE_COST = 100.0
+"""Their multiplier where the robot would collide (the default ``RewardConfig.shaping_collide_cost``)."""
 MAX_NODES = 170_000
 """Largest grid accepted: an arena of 20 m x 20 m at ``SPACING`` (160 801 nodes), whose fields take
 about 18 s on a 2-core CPU. The sweeps grow with the number of nodes times the grid's width (a

@@ -71,10 +71,10 @@ default ``RewardConfig.shaping_clearance``); coming this close to a forbidden ar
 ``geodesic.BLOCKED_COST`` times the approach."""
 ROBOT_RADIUS = 0.15
 """Nodes closer than this (m) to an obstacle or wall cost ``COLLIDE_COST`` times (default preset's robot)."""
-CLEARANCE_COST = 2.0
+CLEARANCE_COST = geodesic.CLEARANCE_COST
 """Multiplier of the path length through nodes closer than ``CLEARANCE`` to an obstacle or wall
 (module docstring: why 2)."""
-COLLIDE_COST = 100.0
+COLLIDE_COST = geodesic.COLLIDE_COST
 """Multiplier of the path length through nodes where the robot would collide."""
 TOL = 1e-4
 """``fields_jax`` stops after a round of sweeps that lowers no value by more than this (m). Two rounds

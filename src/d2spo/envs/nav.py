@@ -404,7 +404,8 @@ def make_env(cfg: EnvConfig, task: Any = "phi1") -> tuple[Env, EnvParams]:
     if cfg.reward.shaping_metric == PER_STATE:
         name = task if isinstance(task, str) else "the task"
         state_fields.check_task(automaton, layout, cfg.label_mode, cfg.robot_radius, repr(name))
-        field = state_fields.state_fields(automaton, layout, cfg.label_mode, clearance).field
+        field = state_fields.state_fields(automaton, layout, cfg.label_mode,
+                                          **cfg.reward.field_costs(cfg.robot_radius)).field
     else:
         field = np.zeros((n_states, 1, 1), np.float32)
     n_areas = len(layout.areas)

@@ -19,8 +19,12 @@ potential reads instead one field per automaton state q, computed here once per 
   it freely, and a robot inside a target area must leave it and come back (event labelling);
 * a forbidden read costs ``BLOCKED_COST`` arena diagonals instead of being impossible, so every
   field is finite; approaching a forbidden node closer than the shaping clearance costs
-  ``BLOCKED_COST`` times the approach (leaving costs nothing), and nodes near obstacles or walls
-  cost ``BLOCKED_COST`` times their length, as in ``envs.geodesic``.
+  ``BLOCKED_COST`` times the approach (leaving costs nothing). A step costs its length times
+  the mean of its nodes' multipliers: 1 in the open, ``clearance_cost`` (2) closer than the
+  clearance to an obstacle or wall, ``collide_cost`` (100) closer than the robot's radius, the
+  tiers of the generalist's field bank (``envs.layout_bank``). The clearance tier is mild because
+  a narrow opening lies almost wholly in it: at 10 (until 2026-11-25) the field rose by a metre
+  for 0.1 m sideways at a 0.79-m opening's mouth, and the policy dithered there (docs/ltl.md).
 
 Each field is one Dijkstra search (scipy) from the target reads backwards over the directed grid.
 
@@ -159,7 +163,8 @@ _CACHE: dict[tuple, StateFields] = {}
 _CACHE_SIZE = 32
 
 
-def _compute(aut: Automaton, layout: Layout, event: bool, clearance: float, spacing: float) -> StateFields:
+def _compute(aut: Automaton, layout: Layout, event: bool, clearance: float, costs: tuple[float, float, float],
+             spacing: float) -> StateFields:
     aps = aut.aps
     distance = aut.distances(layouts.feasible_letters(layout, aps, "event" if event else "step"))
     roles = letter_roles(aut, distance, event)
@@ -170,7 +175,9 @@ def _compute(aut: Automaton, layout: Layout, event: bool, clearance: float, spac
     letters = _letters_at(np.stack([px, py], -1), layout, aps)
     box_lo = np.array([o.lo for o in layout.obstacles], float).reshape(-1, 2)
     box_hi = np.array([o.hi for o in layout.obstacles], float).reshape(-1, 2)
-    mult = np.where(geodesic.clearance(xs, ys, box_lo, box_hi, layout.arena) < clearance, geodesic.BLOCKED_COST, 1.0)
+    robot_radius, clearance_cost, collide_cost = costs
+    clear = geodesic.clearance(xs, ys, box_lo, box_hi, layout.arena)
+    mult = np.where(clear < robot_radius, collide_cost, np.where(clear < clearance, clearance_cost, 1.0))
     centre_dist = np.stack([np.hypot(px - a.center[0], py - a.center[1]).ravel() for a in layout.areas])
     radius = np.array([a.radius for a in layout.areas])[:, None]
     gap = np.maximum(centre_dist - radius, 0.0)
@@ -194,18 +201,24 @@ def _key(aut: Automaton, layout: Layout) -> tuple:
             tuple((a.name, a.center, a.radius) for a in layout.areas))
 
 
-def state_fields(aut: Automaton, layout: Layout, label_mode: str, clearance: float,
+def state_fields(aut: Automaton, layout: Layout, label_mode: str, clearance: float, robot_radius: float = 0.0,
+                 clearance_cost: float = geodesic.CLEARANCE_COST, collide_cost: float = geodesic.COLLIDE_COST,
                  spacing: float = geodesic.SPACING) -> StateFields:
     """Target and forbidden areas and the shaping distance field of every state of ``aut`` on
     ``layout`` (cached). ``clearance``: the path keeps this far from obstacles, walls and
-    forbidden areas where it can (the reward's ``shaping_clearance``)."""
+    forbidden areas where it can (the reward's ``shaping_clearance``): a step costs its length
+    times ``clearance_cost`` where a node is closer than ``clearance`` to an obstacle or wall, times
+    ``collide_cost`` where it is closer than ``robot_radius`` (the reward's ``shaping_clearance_cost``
+    and ``shaping_collide_cost``), and coming closer than ``clearance`` to a forbidden area costs
+    ``BLOCKED_COST`` times the approach."""
     nodes = (round(layout.arena[0] / spacing) + 1) * (round(layout.arena[1] / spacing) + 1)
     if nodes > geodesic.MAX_NODES:
         raise ConfigError("layout.arena", f"an arena of {layout.arena[0]:g} m x {layout.arena[1]:g} m needs shaping "
                           f"fields of {nodes} nodes at {spacing:g} m; at most MAX_NODES={geodesic.MAX_NODES} (20 m x "
                           "20 m) are supported: use a smaller arena or layout scale, or --shaping-metric euclidean")
-    key = ("fields", *_key(aut, layout), label_mode, float(clearance), float(spacing))
-    return _memo(key, lambda: _compute(aut, layout, label_mode == "event", float(clearance), float(spacing)))
+    costs = (float(robot_radius), float(clearance_cost), float(collide_cost))
+    key = ("fields", *_key(aut, layout), label_mode, float(clearance), costs, float(spacing))
+    return _memo(key, lambda: _compute(aut, layout, label_mode == "event", float(clearance), costs, float(spacing)))
 
 
 def _memo(key: tuple, compute):
@@ -339,7 +352,7 @@ def default_fields(aut: Automaton, layout_name: str, label_mode: str):
 
     cfg = EnvConfig(layout=layout_name, label_mode=label_mode).resolved()
     layout = layouts.load(layout_name).scaled(cfg.layout_scale)
-    sf = state_fields(aut, layout, label_mode, cfg.reward.clearance(cfg.robot_radius))
+    sf = state_fields(aut, layout, label_mode, **cfg.reward.field_costs(cfg.robot_radius))
     distance = aut.distances(layouts.feasible_letters(layout, aut.aps, label_mode))
     return layout, sf, distance, cfg.robot_radius
 

@@ -53,12 +53,23 @@ class RewardConfig:
     straight through the others (``envs.geodesic``; the default until 2026-11-23, which never learnt
     phi2); 'euclidean': straight line, which leads into obstacles lying on the line."""
     shaping_clearance: float | None = 0.3
-    """With the geodesic metric: path nodes closer than this to an obstacle or a wall cost
-    ``envs.geodesic.BLOCKED_COST`` times their length, so the shortest path keeps this clearance
-    where it can. The default 0.3 m equals the barrier's safe distance (``cbf.d``), so the path
+    """With a geodesic metric: path nodes closer than this to an obstacle or a wall cost more per
+    metre (``envs.geodesic.BLOCKED_COST`` with 'geodesic', ``shaping_clearance_cost`` with
+    'geodesic-per-state'), so the shortest path keeps this clearance where it can. The default 0.3 m equals the barrier's safe distance (``cbf.d``), so the path
     stays in the CBF's safe set; None: the robot radius (0.15 m), i.e. only paths the robot cannot
     take are penalised, and the path may run inside the barrier's margin, where D²SPO's policy
     crawls (docs/ltl.md)."""
+    shaping_clearance_cost: float = 2.0
+    """With 'geodesic-per-state': a path step costs its length times this where a node is closer
+    than the clearance to an obstacle or a wall (coming closer than the clearance to a forbidden area
+    costs ``envs.geodesic.BLOCKED_COST`` times the approach, as before). 2, as in the generalist's
+    field bank (``envs.layout_bank``):
+    a 0.75-0.8 m opening lies almost wholly in the clearance band, and at 10 (the default until
+    2026-11-25) the field jumped by a metre for 0.1 m sideways at the opening's mouth; D²SPO's
+    policy then dithered forward and back there and never learnt phi2 or never-a4 (docs/ltl.md)."""
+    shaping_collide_cost: float = 100.0
+    """With 'geodesic-per-state': the multiplier where a node is closer than the robot's radius to an
+    obstacle or a wall (the robot would collide there), so no path cuts a wall (10 until 2026-11-25)."""
     shaping_gamma: float = 1.0
     """Discount in the shaping term gamma * Phi(s') - Phi(s). 1 (not the learner's 0.99): with
     gamma < 1 standing still far from the goal earns (1 - gamma) |Phi| > c_n per step."""
@@ -70,6 +81,7 @@ class RewardConfig:
         check_fields(self, "reward", nullable=("shaping_clearance",),
                      non_negative=("c_n", "c_p", "r_goal", "c_regress", "r_reject", "c_collision", "shaping",
                                    "shaping_clearance"),
+                     at_least_one=("shaping_clearance_cost", "shaping_collide_cost"),
                      fraction=("shaping_gamma",))
         check_choice(self, "mode", ("progress", "sparse"), "reward")
         check_choice(self, "shaping_metric", SHAPING_METRICS, "reward")
@@ -82,6 +94,11 @@ class RewardConfig:
     def clearance(self, robot_radius: float) -> float:
         """The shaping path's clearance (m): ``shaping_clearance``, or the robot radius if None."""
         return robot_radius if self.shaping_clearance is None else self.shaping_clearance
+
+    def field_costs(self, robot_radius: float) -> dict[str, float]:
+        """``envs.state_fields.state_fields``'s keyword arguments for this reward and robot."""
+        return dict(clearance=self.clearance(robot_radius), robot_radius=robot_radius,
+                    clearance_cost=self.shaping_clearance_cost, collide_cost=self.shaping_collide_cost)
 
 
 def progress_reward(
