@@ -66,8 +66,10 @@ def test_batch_equals_envs_stepped_one_by_one_with_autoreset():
             _, keys, actions = keys_and_actions(key, t, n)
             state, obs, reward, cost, done, info = step(keys[i], state, actions[i], params)
             got = jax.tree.map(lambda a: a[i], batch[t])
+            # 1e-5: the path direction divides a difference of two field lookups by its norm, which
+            # brings float32 rounding (vmapped or not) to ~2e-6
             for a, b in zip(jax.tree.leaves((state, obs, reward, cost, done, info)), jax.tree.leaves(got)):
-                np.testing.assert_allclose(np.asarray(a), b, rtol=1e-6, atol=1e-6)
+                np.testing.assert_allclose(np.asarray(a), b, rtol=1e-5, atol=1e-5)
     dones = np.array([np.asarray(b[4]) for b in batch])
     assert dones[5].all() and not dones[:5].any()  # truncation after max_steps = 6, then a new episode
 
@@ -310,6 +312,33 @@ def test_observation_layout():
     np.testing.assert_allclose(a4 * 5.0, [-0.5, -0.5], atol=1e-5)
     onehot = o[sl["automaton"]]
     assert onehot.sum() == 1 and onehot[int(state.q)] == 1
+
+
+def test_path_observation_points_along_the_state_field():
+    from d2spo.envs import geodesic, spaces
+    from d2spo.errors import ConfigError
+
+    env, params, _, _ = build("phi2", preset="ideal", start_jitter_xy=0.0, start_jitter_theta=0.0, observe_path=True)
+    state, obs = jax.jit(env.reset)(jax.random.key(0), params)
+    sl = env.observation_slices
+    assert env.observation_size == obs.shape[0] == sl["path"].stop == 16 + 4 + 8 + env.n_states + 2
+    observe = jax.jit(env.observe)
+    # phi2 state 6 (A2 next, nothing forbidden) east of A4, facing +y: the path runs north-east
+    # through the gap between the boxes at (3.25, 3.25) and (4.5, 2.5); below A2's disk it runs straight at it
+    for xy, heading in (((3.9, 2.9), math.pi / 2), ((4.35, 3.2), 0.3)):
+        s = state.replace(pose=jnp.array([*xy, heading], jnp.float32), q=jnp.int32(6))
+        forward, left = np.asarray(observe(s, params)[sl["path"]])
+        assert forward ** 2 + left ** 2 == pytest.approx(1.0, abs=1e-5)
+        d = np.asarray(geodesic.descent(params.state_field, jnp.array(xy), 6))
+        world = math.atan2(d[1], d[0])
+        assert math.atan2(left, forward) == pytest.approx(world - heading, abs=1e-5)
+        f = lambda p: float(geodesic.lookup(params.state_field, jnp.array(p), index=6))  # noqa: E731
+        assert f(np.add(xy, 0.1 * d)) < f(xy) - 0.08  # a step along it shortens the path by about its length
+    assert math.atan2(d[1], d[0]) == pytest.approx(math.pi / 2, abs=math.radians(23))  # below A2: north
+    low, high = spaces.observation_bounds(env)
+    assert np.all(low[sl["path"]] <= -1) and np.all(high[sl["path"]] >= 1)
+    with pytest.raises(ConfigError, match="observe_path"):
+        make_env(EnvConfig(layout="paper", observe_path=True, reward=RewardConfig(shaping_metric="geodesic")), "phi2")
 
 
 def test_info_sensed_is_the_obstacle_set_at_the_current_pose():

@@ -8,7 +8,7 @@ from d2spo.envs import dynamics
 from d2spo.errors import ConfigError
 from d2spo.fields import check_choice, check_fields
 from d2spo.ltl.labelling import LABEL_MODES
-from d2spo.ltl.reward import RewardConfig
+from d2spo.ltl.reward import PER_STATE, RewardConfig
 
 
 @dataclass(frozen=True)
@@ -31,6 +31,13 @@ class EnvConfig:
     """Number K of lidar rays, evenly spaced over 360 degrees, ray 0 straight ahead."""
     label_mode: str = "event"
     """Labelling: 'event' (read a letter when the set of areas changes to a non-empty one) or 'step'."""
+    observe_path: bool | None = None
+    """Append to the observation the direction in which the shaping path leaves the robot's
+    position (unit vector of steepest descent of the current automaton state's field, in the robot's
+    frame: forward, left; 0 where the field is flat), as the generalist's observation has. The
+    field is the layout's map, never the dynamics. None (the default): on with
+    ``reward.shaping_metric="geodesic-per-state"`` (the default metric), off with the others; True
+    requires that metric. Off until 2026-11-25 (docs/env.md, "Observation")."""
     label_radius: float | None = None
     """Initial relaxed labelling radius (m) of every area for the reward; None = the true radius."""
     collision_terminates: bool = True
@@ -74,6 +81,8 @@ class EnvConfig:
             for f in fields(dynamics.Preset)
             if getattr(self, f.name) is None
         }
+        if self.observe_path is None:
+            filled["observe_path"] = self.reward.shaping_metric == PER_STATE
         return replace(self, **filled)  # checked again by __post_init__, now with no field unset
 
     def __post_init__(self) -> None:
@@ -81,11 +90,11 @@ class EnvConfig:
         dynamics.get_preset(self.preset)
         preset_fields = ("dt", "v_max", "omega_max", "robot_radius", "sensing_radius", "layout_scale", "v_gain",
                          "omega_gain", "actuator_tau", "noise_xy", "noise_theta", "slip")
-        check_fields(self, nullable=preset_fields + ("label_radius", "max_steps"),
+        check_fields(self, nullable=preset_fields + ("label_radius", "max_steps", "observe_path"),
                      positive=("dt", "v_max", "omega_max", "robot_radius", "sensing_radius", "layout_scale",
                                "v_gain", "omega_gain", "label_radius"),
                      non_negative=("actuator_tau", "noise_xy", "noise_theta", "start_jitter_xy", "start_jitter_theta"),
-                     count=("max_steps", "base_max_steps", "n_rays"), flag=("collision_terminates",))
+                     count=("max_steps", "base_max_steps", "n_rays"), flag=("collision_terminates", "observe_path"))
         if self.slip is not None and not (isinstance(self.slip, (int, float)) and 0 <= self.slip < 1):
             raise ConfigError("slip", f"must be in [0, 1), got {self.slip!r}")
         check_choice(self, "label_mode", LABEL_MODES)

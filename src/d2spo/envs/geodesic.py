@@ -124,3 +124,15 @@ def lookup(fields: jnp.ndarray, xy: jnp.ndarray, spacing: float = SPACING, index
     f10 = fields[index, y0 + 1, x0]
     f11 = fields[index, y0 + 1, x0 + 1]
     return (1 - ty) * ((1 - tx) * f00 + tx * f01) + ty * ((1 - tx) * f10 + tx * f11)
+
+
+def descent(fields: jnp.ndarray, xy: jnp.ndarray, index, eps: float = 2 * SPACING,
+            spacing: float = SPACING) -> jnp.ndarray:
+    """[2]: unit vector of steepest descent of the bilinear field ``fields[index]`` at xy, by central
+    differences ``eps`` either side (two grid spacings: the 8-neighbour fields bend at single
+    nodes); 0 where the field is flat."""
+    at = lambda d: lookup(fields, xy + d, spacing, index=index)  # noqa: E731
+    grad = jnp.stack([at(jnp.array([eps, 0.0])) - at(jnp.array([-eps, 0.0])),
+                      at(jnp.array([0.0, eps])) - at(jnp.array([0.0, -eps]))])
+    norm = jnp.sqrt(grad[0] * grad[0] + grad[1] * grad[1])
+    return jnp.where(norm > 0, -grad / jnp.where(norm > 0, norm, 1.0), 0.0)

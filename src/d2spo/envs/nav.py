@@ -148,7 +148,9 @@ class Env:
     * ``pose`` [4]: x, y scaled to [-1, 1] over the arena, cos(theta), sin(theta);
     * ``areas`` [2N]: each area centre in the robot frame (forward, left), divided by the arena's
       longer side, area by area;
-    * ``automaton`` [Q]: one-hot of the relaxed automaton state q.
+    * ``automaton`` [Q]: one-hot of the relaxed automaton state q;
+    * ``path`` [2], with ``EnvConfig.observe_path`` only: the direction of steepest descent of state
+      q's shaping field at the robot (``geodesic.descent``) in the robot frame (forward, left).
     """
 
     action_size = 2
@@ -175,6 +177,9 @@ class Env:
         }
         """Where each part of the observation lies."""
         self.observation_size = k + 4 + 2 * n + n_states
+        if config.observe_path:
+            self.observation_slices["path"] = slice(self.observation_size, self.observation_size + 2)
+            self.observation_size += 2
 
     # ------------------------------------------------------------------------- observation
 
@@ -209,7 +214,11 @@ class Env:
         left = (c * rel[:, 1] - s * rel[:, 0]) / jnp.max(extent)
         areas = jnp.stack([forward, left], axis=-1).reshape(-1)
         onehot = (jnp.arange(self.n_states) == state.q).astype(jnp.float32)
-        return jnp.concatenate([scan, xy_scaled, jnp.stack([c, s]), areas, onehot]).astype(jnp.float32)
+        parts = [scan, xy_scaled, jnp.stack([c, s]), areas, onehot]
+        if self.config.observe_path:
+            d = geodesic.descent(params.state_field, xy, state.q)
+            parts.append(jnp.stack([c * d[0] + s * d[1], c * d[1] - s * d[0]]))
+        return jnp.concatenate(parts).astype(jnp.float32)
 
     # ------------------------------------------------------------------------------ labelling
 
@@ -401,6 +410,9 @@ def make_env(cfg: EnvConfig, task: Any = "phi1") -> tuple[Env, EnvParams]:
     if max_steps is None:
         max_steps = state_fields.default_max_steps(automaton, layout, cfg.label_mode, cfg.robot_radius, cfg.dt, speed,
                                                    cfg.base_max_steps)
+    if cfg.observe_path and cfg.reward.shaping_metric != PER_STATE:
+        raise ConfigError("observe_path", f"needs --shaping-metric {PER_STATE} (the path is its field), got "
+                          f"{cfg.reward.shaping_metric!r}")
     if cfg.reward.shaping_metric == PER_STATE:
         name = task if isinstance(task, str) else "the task"
         state_fields.check_task(automaton, layout, cfg.label_mode, cfg.robot_radius, repr(name))

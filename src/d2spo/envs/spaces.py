@@ -53,4 +53,6 @@ def observation_bounds(env: Env) -> tuple[np.ndarray, np.ndarray]:
     reach = [np.max(np.hypot(*(corners - np.asarray(a.center)).T)) for a in env.layout.areas]
     area_hi = np.repeat(np.asarray(reach) / max(w, h), 2) + _ROUNDING  # (forward, left) per area
     low[sl["areas"]], high[sl["areas"]] = -area_hi, area_hi
+    if "path" in sl:
+        low[sl["path"]], high[sl["path"]] = -1.0 - _ROUNDING, 1.0 + _ROUNDING
     return low, high
