@@ -22,7 +22,9 @@ def untrained_eval(cfg, episodes: int) -> dict:
 
 def assert_trains_without_nans_and_improves(cfg, run_dir) -> None:
     """300 episodes (of at most 200 steps: the tests set ``max_steps=200``, the limit they were
-    written for): collisions fall by 0.2 from the first to the last 75 episodes, and the final
+    written for): collisions fall by at least half, and by at least 0.08, from the first to the
+    last 75 episodes (the first 75 collide in 0.1-0.12 of episodes for rcrl and td3-lag since the
+    path direction joined the observation; 0.2 was the fall asked before), and the final
     policy's evaluation return beats the untrained one's by 1 (``eval_untrained``, the same
     episodes and compilation as the final evaluation)."""
     summary = train(dataclasses.replace(cfg, eval_untrained=True), run_dir)  # raises NaNError on NaNs
@@ -31,5 +33,7 @@ def assert_trains_without_nans_and_improves(cfg, run_dir) -> None:
         rows = np.array([[float(r[1]), float(r[3])] for r in list(csv.reader(f))[1:]])
     assert len(rows) == 300 and cfg.env.max_steps == 200
     collided_first, collided_last = rows[:75, 1].mean(), rows[-75:, 1].mean()
-    assert collided_last < collided_first - 0.2, (collided_first, collided_last)  # it learns to be safe
+    # it learns to be safe
+    assert collided_last <= 0.5 * collided_first and collided_last <= collided_first - 0.08, (collided_first,
+                                                                                               collided_last)
     assert summary["eval"]["mean_return"] > untrained["mean_return"] + 1.0, (untrained, summary["eval"])
