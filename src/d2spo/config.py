@@ -190,10 +190,10 @@ FORMER_DEFAULTS: dict[tuple[str, ...], Any] = {
     ("env", "reward", "shaping_metric"): "geodesic",  # today's default is geodesic-per-state (issue 15)
     ("anneal", "relax"): "all",  # the field came with the option "targets", which became the default
     ("validation_layouts",): 0,  # generalists trained before validation kept their last policy
-    ("env", "base_max_steps"): 200,
+    ("env", "base_max_steps"): 200,  # an unset max_steps gave 200 steps before issue 15's passages
     ("env", "reward", "shaping_clearance_cost"): 10.0,  # the per-state field's clearance band cost 10x until 2026-11-25
     ("env", "reward", "shaping_collide_cost"): 10.0,
-    ("env", "observe_path"): False,  # the observation had no path direction until 2026-11-25  # an unset max_steps gave 200 steps before issue 15's passages
+    ("env", "observe_path"): False,  # the observation had no path direction until 2026-11-25
 }
 """Settings whose default has changed, with the value a config.json that does not mention them was
 trained with (the field did not exist yet, and its old behaviour is this value)."""

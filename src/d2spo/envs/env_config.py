@@ -98,5 +98,8 @@ class EnvConfig:
         if self.slip is not None and not (isinstance(self.slip, (int, float)) and 0 <= self.slip < 1):
             raise ConfigError("slip", f"must be in [0, 1), got {self.slip!r}")
         check_choice(self, "label_mode", LABEL_MODES)
+        if self.observe_path and self.reward.shaping_metric != PER_STATE:
+            raise ConfigError("observe_path", f"needs --shaping-metric {PER_STATE} (the path is its field), got "
+                              f"{self.reward.shaping_metric!r}")
         if not isinstance(self.layout, str):
             raise ConfigError("layout", f"expected a layout name or a JSON path, got {self.layout!r}")

@@ -410,9 +410,6 @@ def make_env(cfg: EnvConfig, task: Any = "phi1") -> tuple[Env, EnvParams]:
     if max_steps is None:
         max_steps = state_fields.default_max_steps(automaton, layout, cfg.label_mode, cfg.robot_radius, cfg.dt, speed,
                                                    cfg.base_max_steps)
-    if cfg.observe_path and cfg.reward.shaping_metric != PER_STATE:
-        raise ConfigError("observe_path", f"needs --shaping-metric {PER_STATE} (the path is its field), got "
-                          f"{cfg.reward.shaping_metric!r}")
     if cfg.reward.shaping_metric == PER_STATE:
         name = task if isinstance(task, str) else "the task"
         state_fields.check_task(automaton, layout, cfg.label_mode, cfg.robot_radius, repr(name))
