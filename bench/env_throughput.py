@@ -7,7 +7,7 @@ Each measurement runs ``n_steps`` steps of all environments inside one jit-compi
 ``block_until_ready``. The observations, rewards and costs feed a checksum so that no part of the
 step can be optimised away.
 
-    python bench/env_throughput.py [--layout paper] [--task phi1] [--repeats 3]
+    python bench/env_throughput.py [--layout paper] [--task phi1] [--repeats 3] [--observe-path off]
 
 The last line of output is a JSON object {"1": steps/s, "64": ..., "1024": ..., "16384": ...}
 (wall clock). Each line before it also gives steps per CPU-second of the process, which is less
@@ -69,9 +69,12 @@ def main() -> None:
     parser.add_argument("--preset", default="default")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--sizes", default="1,64,1024,16384")
+    parser.add_argument("--observe-path", choices=["auto", "on", "off"], default="auto",
+                        help="the path direction in the observation (auto: on with the default shaping)")
     args = parser.parse_args()
 
-    env, params = make_env(EnvConfig(layout=args.layout, preset=args.preset), args.task)
+    observe_path = {"auto": None, "on": True, "off": False}[args.observe_path]
+    env, params = make_env(EnvConfig(layout=args.layout, preset=args.preset, observe_path=observe_path), args.task)
     print(f"jax {jax.__version__} on {jax.devices()[0].platform}; layout={args.layout} task={args.task} "
           f"preset={args.preset} obs={env.observation_size} rays={env.n_rays} obstacles={env.n_obstacles}")
     results = {}

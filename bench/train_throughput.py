@@ -1,7 +1,7 @@
 """Env steps per second of training (acting, env step, buffers and every update), per learner.
 
     .venv/bin/python bench/train_throughput.py [--algos d2spo tlgrl ...] [--chunks 4]
-        [--shaping-metric geodesic-per-state] [--td3-hidden 256 256 --td3-batch 256 --learning-starts 0]
+        [--shaping-metric geodesic] [--observe-path off] [--td3-hidden 256 256 --td3-batch 256 --learning-starts 0]
 
 Compile time is excluded (one warm-up chunk); each figure is the mean over ``--chunks`` timed chunks.
 The last line of output is one JSON object {algo: env_steps_per_second}.
@@ -23,8 +23,9 @@ from d2spo.train import build
 
 
 def measure(algo: str, task: str, layout: str, chunks: int, num_envs: int, hidden=None, batch=None,
-            learning_starts=None, shaping_metric: str = "geodesic") -> tuple[float, float]:
-    env = EnvConfig(layout=layout, reward=RewardConfig(shaping_metric=shaping_metric))
+            learning_starts=None, shaping_metric: str = RewardConfig.shaping_metric,
+            observe_path: bool | None = None) -> tuple[float, float]:
+    env = EnvConfig(layout=layout, reward=RewardConfig(shaping_metric=shaping_metric), observe_path=observe_path)
     cfg = TrainConfig(algo=algo, task=task, env=env, num_envs=num_envs)
     changes = {k: v for k, v in (("hidden", tuple(hidden) if hidden else None), ("batch_size", batch),
                                  ("learning_starts", learning_starts)) if v is not None}
@@ -55,7 +56,10 @@ def main() -> None:
     ap.add_argument("--algos", nargs="+", default=["d2spo", "tlgrl"])
     ap.add_argument("--task", default="phi1")
     ap.add_argument("--layout", default="paper")
-    ap.add_argument("--shaping-metric", default="geodesic", help="geodesic, euclidean or geodesic-per-state")
+    ap.add_argument("--shaping-metric", default=RewardConfig.shaping_metric,
+                    help="geodesic-per-state (default), geodesic or euclidean")
+    ap.add_argument("--observe-path", choices=["auto", "on", "off"], default="auto",
+                    help="the path direction in the observation (auto: on with geodesic-per-state)")
     ap.add_argument("--chunks", type=int, default=4)
     ap.add_argument("--num-envs", type=int, default=TrainConfig().num_envs)
     ap.add_argument("--td3-hidden", type=int, nargs="+", help="TD3 widths (td3, tlgrl, sl, d2spo)")
@@ -65,7 +69,8 @@ def main() -> None:
     out = {}
     for algo in args.algos:
         sps, warm = measure(algo, args.task, args.layout, args.chunks, args.num_envs, args.td3_hidden,
-                            args.td3_batch, args.learning_starts, args.shaping_metric)
+                            args.td3_batch, args.learning_starts, args.shaping_metric,
+                            {"auto": None, "on": True, "off": False}[args.observe_path])
         print(f"{algo:8s} {sps:10,.0f} env steps/s   (init + compile + first chunk: {warm:.1f} s)", flush=True)
         out[algo] = round(sps, 1)
     print(json.dumps(out))

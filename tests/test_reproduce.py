@@ -120,6 +120,33 @@ def test_runs_finished_by_another_process_meanwhile_are_kept(tmp_path, monkeypat
     assert (rp.run_dir(tmp_path, specs[0]) / "summary.json").is_file()
 
 
+def test_runs_another_process_is_training_are_skipped_untouched(tmp_path):
+    """Two ``reproduce`` processes on one OUT: a group whose run the other process is training (its
+    lock held, no checkpoint yet) is skipped with a line saying so, and none of its directories is
+    deleted; before, the group's unstarted directories were removed from under the live training."""
+    from d2spo.runio import RunLock, run_holder
+
+    specs = [rp.RunSpec("ppo-lag", "relaxed", "relaxed", s, TINY_EPISODES) for s in (0, 1)]
+    dirs = [rp.run_dir(tmp_path, s) for s in specs]
+    for d in dirs:
+        d.mkdir(parents=True)
+        (d / "episodes.csv").write_text("partial\n")  # started, no checkpoint: discarded if not in use
+    assert run_holder(dirs[1]) is None
+    with RunLock(dirs[1]):  # the other process, training seed 1
+        assert run_holder(dirs[1]).startswith("pid ")
+        logs = []
+        rp.run_local(specs, tmp_path, progress=False, log=logs.append)
+        with pytest.raises(UserError, match="in use by another training"):
+            rp._discard_unstarted(*dirs)
+    assert any(line.startswith("  skipped: ") and "in use by another training" in line for line in logs)
+    assert "1 group skipped" in logs[-1]
+    for d in dirs:  # neither seed's directory was touched, nor trained
+        assert (d / "episodes.csv").read_text() == "partial\n" and not (d / "summary.json").exists()
+    assert run_holder(dirs[1]) is None  # released with the lock
+    rp._discard_unstarted(*dirs)  # free again: discarded
+    assert not any(d.exists() for d in dirs)
+
+
 def test_report_says_per_section_how_it_was_rendered(tmp_path):
     """Tables and figures rendered by different invocations (different seeds) each keep their own
     provenance line in the report; the last invocation does not overwrite the earlier ones."""

@@ -32,6 +32,10 @@ class RunDirError(UserError):
     """A run directory is missing, incomplete or incompatible."""
 
 
+class RunInUseError(RunDirError):
+    """A run directory is locked by a training in another process (``runio.RunLock``)."""
+
+
 class NaNError(RuntimeError):
     """Training produced a non-finite value. Raised instead of training through it."""
 

@@ -25,7 +25,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
-from d2spo.errors import UserError
+from d2spo.errors import RunInUseError, UserError
 from d2spo.runio import atomic_write_json
 
 TARGETS = ("table2", "table3", "fig2", "fig3", "fig4", "fig5")
@@ -182,13 +182,21 @@ def _rendered_history(out: Path, targets: list[str], seeds: int, episodes: int, 
     return old
 
 
-def _discard_unstarted(d: Path) -> None:
-    """A run directory without a checkpoint to resume from is started again from scratch. A finished
+def _discard_unstarted(*dirs: Path) -> None:
+    """Run directories without a checkpoint to resume from are started again from scratch. A finished
     one is kept: another ``reproduce`` on the same OUT may have finished it since this one listed
-    what to train."""
-    if d.exists() and not (d / "summary.json").is_file():
-        import shutil
+    what to train. If another process is training any of them (before its first checkpoint), none
+    is touched: RunInUseError."""
+    import shutil
 
+    from d2spo.runio import run_holder
+
+    unstarted = [Path(d) for d in dirs if Path(d).exists() and not (Path(d) / "summary.json").is_file()]
+    for d in unstarted:
+        holder = run_holder(d)
+        if holder is not None:
+            raise RunInUseError(f"{d}: in use by another training ({holder})")
+    for d in unstarted:
         shutil.rmtree(d)
 
 
@@ -240,8 +248,7 @@ def train_group(specs: list[RunSpec], out: Path, progress: bool = False) -> list
     outs = [run_dir(out, s) for s in specs]
     group = group_dir(outs)
     if not (group / "checkpoint.json").is_file():
-        for o in outs:
-            _discard_unstarted(o)
+        _discard_unstarted(*outs)
     cfgs = [s.config() for s in specs]
     if progress:
         return train_seeds_with_progress(cfgs, outs, True)
@@ -265,6 +272,7 @@ def run_local(specs: list[RunSpec], out: Path, progress: bool = True, log: Calla
         together = vmap_seeds and _fresh_or_resumable(out, s)
         key = dataclasses.replace(s, seed=-1) if together else s
         groups.setdefault(key, []).append(s)
+    busy: list[str] = []
     for i, members in enumerate(groups.values(), 1):
         m = members[0]
         seeds = ", ".join(str(x.seed) for x in members)
@@ -273,10 +281,17 @@ def run_local(specs: list[RunSpec], out: Path, progress: bool = True, log: Calla
         if all(is_finished(out, x) for x in members):  # another process on the same OUT finished them
             log("  finished meanwhile (another process on the same OUT): reused")
             continue
-        if len(members) == 1:
-            train_one(m, str(out), progress)
-        else:
-            train_group(members, out, progress)
+        try:
+            if len(members) == 1:
+                train_one(m, str(out), progress)
+            else:
+                train_group(members, out, progress)
+        except RunInUseError as e:  # another process on the same OUT is training it: leave it to that one
+            busy.append(str(e))
+            log(f"  skipped: {e}")
+    if busy:
+        log(f"{len(busy)} group{'s' if len(busy) > 1 else ''} skipped, being trained by another process; "
+            "once it ends, run the same command again to train what is left and render the rest")
 
 
 def run_ray(specs: list[RunSpec], out: Path, address: str | None = None, num_cpus: int | None = None,

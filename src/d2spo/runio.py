@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from d2spo.errors import RunDirError
+from d2spo.errors import RunDirError, RunInUseError
 
 try:
     import fcntl
@@ -137,8 +137,8 @@ class RunLock:
             except BlockingIOError:
                 holder = os.read(fd, 200).decode(errors="replace").strip() or "unknown holder"
                 os.close(fd)
-                raise RunDirError(f"{self.dir}: in use by another training ({holder}); wait for it to end or "
-                                  "stop it, or use another directory") from None
+                raise RunInUseError(f"{self.dir}: in use by another training ({holder}); wait for it to end or "
+                                    "stop it, or use another directory") from None
             try:
                 same = os.path.samestat(os.fstat(fd), os.stat(self.path))
             except FileNotFoundError:
@@ -157,6 +157,26 @@ class RunLock:
             remove_file(self.path)
             os.close(self._fd)
             self._fd = None
+
+
+def run_holder(run_dir: Path) -> str | None:
+    """Who holds ``RunLock(run_dir)`` now (its line, e.g. ``pid 12 on host, since …``), or None when
+    no training holds it. Probes without creating anything, for callers that are about to change
+    the directory and must not pull it from under a live training."""
+    path = Path(run_dir) / ".lock"
+    if fcntl is None or not path.is_file():  # pragma: no cover (no flock)
+        return None
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except FileNotFoundError:  # removed by its holder as it finished
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return os.read(fd, 200).decode(errors="replace").strip() or "unknown holder"
+    finally:
+        os.close(fd)
+    return None
 
 
 class EpisodeWriter:
