@@ -272,7 +272,7 @@ def run_local(specs: list[RunSpec], out: Path, progress: bool = True, log: Calla
         together = vmap_seeds and _fresh_or_resumable(out, s)
         key = dataclasses.replace(s, seed=-1) if together else s
         groups.setdefault(key, []).append(s)
-    busy: list[str] = []
+    busy = 0
     for i, members in enumerate(groups.values(), 1):
         m = members[0]
         seeds = ", ".join(str(x.seed) for x in members)
@@ -287,10 +287,10 @@ def run_local(specs: list[RunSpec], out: Path, progress: bool = True, log: Calla
             else:
                 train_group(members, out, progress)
         except RunInUseError as e:  # another process on the same OUT is training it: leave it to that one
-            busy.append(str(e))
+            busy += 1
             log(f"  skipped: {e}")
     if busy:
-        log(f"{len(busy)} group{'s' if len(busy) > 1 else ''} skipped, being trained by another process; "
+        log(f"{busy} group{'s' if busy > 1 else ''} skipped, being trained by another process; "
             "once it ends, run the same command again to train what is left and render the rest")
 
 

@@ -135,7 +135,7 @@ class RunLock:
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
-                holder = os.read(fd, 200).decode(errors="replace").strip() or "unknown holder"
+                holder = _holder_line(fd)
                 os.close(fd)
                 raise RunInUseError(f"{self.dir}: in use by another training ({holder}); wait for it to end or "
                                     "stop it, or use another directory") from None
@@ -159,21 +159,26 @@ class RunLock:
             self._fd = None
 
 
+def _holder_line(fd: int) -> str:
+    """The line a ``RunLock`` holder wrote into its lock file."""
+    return os.read(fd, 200).decode(errors="replace").strip() or "unknown holder"
+
+
 def run_holder(run_dir: Path) -> str | None:
     """Who holds ``RunLock(run_dir)`` now (its line, e.g. ``pid 12 on host, since …``), or None when
     no training holds it. Probes without creating anything, for callers that are about to change
     the directory and must not pull it from under a live training."""
     path = Path(run_dir) / ".lock"
-    if fcntl is None or not path.is_file():  # pragma: no cover (no flock)
+    if fcntl is None:  # pragma: no cover (no flock)
         return None
     try:
         fd = os.open(path, os.O_RDONLY)
-    except FileNotFoundError:  # removed by its holder as it finished
+    except FileNotFoundError:  # never locked, or removed by its holder as it finished
         return None
     try:
         fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
     except BlockingIOError:
-        return os.read(fd, 200).decode(errors="replace").strip() or "unknown holder"
+        return _holder_line(fd)
     finally:
         os.close(fd)
     return None
