@@ -106,6 +106,43 @@ def test_same_seed_same_run_and_resume_is_exact(tmp_path):
         assert a[k] == b[k], k
 
 
+def test_a_checkpoint_taken_before_an_interrupt_is_written_and_resumes_exactly(tmp_path, monkeypatch):
+    """Interrupted (Ctrl-C) as the fourth chunk starts, a run has the checkpoint taken after the
+    third, and resumes from it to the episodes of an uninterrupted run."""
+    import d2spo.train as train_mod
+
+    cfg = tiny(checkpoint_every=1, chunk_steps=40)  # episodes end in every chunk: a checkpoint after each
+    train(cfg, tmp_path / "a")
+    real, calls = train_mod.learner_program, []
+
+    def interrupted_at_chunk_4(learner, name, vmapped=False, donate=False):
+        fn = real(learner, name, vmapped, donate)
+        if name != "chunk":
+            return fn
+
+        class Chunk:
+            def __call__(self, carry):
+                calls.append(1)
+                if len(calls) == 4:
+                    raise KeyboardInterrupt
+                return fn(carry)
+
+            def lower(self, carry):
+                return fn.lower(carry)
+
+        return Chunk()
+
+    monkeypatch.setattr(train_mod, "learner_program", interrupted_at_chunk_4)
+    with pytest.raises(KeyboardInterrupt):
+        train(cfg, tmp_path / "b")
+    monkeypatch.setattr(train_mod, "learner_program", real)
+    manifest = json.loads((tmp_path / "b" / "checkpoint.json").read_text())
+    written = rows(tmp_path / "b" / "episodes.csv")
+    assert manifest["meta"]["chunks"] == 3 and manifest["meta"]["episodes"] == len(written) - 1 > 0
+    train(cfg, tmp_path / "b", resume=True)
+    assert rows(tmp_path / "a" / "episodes.csv") == rows(tmp_path / "b" / "episodes.csv")
+
+
 def test_other_seed_differs(tmp_path):
     train(tiny(), tmp_path / "a")
     train(tiny(seed=1), tmp_path / "b")
