@@ -107,35 +107,24 @@ def test_same_seed_same_run_and_resume_is_exact(tmp_path):
 
 
 def test_a_checkpoint_taken_before_an_interrupt_is_written_and_resumes_exactly(tmp_path, monkeypatch):
-    """Interrupted (Ctrl-C) as the fourth chunk starts, a run has the checkpoint taken after the
-    third, and resumes from it to the episodes of an uninterrupted run."""
+    """Interrupted (Ctrl-C) in the fourth chunk, a run has the checkpoint taken after the third, and
+    resumes from it to the episodes of an uninterrupted run."""
     import d2spo.train as train_mod
 
     cfg = tiny(checkpoint_every=1, chunk_steps=40)  # episodes end in every chunk: a checkpoint after each
     train(cfg, tmp_path / "a")
-    real, calls = train_mod.learner_program, []
+    record, calls = train_mod._Run.record, []
 
-    def interrupted_at_chunk_4(learner, name, vmapped=False, donate=False):
-        fn = real(learner, name, vmapped, donate)
-        if name != "chunk":
-            return fn
+    def interrupted_in_chunk_4(run, log, progress):  # as tests/test_fault_battery.py interrupts a group
+        calls.append(run)
+        if len(calls) == 4:
+            raise KeyboardInterrupt
+        record(run, log, progress)
 
-        class Chunk:
-            def __call__(self, carry):
-                calls.append(1)
-                if len(calls) == 4:
-                    raise KeyboardInterrupt
-                return fn(carry)
-
-            def lower(self, carry):
-                return fn.lower(carry)
-
-        return Chunk()
-
-    monkeypatch.setattr(train_mod, "learner_program", interrupted_at_chunk_4)
+    monkeypatch.setattr(train_mod._Run, "record", interrupted_in_chunk_4)
     with pytest.raises(KeyboardInterrupt):
         train(cfg, tmp_path / "b")
-    monkeypatch.setattr(train_mod, "learner_program", real)
+    monkeypatch.setattr(train_mod._Run, "record", record)
     manifest = json.loads((tmp_path / "b" / "checkpoint.json").read_text())
     written = rows(tmp_path / "b" / "episodes.csv")
     assert manifest["meta"]["chunks"] == 3 and manifest["meta"]["episodes"] == len(written) - 1 > 0
