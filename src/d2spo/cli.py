@@ -18,6 +18,7 @@ from typing import Annotated, Union
 
 import tyro
 
+from d2spo import compile_cache
 from d2spo.certify import CertifyConfig
 from d2spo.config import TrainConfig
 from d2spo.console import error, show_warning, tyro_error_line, version
@@ -447,7 +448,9 @@ def main(argv: list[str] | None = None) -> int:
         with warnings.catch_warnings():
             warnings.simplefilter("always", D2SPOWarning)
             warnings.showwarning = show_warning
-            return int(parse(args).run() or 0)
+            cmd = parse(args)
+            compile_cache.enable()  # before the first compilation: d2spo/compile_cache.py
+            return int(cmd.run() or 0)
     except LTLSyntaxError as e:
         error(f"{e} in {e.formula!r}")
         if sys.stderr.isatty():  # an interactive user also gets the caret under the column

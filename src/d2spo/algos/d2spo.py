@@ -121,6 +121,7 @@ class D2SPOLearner(TD3Learner):
         self.n_obstacles = int(params.geom.box_lo.shape[0])
         self.pose_slice = env.observation_slices.get("pose")  # None: x is read off the obs otherwise (algos/generalist.py)
         self.n_features = env.n_rays + 1
+        self._safety_metrics = None  # shapes of UPDATE(Ω, Θ)'s metrics, traced once (``_iteration``)
 
     @property
     def arena_lo(self) -> jax.Array:  # from self.params, so a learner acting on other params follows them
@@ -242,10 +243,10 @@ class D2SPOLearner(TD3Learner):
             return update(k_safe, s, data, nets=self.safety_nets, cfg=self.cbf_cfg, features_fn=self.features,
                           dt=self.dt, u_rl_fn=u_rl_fn)
 
-        template = jax.eval_shape(safety_update, c.safety)[1]
-
-        def skip(s):
-            return s, jax.tree_util.tree_map(lambda t: jnp.full(t.shape, jnp.nan, t.dtype), template)
+        def skip(s):  # no update this step: the update's metrics as NaN (their shapes traced once per learner)
+            if self._safety_metrics is None:
+                self._safety_metrics = jax.eval_shape(safety_update, c.safety)[1]
+            return s, jax.tree_util.tree_map(lambda t: jnp.full(t.shape, jnp.nan, t.dtype), self._safety_metrics)
 
         enough = data.p_exp.size >= self.cbf_cfg.batch_size
         if due is None:  # the schedule from the step count: a branch

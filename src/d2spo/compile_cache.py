@@ -1,0 +1,69 @@
+"""The persistent XLA compilation cache every ``d2spo`` command uses.
+
+A program XLA compiled once (a learner's chunk, an evaluation's rollout, a certification's grid)
+is kept on disk and loaded instead of compiled when a later command builds the same program: a
+second ``d2spo demo``, a second ``d2spo eval`` of a run, or a new seed of a config already trained.
+The entry's key is JAX's: a hash of the program itself, the jax/jaxlib versions, the XLA flags and
+the device, so a changed program or another version is a new entry, never a wrong hit.
+
+Where it lives (``cache_dir``):
+
+* ``$D2SPO_COMPILE_CACHE`` if set: a directory, or ``off`` (also ``0``, ``false``, ``no``) to disable;
+* else ``$XDG_CACHE_HOME/d2spo/jax``, else ``~/.cache/d2spo/jax``.
+
+A cache JAX was already told to use (``JAX_COMPILATION_CACHE_DIR``, or ``jax.config`` before the
+command) is kept. The cache is capped at ``MAX_BYTES`` (least recently used entries go first). A
+damaged entry is a miss: JAX warns and compiles afresh (``tests/test_compile_cache.py``); a cache
+directory that cannot be made turns the cache off with one warning.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from pathlib import Path
+
+import jax
+
+from d2spo.errors import D2SPOWarning
+
+ENV_VAR = "D2SPO_COMPILE_CACHE"
+"""The environment variable that moves (a directory) or disables (``off``) the cache."""
+OFF = frozenset({"off", "0", "false", "no", "none"})
+MAX_BYTES = 4 * 1024**3
+"""Size cap of the cache directory: the least recently used entries are deleted beyond it."""
+MIN_COMPILE_SECONDS = 0.5
+"""Programs that compile faster than this are not worth a disk entry."""
+
+
+def cache_dir(environ: dict | None = None) -> Path | None:
+    """The directory the commands' cache uses, or None when ``$D2SPO_COMPILE_CACHE`` turns it off."""
+    env = os.environ if environ is None else environ
+    value = env.get(ENV_VAR)
+    if value is not None and value.strip():
+        return None if value.strip().lower() in OFF else Path(value).expanduser()
+    base = env.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "d2spo" / "jax"
+
+
+def enable(environ: dict | None = None) -> Path | None:
+    """Point JAX's persistent compilation cache at ``cache_dir()``; returns the directory in use
+    (None: off). A directory JAX was already given is kept. Call before the first compilation."""
+    current = jax.config.jax_compilation_cache_dir
+    if current:
+        return Path(current)
+    path = cache_dir(environ)
+    if path is None:
+        return None
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        if not os.access(path, os.W_OK | os.X_OK):
+            raise PermissionError(f"{path}: not writable")
+    except OSError as e:
+        warnings.warn(f"the compilation cache is off: {e} (set {ENV_VAR} to another directory, or to 'off')",
+                      D2SPOWarning, stacklevel=2)
+        return None
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_SECONDS)
+    jax.config.update("jax_compilation_cache_max_size", MAX_BYTES)
+    return path

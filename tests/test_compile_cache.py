@@ -1,0 +1,97 @@
+"""The commands' persistent compilation cache (d2spo/compile_cache.py)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from d2spo import compile_cache
+
+
+def test_the_cache_directory_follows_the_environment(tmp_path):
+    home_default = compile_cache.cache_dir({})
+    assert home_default == Path.home() / ".cache" / "d2spo" / "jax"
+    assert compile_cache.cache_dir({"XDG_CACHE_HOME": str(tmp_path)}) == tmp_path / "d2spo" / "jax"
+    moved = tmp_path / "elsewhere"
+    assert compile_cache.cache_dir({compile_cache.ENV_VAR: str(moved), "XDG_CACHE_HOME": "/x"}) == moved
+    for off in ("off", "OFF", "0", "false", " no "):
+        assert compile_cache.cache_dir({compile_cache.ENV_VAR: off}) is None
+    assert compile_cache.cache_dir({compile_cache.ENV_VAR: ""}) == home_default  # empty: unset
+
+
+def test_a_cache_jax_already_uses_is_kept():
+    import jax
+
+    before = jax.config.jax_compilation_cache_dir
+    assert before  # tests/conftest.py sets the tests' own cache
+    assert compile_cache.enable({compile_cache.ENV_VAR: "/nonexistent/elsewhere"}) == Path(before)
+    assert jax.config.jax_compilation_cache_dir == before
+
+
+# A fresh interpreter: enable the cache from the environment, compile two programs, print results.
+_PROGRAM = r"""
+import sys, warnings
+import jax, jax.numpy as jnp
+from d2spo import compile_cache
+from d2spo.console import show_warning
+warnings.showwarning = show_warning
+path = compile_cache.enable()
+print("dir", path)
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)  # cache even these small programs
+f = jax.jit(lambda x: jnp.sin(x) * 3.0 + jnp.cumsum(x))
+g = jax.jit(lambda x: jnp.cos(x) - 2.0)
+x = jnp.arange(8.0)
+print("f", float(jnp.sum(f(x))), "g", float(jnp.sum(g(x))))
+"""
+
+
+def _run(env_dir: str) -> subprocess.CompletedProcess:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("JAX_")}
+    env[compile_cache.ENV_VAR] = env_dir
+    return subprocess.run([sys.executable, "-c", _PROGRAM], env=env, capture_output=True, text=True, timeout=120)
+
+
+def _entries(d: Path) -> list[Path]:
+    return sorted(p for p in d.rglob("*-cache") if p.is_file())
+
+
+@pytest.mark.parametrize("damage", ["truncate", "garbage", "flip"])
+def test_a_damaged_entry_is_a_warning_and_a_fresh_compilation(tmp_path, damage):
+    first = _run(str(tmp_path))
+    assert first.returncode == 0, first.stderr
+    entries = _entries(tmp_path)
+    assert len(entries) >= 2  # two programs, two entries (a changed program is a new entry)
+    expected = first.stdout.splitlines()[-1]
+    for e in entries:
+        data = e.read_bytes()
+        if damage == "truncate":
+            e.write_bytes(data[: len(data) // 3])
+        elif damage == "garbage":
+            e.write_bytes(b"not a cache entry" * 7)
+        else:
+            mid = len(data) // 2
+            e.write_bytes(data[:mid] + bytes([data[mid] ^ 0xFF]) + data[mid + 1:])
+    second = _run(str(tmp_path))
+    assert second.returncode == 0, second.stderr
+    assert second.stdout.splitlines()[-1] == expected
+    assert "d2spo: warning: a damaged compilation cache entry was ignored" in second.stderr
+    assert "Traceback" not in second.stderr
+
+
+def test_the_cache_can_be_turned_off(tmp_path):
+    off = _run("off")
+    assert off.returncode == 0, off.stderr
+    assert "dir None" in off.stdout
+
+
+def test_an_unwritable_cache_directory_is_one_warning(tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("a file where the cache directory would go")
+    res = _run(str(blocker / "cache"))
+    assert res.returncode == 0, res.stderr
+    assert "dir None" in res.stdout
+    assert "d2spo: warning: the compilation cache is off" in res.stderr
