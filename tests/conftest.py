@@ -12,6 +12,9 @@ import d2spo  # noqa: F401  (sets XLA flags before the first computation starts 
 _CACHE = Path(os.environ.get("D2SPO_TEST_JAX_CACHE", Path(__file__).resolve().parent.parent / ".pytest_cache" / "jax"))
 jax.config.update("jax_compilation_cache_dir", str(_CACHE))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+# `d2spo` commands the tests start in child processes (tests/test_reproduce.py's Ray backend, the
+# command-line checks) use the same cache (d2spo/compile_cache.py), not the user's ~/.cache/d2spo.
+os.environ["D2SPO_COMPILE_CACHE"] = str(_CACHE)
 
 # Property tests draw the same examples on every run (CI included), so a green tree stays green;
 # `HYPOTHESIS_PROFILE=explore pytest ...` draws fresh ones to hunt for new counterexamples.

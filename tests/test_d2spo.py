@@ -5,6 +5,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import pytest
+from _reproduce import FIG5_EPISODES
 
 from d2spo.config import TrainConfig
 from d2spo.envs import EnvConfig
@@ -15,7 +16,9 @@ from d2spo.train import build
 def test_cautious_start_makes_random_exploration_safe():
     """Before any env step, π_Ω (pre-trained on synthetic sensed data only) turns uniform random
     proposals, which crash in most episodes on the paper layout, into mostly safe ones."""
-    cfg = TrainConfig(algo="d2spo", task="phi1", env=EnvConfig(layout="paper")).check()
+    # the config of the Fig. 5 run of tests/test_plots.py (episodes set the annealing rate, which
+    # init compiles in): the two tests share one compiled init through the persistent cache
+    cfg = TrainConfig(algo="d2spo", task="phi1", env=EnvConfig(layout="paper"), episodes=FIG5_EPISODES).check()
     env, params, learner = build(cfg)
     carry = jax.jit(learner.init)(jax.random.PRNGKey(0))
     raw = random_proposal_safety(learner, carry, env, params, shielded=False)

@@ -5,15 +5,13 @@ traceback: an interrupted `reproduce`, hyper-parameters out of range, bad `eval`
 from __future__ import annotations
 
 import csv
-import dataclasses
 import re
 
 import pytest
+from _reproduce import TINY_EPISODES, use_small_configs
 
 from d2spo import reproduce as rp
 from d2spo import train as train_mod
-
-TINY_EPISODES = 24
 
 
 def _exit_code(args: list[str]) -> int:
@@ -39,15 +37,7 @@ def test_interrupted_reproduce_resumes_its_seed_group_exactly(tmp_path, monkeypa
     """Two seeds trained as one vmapped group, stopped in their third chunk after the group and each
     seed had checkpointed: the rerun resumes the group (not each seed alone from its own checkpoint),
     so the tables are those of an uninterrupted run, and the group directory is removed."""
-    config = rp.RunSpec.config
-
-    def small(spec):  # checkpoints every 10 episodes, so the group and each seed checkpoint mid-run
-        c = config(spec)
-        ppo = dataclasses.replace(c.ppo_lag, hidden=(16, 16), rollout_steps=50, n_minibatches=4, epochs=2)
-        return dataclasses.replace(c, checkpoint_every=10, num_envs=4, chunk_steps=50, eval_episodes=4,
-                                   env=dataclasses.replace(c.env, max_steps=40), ppo_lag=ppo)
-
-    monkeypatch.setattr(rp.RunSpec, "config", small)
+    use_small_configs(monkeypatch)  # checkpoints every 10 episodes: the group and each seed checkpoint mid-run
     kw = {"seeds": 2, "episodes": TINY_EPISODES, "methods": ["ppo-lag"], "progress": False, "log": lambda s: None}
     rp.reproduce(["table3"], tmp_path / "a", **kw)
 

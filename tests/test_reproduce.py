@@ -10,12 +10,11 @@ import json
 import jax
 import numpy as np
 import pytest
+from _reproduce import TINY_EPISODES, use_small_configs
 
 from d2spo import reproduce as rp
 from d2spo.cli import main
 from d2spo.errors import UserError
-
-TINY_EPISODES = 24
 
 
 def test_targets_need_the_paper_runs():
@@ -52,7 +51,8 @@ def test_cli_input_errors_exit_2(tmp_path, capsys):
     assert len(err) == 5 and all(line.startswith("d2spo: error:") for line in err)
 
 
-def test_table3_trains_once_reuses_and_reports(tmp_path):
+def test_table3_trains_once_reuses_and_reports(tmp_path, monkeypatch):
+    use_small_configs(monkeypatch)  # the program of tests/test_fault_battery.py: compiled once per session
     out = tmp_path / "results"
     paths = rp.reproduce(["table3"], out, seeds=2, episodes=TINY_EPISODES, methods=["ppo-lag"], progress=False,
                          log=lambda s: None)
@@ -192,14 +192,11 @@ def test_runs_trained_with_other_settings_are_refused_unless_allowed(tmp_path, c
 
 
 def test_snapshots_are_saved_and_loaded(tmp_path):
-    from d2spo.algos.td3 import TD3Config
-    from d2spo.config import TrainConfig
-    from d2spo.envs import EnvConfig
+    from test_train import tiny  # its learner: the compiled chunk of tests/test_train.py is reused
+
     from d2spo.train import build, load_snapshot, snapshot_path, train
 
-    cfg = TrainConfig(algo="tlgrl", task="relaxed", env=EnvConfig(layout="relaxed"), episodes=40, num_envs=8,
-                      chunk_steps=50, eval_episodes=0, snapshots=(5, 40),
-                      td3=TD3Config(hidden=(16,), batch_size=32, learning_starts=200)).check()
+    cfg = tiny(eval_episodes=0, snapshots=(5, 40))
     train(cfg, tmp_path / "run")
     assert snapshot_path(tmp_path / "run", 5).is_file() and snapshot_path(tmp_path / "run", 40).is_file()
     _, _, learner = build(cfg)

@@ -43,7 +43,7 @@ def test_import_sets_the_scheduler_flag_and_keeps_a_users_choice(monkeypatch):
 def test_vmapped_orthogonal_init_finishes_in_a_fresh_process():
     """Runs in a child with no compilation cache, so the program is compiled under the flag; a
     hang fails the test at the timeout instead of blocking the suite."""
-    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_COMPILATION_CACHE_DIR")}
+    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_COMPILATION_CACHE_DIR", "D2SPO_COMPILE_CACHE")}
     try:
         r = subprocess.run([sys.executable, "-c", _VMAPPED_INIT], env=env, capture_output=True, text=True, timeout=180)
     except subprocess.TimeoutExpired:

@@ -294,6 +294,15 @@ def run_local(specs: list[RunSpec], out: Path, progress: bool = True, log: Calla
             "once it ends, run the same command again to train what is left and render the rest")
 
 
+def _train_one_in_worker(spec: RunSpec, out: str, progress: bool = False) -> dict:
+    """``train_one`` in a Ray worker process, with the commands' compilation cache (a worker is a
+    fresh interpreter: d2spo/compile_cache.py)."""
+    from d2spo import compile_cache
+
+    compile_cache.enable()
+    return train_one(spec, out, progress)
+
+
 def run_ray(specs: list[RunSpec], out: Path, address: str | None = None, num_cpus: int | None = None,
             log: Callable[[str], None] = print) -> None:
     """One Ray task per unfinished run. ``address=None`` starts a local Ray instance."""
@@ -311,7 +320,7 @@ def run_ray(specs: list[RunSpec], out: Path, address: str | None = None, num_cpu
         ray.init(address=address, num_cpus=num_cpus, include_dashboard=False, log_to_driver=False,
                  ignore_reinit_error=True)
     try:
-        task = ray.remote(num_cpus=1)(train_one)
+        task = ray.remote(num_cpus=1)(_train_one_in_worker)
         refs = {task.remote(s, str(Path(out).resolve()), False): s for s in todo}
         pending = list(refs)
         while pending:

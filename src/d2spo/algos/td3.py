@@ -33,9 +33,10 @@ from d2spo.ltl.anneal import AnnealConfig
 class TD3Config:
     """TD3 hyper-parameters (defaults: Fujimoto et al., 2018, except where noted)."""
 
-    hidden: tuple[int, ...] = (128, 128)
-    """Hidden layer widths of actor and critics (Fujimoto et al.: 256; 128 is shared by every
-    TD3/SAC-based learner here and runs ~3.5x faster on a CPU; the paper gives no sizes)."""
+    hidden: tuple[int, ...] | None = None
+    """Hidden layer widths of actor and critics (Fujimoto et al.: 256; the paper gives no sizes).
+    None: ``TrainConfig`` picks per learner (``config.LEARNER_DEFAULTS``): 64-64 for D²SPO and SL on
+    one layout, 128-128 otherwise (also what a TD3Config used on its own means by None)."""
     actor_lr: float = 3e-4
     """Adam learning rate of the actor."""
     critic_lr: float = 3e-4
@@ -63,8 +64,13 @@ class TD3Config:
     updates_per_step: int = 1
     """Gradient updates per vectorised env step (num_envs transitions)."""
 
+    @property
+    def widths(self) -> tuple[int, ...]:
+        """The hidden widths in use: ``hidden``, or 128-128 when it is None."""
+        return (128, 128) if self.hidden is None else self.hidden
+
     def __post_init__(self) -> None:
-        check_fields(self, "td3", widths=("hidden",), lr=("actor_lr", "critic_lr"), discount=("gamma",),
+        check_fields(self, "td3", nullable=("hidden",), widths=("hidden",), lr=("actor_lr", "critic_lr"), discount=("gamma",),
                      rate=("tau",), non_negative=("policy_noise", "noise_clip", "exploration_noise"),
                      count=("policy_delay", "batch_size", "buffer_size", "updates_per_step"),
                      natural=("learning_starts",))
@@ -93,8 +99,8 @@ class TD3Nets:
 
 def make_nets(action_size: int, cfg: TD3Config) -> TD3Nets:
     return TD3Nets(
-        actor=DeterministicActor(action_size, cfg.hidden),
-        critic=TwinQ(cfg.hidden),
+        actor=DeterministicActor(action_size, cfg.widths),
+        critic=TwinQ(cfg.widths),
         actor_tx=optax.adam(cfg.actor_lr),
         critic_tx=optax.adam(cfg.critic_lr),
     )

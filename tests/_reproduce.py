@@ -1,0 +1,35 @@
+"""Small configs for the tests that run ``d2spo reproduce`` in-process: every such test trains the
+same small program (ppo-lag on `relaxed`, two seeds vmapped together), so XLA compiles it once per
+session and the persistent cache (tests/conftest.py) serves the others."""
+
+from __future__ import annotations
+
+import dataclasses
+
+from d2spo import reproduce as rp
+
+TINY_EPISODES = 24
+FIG5_EPISODES = 32
+"""The episodes of the short Fig. 5 run of tests/test_plots.py; tests/test_d2spo.py builds the same
+D²SPO learner (phi1 on `paper`), so that its compiled ``init`` is shared."""
+_CONFIG = rp.RunSpec.config  # the real one, captured before any test patches it
+
+
+def small_config(spec: rp.RunSpec):
+    """``spec.config()`` shrunk: checkpoints every 10 episodes (so a group and each seed checkpoint
+    mid-run), 4 envs, chunks of 50 steps, episodes of at most 40 steps, 4 evaluation episodes."""
+    c = _CONFIG(spec)
+    ppo = dataclasses.replace(c.ppo_lag, hidden=(16, 16), rollout_steps=50, n_minibatches=4, epochs=2)
+    return dataclasses.replace(c, checkpoint_every=10, num_envs=4, chunk_steps=50, eval_episodes=4,
+                               env=dataclasses.replace(c.env, max_steps=40), ppo_lag=ppo)
+
+
+def without_evaluation(monkeypatch) -> None:
+    """Make ``reproduce`` train its runs without the final evaluation (``eval_episodes=0``), for
+    tests that use a run's snapshots or checkpoint only; the learner's programs are unchanged."""
+    monkeypatch.setattr(rp.RunSpec, "config", lambda spec: dataclasses.replace(_CONFIG(spec), eval_episodes=0))
+
+
+def use_small_configs(monkeypatch) -> None:
+    """Make ``reproduce`` train ``small_config`` runs for the rest of the test."""
+    monkeypatch.setattr(rp.RunSpec, "config", small_config)
