@@ -62,7 +62,6 @@ def run_demo(out: Path, seed: int = 0, episodes: int = 500) -> int:
     from d2spo.ltl import TASKS, translate
     from d2spo.plots import policy_figure
     from d2spo.progress import train_with_progress
-    from d2spo.train import build
 
     console = Console()
     out = Path(out)
@@ -91,7 +90,7 @@ def run_demo(out: Path, seed: int = 0, episodes: int = 500) -> int:
     if rc != 0:
         return rc
     cfg, learner, policy, _ = load_policy(run)
-    env, params, _ = build(cfg)
+    env, params = learner.env, learner.params  # the run's env, as load_policy built it
     picture = out / "d2spo_relaxed.png"
     policy_figure(picture, learner, policy, env, params, episodes=8, seed=seed,
                   suptitle=f"D²SPO after {episodes} episodes: layout {env.layout.name!r}, task {DEMO_TASK!r}")
