@@ -38,12 +38,12 @@ GENERALIST_TASKS = 16
 ϕ1 alone the validated policy fell after ~750 episodes (0.80 -> 0.42 by 4000) and ϕ2 completed
 77% on the validation layouts; with the mixture it did not fall and ϕ2 completed 93%
 (bench/RESULTS.md, issue 16, session 10)."""
-LEARNER_DEFAULTS: dict[str, Any] = {"num_envs": 32, "td3.hidden": (64, 64)}
-"""The settings ``None`` stands for in a D²SPO or SL run on one layout (README, "Departures": the
-ϕ1 protocol in 3 minutes on 2 CPU cores with Tables II-III held). Every other learner, and the
-generalist, keep ``FORMER_SPEED_SETTINGS``."""
-FORMER_SPEED_SETTINGS: dict[str, Any] = {"num_envs": 16, "td3.hidden": (128, 128)}
-"""The same settings before 2026-11-26, which the other learners and the generalist keep."""
+FAST_SETTINGS: dict[str, Any] = {"num_envs": 32, "td3.hidden": (64, 64)}
+"""What ``--fast`` gives D²SPO and SL on one layout (``TrainConfig.fast``): half the TD3 updates per
+transition, with a quarter of their arithmetic. ϕ1 in under 3 minutes on 2 CPU cores with the cache
+warm, at the price of more training collisions (README, "Departures"; bench/RESULTS.md, 2026-11-26)."""
+DEFAULT_SETTINGS: dict[str, Any] = {"num_envs": 16, "td3.hidden": (128, 128)}
+"""The same settings without ``--fast``, for every learner and the generalist."""
 VALIDATION_SEED = 50_000
 """First seed of the generalist's validation layouts (training uses random:0 .., the benchmark
 random:100000 ..)."""
@@ -63,8 +63,10 @@ class TrainConfig:
     seed: int = 0
     """Random seed; a run is deterministic given its seed and config."""
     num_envs: int | None = None
-    """Environments stepped in parallel (vmap). None: per learner (``LEARNER_DEFAULTS``), 32 for D²SPO
-    and SL on one layout (one TD3 update per 32 transitions), 16 for every other learner."""
+    """Environments stepped in parallel (vmap). None: 16, or 32 with ``fast`` (``FAST_SETTINGS``)."""
+    fast: bool = False
+    """D²SPO and SL on one layout: 32 envs and 64-64 TD3 networks (unless given): about 1.6x faster,
+    with more collisions while training (README, "Departures")."""
     chunk_steps: int = 250
     """Vectorised steps per jitted chunk (between two host syncs)."""
     checkpoint_every: int = 1_000
@@ -140,13 +142,13 @@ class TrainConfig:
             raise ConfigError("generalist", f"the generalist is trained with --algo d2spo, not {self.algo!r}")
         if self.episodes is None:  # the paper's 20000 for one layout; the generalist's own default
             object.__setattr__(self, "episodes", GENERALIST_EPISODES if self.generalist else PAPER_EPISODES)
-        self._resolve_learner_defaults()
+        self._resolve_speed_settings()
         if self.generalist_tasks is None:
             object.__setattr__(self, "generalist_tasks", GENERALIST_TASKS if self.generalist else 0)
         check_fields(self, count=("episodes", "num_envs", "chunk_steps", "checkpoint_every", "window",
                                   "generalist_layouts", "validation_episodes", "validate_every"),
                      seed=("seed",), counts=("snapshots",),
-                     natural=("eval_episodes", "generalist_tasks", "validation_layouts"))
+                     natural=("eval_episodes", "generalist_tasks", "validation_layouts"), flag=("fast",))
         if self.generalist and self.generalist_layouts > VALIDATION_SEED:
             raise ConfigError("generalist_layouts", f"at most {VALIDATION_SEED}: the layouts from random:"
                               f"{VALIDATION_SEED} on are the validation set")
@@ -155,12 +157,15 @@ class TrainConfig:
         if not isinstance(self.task, str) or not self.task.strip():
             raise ConfigError("task", f"expected a task name or an LTL formula, got {self.task!r}")
 
-    def _resolve_learner_defaults(self) -> None:
-        """Fill the fields left None with this learner's values (``LEARNER_DEFAULTS``); config.json
-        records the values, so a run never depends on what None means later."""
+    def _resolve_speed_settings(self) -> None:
+        """Fill ``num_envs`` and ``td3.hidden`` where None: ``FAST_SETTINGS`` with ``fast`` (D²SPO and SL
+        on one layout only), else ``DEFAULT_SETTINGS``. config.json records the values."""
         from d2spo.algos import has_runtime_filter
 
-        table = LEARNER_DEFAULTS if has_runtime_filter(self.algo) and not self.generalist else FORMER_SPEED_SETTINGS
+        if self.fast and not (has_runtime_filter(self.algo) and not self.generalist):
+            raise ConfigError("fast", f"is for d2spo and sl on one layout, not {self.algo}"
+                              f"{' --generalist' if self.generalist else ''}")
+        table = FAST_SETTINGS if self.fast else DEFAULT_SETTINGS
         if self.num_envs is None:
             object.__setattr__(self, "num_envs", table["num_envs"])
         if self.td3.hidden is None:

@@ -35,8 +35,7 @@ class TD3Config:
 
     hidden: tuple[int, ...] | None = None
     """Hidden layer widths of actor and critics (Fujimoto et al.: 256; the paper gives no sizes).
-    None: ``TrainConfig`` picks per learner (``config.LEARNER_DEFAULTS``): 64-64 for D²SPO and SL on
-    one layout, 128-128 otherwise (also what a TD3Config used on its own means by None)."""
+    None: 128-128, or 64-64 for D²SPO and SL with ``--fast`` (``config.FAST_SETTINGS``)."""
     actor_lr: float = 3e-4
     """Adam learning rate of the actor."""
     critic_lr: float = 3e-4
