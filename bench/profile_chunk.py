@@ -37,7 +37,10 @@ def _with_overrides(cfg: TrainConfig, sets: list[str]) -> TrainConfig:
         *head, last = path.split(".")
         for k in head:
             node = node[k]
-        node[last] = json.loads(value) if value[:1] in "0123456789-[{tfn" else value
+        try:  # numbers, lists, true/false/null; anything else is a string
+            node[last] = json.loads(value)
+        except json.JSONDecodeError:
+            node[last] = value
     return config_from_dict(data)
 
 

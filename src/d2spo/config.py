@@ -20,7 +20,7 @@ from d2spo.algos.d2spo import D2SPOConfig
 from d2spo.algos.ppo_lag import PPOLagConfig
 from d2spo.algos.rcrl import RCRLConfig
 from d2spo.algos.sac_lag import SACLagConfig
-from d2spo.algos.td3 import TD3Config
+from d2spo.algos.td3 import DEFAULT_WIDTHS, TD3Config
 from d2spo.algos.td3_lag import TD3LagConfig
 from d2spo.envs import EnvConfig
 from d2spo.errors import ConfigError
@@ -42,7 +42,7 @@ FAST_SETTINGS: dict[str, Any] = {"num_envs": 32, "td3.hidden": (64, 64)}
 """What ``--fast`` gives D²SPO and SL on one layout (``TrainConfig.fast``): half the TD3 updates per
 transition, with a quarter of their arithmetic. ϕ1 in under 3 minutes on 2 CPU cores with the cache
 warm, at the price of more training collisions (README, "Departures"; bench/RESULTS.md, 2026-11-26)."""
-DEFAULT_SETTINGS: dict[str, Any] = {"num_envs": 16, "td3.hidden": (128, 128)}
+DEFAULT_SETTINGS: dict[str, Any] = {"num_envs": 16, "td3.hidden": DEFAULT_WIDTHS}
 """The same settings without ``--fast``, for every learner and the generalist."""
 VALIDATION_SEED = 50_000
 """First seed of the generalist's validation layouts (training uses random:0 .., the benchmark
@@ -162,7 +162,7 @@ class TrainConfig:
         on one layout only), else ``DEFAULT_SETTINGS``. config.json records the values."""
         from d2spo.algos import has_runtime_filter
 
-        if self.fast and not (has_runtime_filter(self.algo) and not self.generalist):
+        if self.fast and (self.generalist or not has_runtime_filter(self.algo)):
             raise ConfigError("fast", f"is for d2spo and sl on one layout, not {self.algo}"
                               f"{' --generalist' if self.generalist else ''}")
         table = FAST_SETTINGS if self.fast else DEFAULT_SETTINGS

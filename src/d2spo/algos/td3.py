@@ -28,6 +28,9 @@ from d2spo.algos.common.td3_losses import soft_update, td3_actor_loss, td3_criti
 from d2spo.fields import check_fields
 from d2spo.ltl.anneal import AnnealConfig
 
+DEFAULT_WIDTHS = (128, 128)
+"""TD3's hidden widths when ``TD3Config.hidden`` is None (and ``--fast`` does not choose)."""
+
 
 @dataclass(frozen=True)
 class TD3Config:
@@ -65,8 +68,8 @@ class TD3Config:
 
     @property
     def widths(self) -> tuple[int, ...]:
-        """The hidden widths in use: ``hidden``, or 128-128 when it is None."""
-        return (128, 128) if self.hidden is None else self.hidden
+        """The hidden widths in use: ``hidden``, or ``DEFAULT_WIDTHS`` when it is None."""
+        return DEFAULT_WIDTHS if self.hidden is None else self.hidden
 
     def __post_init__(self) -> None:
         check_fields(self, "td3", nullable=("hidden",), widths=("hidden",), lr=("actor_lr", "critic_lr"), discount=("gamma",),

@@ -67,7 +67,7 @@ class TD3LagLearner:
                  total_episodes: int):
         self.env, self.cfg, t = env, cfg, cfg.td3
         self.nets = make_nets(env.action_size, t)
-        self.shell = LagrangianShell(t.hidden, t.critic_lr, cfg)
+        self.shell = LagrangianShell(t.widths, t.critic_lr, cfg)
         self.loop = OffPolicyLoop(env, params, anneal, num_envs, chunk_steps, total_episodes,
                                   buffer_size=t.buffer_size, batch_size=t.batch_size,
                                   learning_starts=t.learning_starts, updates_per_step=t.updates_per_step,
