@@ -1,9 +1,10 @@
 #!/bin/bash
 # usage: bench/fingerprint.sh SRC_ROOT OUTDIR
-# Trains each of the 9 learners for 48 episodes (seed 0), evaluates d2spo, and writes OUTDIR/FINGERPRINT:
+# Trains each of the 9 learners and a small generalist for 48 episodes (seed 0), evaluates d2spo on its
+# layout and the generalist zero-shot on another task and three unseen layouts, and writes OUTDIR/FINGERPRINT:
 # per learner the SHA-256 (16 hex) of episodes.csv, of its checkpoints and of summary.json without
-# timings. Two source trees give the same lines iff their results are byte-identical (the eval text
-# line also holds the output path). Used to check refactors (issue 13).
+# timings, and of the evaluations' printouts (output paths taken out) and JSON files. Two source trees
+# give the same lines iff their results are byte-identical. Used to check refactors.
 set -e
 SRC=$1; OUT=$2; mkdir -p $OUT
 PY=${PY:-$(cd "$(dirname "$0")/.." && pwd)/.venv/bin/python}
@@ -13,8 +14,19 @@ for algo in ${ALGOS:-d2spo td3 tlgrl sl td3-lag sac-lag rcrl ppo-lag cpo}; do
   PYTHONPATH=$SRC/src $PY -m d2spo.cli train --algo $algo --episodes 48 --num-envs $N --chunk-steps $C --eval-episodes 8 --checkpoint-every 24 --no-progress --out $OUT/$algo > $OUT/$algo.log 2>&1 || echo "FAIL $algo"
 done
 PYTHONPATH=$SRC/src $PY -m d2spo.cli eval $OUT/d2spo --episodes 8 > $OUT/eval-d2spo.txt 2>&1 || echo "FAIL eval"
-cd $OUT && for algo in d2spo td3 tlgrl sl td3-lag sac-lag rcrl ppo-lag cpo; do
+# a small generalist, and its zero-shot eval on another task over three unseen layouts
+rm -rf $OUT/generalist
+PYTHONPATH=$SRC/src $PY -m d2spo.cli train --algo d2spo --generalist --generalist-layouts 4 --validation-layouts 2 \
+  --validation-episodes 4 --validate-every 24 --episodes 48 --num-envs 8 --chunk-steps 100 --eval-episodes 8 \
+  --checkpoint-every 24 --no-progress --out $OUT/generalist > $OUT/generalist.log 2>&1 || echo "FAIL generalist"
+PYTHONPATH=$SRC/src $PY -m d2spo.cli eval $OUT/generalist --task "F A2" --layout random:300 --layout-seeds 3 \
+  --episodes 8 > $OUT/eval-generalist.txt 2>&1 || echo "FAIL zero-shot eval"
+cd $OUT && for algo in d2spo td3 tlgrl sl td3-lag sac-lag rcrl ppo-lag cpo generalist; do
   echo "$algo $(sha256sum $algo/episodes.csv | cut -c1-16) $(cat $algo/checkpoint-*.msgpack 2>/dev/null | sha256sum | cut -c1-16) $(python3 -c "import json;d=json.load(open('$algo/summary.json'));d={k:v for k,v in d.items() if 'second' not in k and 'wall' not in k};print(json.dumps(d,sort_keys=True))" | sha256sum | cut -c1-16)"
 done > $OUT/FINGERPRINT
-grep -v -i "second\|wall\| s\b" $OUT/eval-d2spo.txt | sha256sum | cut -c1-16 >> $OUT/FINGERPRINT
+for e in d2spo generalist; do  # the eval's printout and its JSON file, without timings
+  echo "eval-$e $(grep -v -i "second\|wall\| s\b" eval-$e.txt | sed "s#$OUT##g" | sha256sum | cut -c1-16) $(python3 -c "import json,glob
+d=[json.load(open(p)) for p in sorted(glob.glob('$e/eval-*.json'))]
+print(json.dumps([{k: v for k, v in x.items() if 'second' not in k and 'wall' not in k} for x in d], sort_keys=True))" | sha256sum | cut -c1-16)"
+done >> $OUT/FINGERPRINT
 cat $OUT/FINGERPRINT
