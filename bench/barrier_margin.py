@@ -2,10 +2,10 @@
 
     .venv/bin/python bench/barrier_margin.py [--tasks phi1 phi2 ...] [--layouts paper random:100012 ...]
 
-For each pair, ``state_fields.route_length`` with the robot's radius replaced by a clearance m,
+For each pair, ``routes.route_length`` with the robot's radius replaced by a clearance m,
 bisected (``--halvings`` times over [``--low``, ``--high``] m; ``>= high`` when even that leaves one) for the largest m that still leaves
 a route that completes the task: the clearance from every obstacle and wall the task lets a robot
-keep. D²SPO's barrier keeps about d = 0.3 m (``--cbf.d``); ``nav.check_barrier_margin`` warns
+keep. D²SPO's barrier keeps about d = 0.3 m (``--cbf.d``); ``preflight.check_margin`` warns
 below it. Prints one row per pair (``-`` when even the robot's radius leaves no route).
 """
 
@@ -14,20 +14,20 @@ from __future__ import annotations
 import argparse
 import math
 
-from d2spo.envs import state_fields
+from d2spo.envs import routes
 from d2spo.envs.layouts import load
 from d2spo.ltl import task_formula, translate
 
 
 def largest_clearance(task: str, layout: str, low: float, high: float, halvings: int) -> float | None:
     aut, lay = translate(task_formula(task)), load(layout)
-    if not math.isfinite(state_fields.route_length(aut, lay, "event", low)):
+    if not math.isfinite(routes.route_length(aut, lay, "event", low)):
         return None
-    if math.isfinite(state_fields.route_length(aut, lay, "event", high)):
+    if math.isfinite(routes.route_length(aut, lay, "event", high)):
         return high  # printed as ">= high"
     for _ in range(halvings):
         mid = 0.5 * (low + high)
-        if math.isfinite(state_fields.route_length(aut, lay, "event", mid)):
+        if math.isfinite(routes.route_length(aut, lay, "event", mid)):
             low = mid
         else:
             high = mid

@@ -18,7 +18,7 @@ import numpy as np
 from d2spo.config import TrainConfig
 from d2spo.envs import EnvConfig
 from d2spo.rollout import random_proposal_safety
-from d2spo.train import build
+from d2spo.run import build
 
 CASES = {"paper": "phi1", "relaxed": "relaxed", "physical-4": "F A3", "random:7": "F A4"}
 

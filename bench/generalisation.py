@@ -108,8 +108,9 @@ def evaluate_cases(run: Path, tasks: list[str], names: list[str], episodes: int,
     go to ``cache`` as soon as they are measured (``cached``)."""
     import dataclasses
 
-    from d2spo.evaluate import eval_env_config, load_policy
-    from d2spo.zero_shot import generalist_layout, run_layouts
+    from d2spo.evaluate import eval_env_config
+    from d2spo.run import load_policy
+    from d2spo.zero_shot import generalist_layout, generalist_on, rollouts
 
     cfg, _, policy, meta = load_policy(run)
     print(f"{run}: its {meta['policy']} policy (checkpoint after {meta.get('episodes')} training episodes)",
@@ -134,10 +135,14 @@ def evaluate_cases(run: Path, tasks: list[str], names: list[str], episodes: int,
         entry = {"refused": refused, "layouts": [lay.name for lay, _ in checked]}
         for mode, on in (("filter", True), ("alone", False)):
             c = dataclasses.replace(cfg, d2spo=dataclasses.replace(cfg.d2spo, runtime_filter=on))
-            res, limit = run_layouts(c, policy, task, checked, episodes, 0, env_cfg, keep_paths) if checked else ([], 0)
-            entry[mode] = {"per_layout": [r for r, _ in res], "max_steps": limit}
+            res, limit = [], 0
+            if checked:
+                env, params, learner, limit = generalist_on(c, env_cfg, task, checked)
+                res = rollouts(env, params, learner, policy, checked, episodes, 0, limit, keep_paths)
+            paths = [r.pop("paths")[1:] for r in res] if keep_paths else None  # (poses, collided, completed)
+            entry[mode] = {"per_layout": res, "max_steps": limit}
             if mode == "filter" and keep_paths:
-                entry["paths"] = [p for _, p in res]
+                entry["paths"] = paths
         out[task] = entry
         store(cache, task, key, entry)
         done = [r["completion_rate"] for r in entry["filter"]["per_layout"]]
@@ -148,22 +153,23 @@ def evaluate_cases(run: Path, tasks: list[str], names: list[str], episodes: int,
 
 def specialist_cases(run: Path, names: list[str], episodes: int, own_episodes: int) -> dict:
     """The specialist on the same layouts (its own task) and on its own layout, filter on and off."""
-    from d2spo.evaluate import evaluate_run, load_run_config
+    from d2spo.evaluate import EvalConfig, evaluate_run
+    from d2spo.run import load_run_config
 
     cfg = load_run_config(run)
     out = {"task": cfg.task, "layout": cfg.layout}
     for mode, on in (("filter", True), ("alone", False)):
         try:  # one compilation for all the layouts
             first, n = names[0].partition(":")[2], len(names)
-            unseen = evaluate_run(run, episodes, f"random:{first}", layout_seeds=n, runtime_filter=on)["per_layout"]
+            unseen = evaluate_run(run, EvalConfig(episodes, f"random:{first}", layout_seeds=n, runtime_filter=on))["per_layout"]
         except UserError:  # some layout refuses the task: one at a time, to say which
             unseen = []
             for name in names:
                 try:
-                    unseen.append(evaluate_run(run, episodes, name, runtime_filter=on)["per_layout"][0])
+                    unseen.append(evaluate_run(run, EvalConfig(episodes, name, runtime_filter=on))["per_layout"][0])
                 except UserError as e:
                     unseen.append({"layout": name, "refused": str(e)})
-        out[mode] = {"unseen": unseen, "own": evaluate_run(run, own_episodes, None, runtime_filter=on)}
+        out[mode] = {"unseen": unseen, "own": evaluate_run(run, EvalConfig(own_episodes, None, runtime_filter=on))}
     return out
 
 
@@ -193,7 +199,8 @@ def train_per_layout(cases: list[str], names: list[str], out: Path) -> list[Path
 def per_layout_cases(runs: list[Path], names: list[str], episodes: int) -> list[dict]:
     """Each specialist trained on one of the benchmark's layouts, on its own (layout, task) case,
     filter on and off, ``episodes`` deterministic episodes (as the generalist's cases)."""
-    from d2spo.evaluate import evaluate_run, load_run_config
+    from d2spo.evaluate import EvalConfig, evaluate_run
+    from d2spo.run import load_run_config
 
     out = []
     for run in runs:
@@ -201,7 +208,7 @@ def per_layout_cases(runs: list[Path], names: list[str], episodes: int) -> list[
         if cfg.generalist or cfg.layout not in names:
             raise UserError(f"--per-layout {run}: trained on {'many layouts' if cfg.generalist else cfg.layout!r}, "
                              f"not on one of the benchmark's layouts {names[0]} .. {names[-1]}")
-        res = {mode: evaluate_run(run, episodes, None, runtime_filter=on) for mode, on in (("filter", True), ("alone", False))}
+        res = {mode: evaluate_run(run, EvalConfig(episodes, None, runtime_filter=on)) for mode, on in (("filter", True), ("alone", False))}
         print(f"per-layout specialist {run} ({cfg.task} on {cfg.layout}): completion with filter "
               f"{100 * res['filter']['completion_rate']:.1f}%", flush=True)
         out.append({"run": str(run), "task": cfg.task, "layout": cfg.layout, **res})
@@ -365,7 +372,7 @@ def main() -> None:
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     run = generalist_run(args)
-    from d2spo.evaluate import load_run_config
+    from d2spo.run import load_run_config
 
     trained = load_run_config(run)
     if args.first_seed < trained.generalist_layouts:
@@ -378,10 +385,10 @@ def main() -> None:
     per = per_layout_cases([*args.per_layout, *trained_here], names, args.episodes)
     # The generalist on the specialist's own layout and task; without a specialist, on --own-layout
     # with its training task (the specialist's numbers are then not measured).
-    from d2spo.evaluate import evaluate_run
+    from d2spo.evaluate import EvalConfig, evaluate_run
 
     own_layout, own_task = (spec["layout"], spec["task"]) if spec is not None else (args.own_layout, trained.task)
-    own = {mode: evaluate_run(run, args.own_episodes, own_layout, runtime_filter=on, task=own_task)
+    own = {mode: evaluate_run(run, EvalConfig(args.own_episodes, own_layout, runtime_filter=on, task=own_task))
            for mode, on in (("filter", True), ("alone", False))}
     figures = plots(cases, names, args.out) + ([per_layout_plot(per, cases, args.out)] if per else [])
     for c in cases.values():

@@ -20,13 +20,13 @@ import time
 import jax
 import jax.numpy as jnp
 
-from d2spo.algos.common import replay
-from d2spo.algos.common.replay import Transition
+from d2spo import replay
 from d2spo.algos.td3 import explore, learn_from_buffer
 from d2spo.config import TrainConfig, config_from_dict, config_to_dict
+from d2spo.replay import Transition
+from d2spo.run import build
 from d2spo.safety import datasets as sd
 from d2spo.safety.joint_policy import safe_action, update
-from d2spo.train import build
 
 
 def _with_overrides(cfg: TrainConfig, sets: list[str]) -> TrainConfig:

@@ -19,7 +19,7 @@ import jax
 from d2spo.config import TrainConfig
 from d2spo.envs import EnvConfig
 from d2spo.ltl.reward import RewardConfig
-from d2spo.train import build
+from d2spo.run import build
 
 
 def measure(algo: str, task: str, layout: str, chunks: int, num_envs: int, hidden=None, batch=None,

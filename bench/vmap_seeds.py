@@ -21,7 +21,7 @@ from train_throughput import time_chunks
 
 from d2spo.config import TrainConfig
 from d2spo.envs import EnvConfig
-from d2spo.train import build
+from d2spo.run import build
 
 
 def measure(algo: str, task: str, layout: str, n_seeds: int, chunks: int) -> float:

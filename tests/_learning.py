@@ -8,8 +8,9 @@ import dataclasses
 import jax
 import numpy as np
 
-from d2spo.rollout import evaluate_policy
-from d2spo.train import build, train
+from d2spo.rollout import make_rollout, rates
+from d2spo.run import build
+from d2spo.train import train
 
 
 def untrained_eval(cfg, episodes: int) -> dict:
@@ -17,7 +18,8 @@ def untrained_eval(cfg, episodes: int) -> dict:
     computed independently of ``train`` (its own build, init and rollout)."""
     env, params, learner = build(cfg)
     policy = learner.policy(jax.jit(learner.init)(jax.random.PRNGKey(cfg.seed)))
-    return evaluate_policy(learner, policy, env, params, episodes, jax.random.PRNGKey(cfg.seed + 10_000))
+    rollout = make_rollout(learner, env, episodes, int(params.max_steps))
+    return rates(*rollout(params, policy, jax.random.PRNGKey(cfg.seed + 10_000)))
 
 
 def assert_trains_without_nans_and_improves(cfg, run_dir) -> None:

@@ -32,7 +32,8 @@ from d2spo.algos.cpo import (
 )
 from d2spo.config import TrainConfig
 from d2spo.errors import ConfigError
-from d2spo.train import build, train
+from d2spo.run import build
+from d2spo.train import train
 
 _direction = jax.jit(lambda *a: cpo_step(*a)[:2])  # (x, case)
 

@@ -17,7 +17,8 @@ from d2spo.algos.onpolicy import flatten_iterations
 from d2spo.algos.ppo_lag import PPOLagConfig, lagrangian_advantage, ppo_clip_loss
 from d2spo.config import TrainConfig
 from d2spo.errors import ConfigError
-from d2spo.train import build, train
+from d2spo.run import build
+from d2spo.train import train
 
 
 def relaxed(**kw) -> TrainConfig:

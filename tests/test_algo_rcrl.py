@@ -22,7 +22,7 @@ from d2spo.algos.sac import SACConfig
 from d2spo.config import TrainConfig
 from d2spo.envs import EnvConfig
 from d2spo.errors import ConfigError
-from d2spo.train import build
+from d2spo.run import build
 
 TINY = SACConfig(hidden=(32, 32), batch_size=64, learning_starts=500, buffer_size=50_000, updates_per_step=4)
 

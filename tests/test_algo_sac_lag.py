@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 from _learning import assert_trains_without_nans_and_improves
 
-from d2spo.algos.common.replay import Transition
 from d2spo.algos.offpolicy import empty_window, mean_episode_cost, record_episodes
 from d2spo.algos.sac import SACConfig
 from d2spo.algos.sac_lag import SACLagConfig
 from d2spo.config import TrainConfig
 from d2spo.envs import EnvConfig
 from d2spo.errors import ConfigError
-from d2spo.train import build
+from d2spo.replay import Transition
+from d2spo.run import build
 
 TINY = SACConfig(hidden=(32, 32), batch_size=64, learning_starts=500, buffer_size=50_000, updates_per_step=4)
 

@@ -43,7 +43,7 @@ def _write_run(path, cfg: TrainConfig, carry=None) -> None:
 @pytest.fixture(scope="module")
 def untrained_run(tmp_path_factory):
     """A d2spo run directory whose checkpoint is the learner's initial state (no training)."""
-    from d2spo.train import build
+    from d2spo.run import build
 
     cfg = _tiny_cfg()
     _, _, learner = build(cfg)
@@ -109,7 +109,7 @@ def test_bad_epsilon_through_the_command_line_has_no_traceback(untrained_run):
     res = subprocess.run([sys.executable, "-m", "d2spo.cli", "certify", str(untrained_run), "--eps-unsafe", "0"],
                          capture_output=True, text=True, timeout=120)
     assert res.returncode == 2 and "Traceback" not in res.stderr
-    assert [ln for ln in res.stderr.splitlines() if ln.strip()] == ["d2spo: error: eps_unsafe: must be > 0, got 0.0"]
+    assert [ln for ln in res.stderr.splitlines() if ln.strip()] == ["d2spo: error: eps_unsafe: must be a finite number > 0, got 0.0"]
 
 
 
@@ -119,7 +119,8 @@ def filled_run(untrained_run, tmp_path_factory):
     part of the ring is violated: something for --repair to work on."""
     import jax.numpy as jnp
 
-    from d2spo.certify import CertifyConfig, _compiled, load_cbf_run, pose_grid
+    from d2spo.certify import CertifyConfig, _compiled, load_cbf_run
+    from d2spo.certify_search import pose_grid
     from d2spo.repair import add_counterexamples
 
     ccfg = CertifyConfig(**CCFG_TINY)
@@ -147,12 +148,12 @@ def test_repair_rule_is_never_worse_in_anything():
 
 def test_repair_writes_an_ordinary_run_no_worse_than_before(filled_run, tmp_path):
     from d2spo.certify import CertifyConfig
-    from d2spo.evaluate import evaluate_run
-    from d2spo.repair import repair_run
-    from d2spo.train import build, load_run_config
+    from d2spo.evaluate import EvalConfig, evaluate_run
+    from d2spo.repair import RepairConfig, repair_run
+    from d2spo.run import build, load_run_config
 
     out = tmp_path / "repaired"
-    res = repair_run(filled_run, out, CertifyConfig(**CCFG_TINY), rounds=1, calls=1, copies=1, eval_episodes=0)
+    res = repair_run(filled_run, out, CertifyConfig(**CCFG_TINY), RepairConfig(rounds=1, calls=1, copies=1, eval_episodes=0))
     assert res["before"]["grid_L_violated"] > 0 and len(res["rounds"]) >= 2  # something was tried
     assert all(r["better"] for r in res["rounds"][1:res["kept"] + 1])  # the kept round beat every earlier one
     for k in ("certified_L", "certified_D"):  # never worse than the original
@@ -170,5 +171,5 @@ def test_repair_writes_an_ordinary_run_no_worse_than_before(filled_run, tmp_path
     same = all(np.array_equal(a, b) for a, b in zip(jax.tree_util.tree_leaves(carry.safety.cbf),
                                                      jax.tree_util.tree_leaves(orig.safety.cbf)))
     assert same == (res["kept"] == 0)
-    r = evaluate_run(out, episodes=2)  # `d2spo eval`
+    r = evaluate_run(out, EvalConfig(episodes=2))  # `d2spo eval`
     assert 0.0 <= r["safety_rate"] <= 1.0

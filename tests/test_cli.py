@@ -102,3 +102,26 @@ def test_ltl_distance_defaults_to_one_area_at_a_time(capsys):
     assert d == "1" and "every letter" in note
     d, note = initial_distance("--layout", "relaxed")  # relaxed has no A3
     assert d == "-" and "'relaxed'" in note
+
+
+def _help(args: list[str]) -> str:
+    import contextlib
+    import io
+
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out), pytest.raises(SystemExit) as e:
+        cli.parse(args)
+    assert e.value.code == 0
+    return out.getvalue()
+
+
+def test_train_lists_and_takes_the_flags_of_the_learner_algo_names():
+    """`d2spo train --help` shows D²SPO's sections (the default --algo), not the baselines'; with
+    `--algo cpo` it is the other way round; a flag of another learner is refused, not ignored."""
+    d2spo, cpo = _help(["train", "--help"]), _help(["train", "--algo", "cpo", "--help"])
+    assert "--cbf.gamma-exp" in d2spo and "--d2spo.pretrain" in d2spo and "--cpo." not in d2spo
+    assert "--cpo.rollout-steps" in cpo and "--cbf." not in cpo and "--td3." not in cpo
+    assert "--td3-lag.td3.actor-lr" in _help(["train", "--algo=td3-lag", "--help"])
+    assert cli.parse(["train", "--algo", "cpo", "--cpo.rollout-steps", "512"]).config().cpo.rollout_steps == 512
+    res = run_cli("train", "--algo", "td3", "--cpo.rollout-steps", "512")
+    assert res.returncode == 2 and "--cpo.rollout-steps" in res.stderr and "Traceback" not in res.stderr

@@ -6,8 +6,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from d2spo.algos.common import replay
-from d2spo.algos.common.replay import ReplayBuffer, Transition
+from d2spo import replay
+from d2spo.replay import ReplayBuffer, Transition
 
 
 def _batch(values):

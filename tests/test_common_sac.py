@@ -7,7 +7,6 @@ import optax
 import pytest
 
 from d2spo.algos.common.networks import tanh_gaussian_log_prob
-from d2spo.algos.common.replay import Transition
 from d2spo.algos.common.sac_losses import (
     alpha_loss,
     default_target_entropy,
@@ -15,6 +14,7 @@ from d2spo.algos.common.sac_losses import (
     sac_cost_critic_loss,
     sac_critic_loss,
 )
+from d2spo.replay import Transition
 
 
 def actor_apply(p, s):  # pre-tanh Gaussian with mean p * s and fixed std 0.5

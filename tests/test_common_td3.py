@@ -5,7 +5,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from d2spo.algos.common.replay import Transition
 from d2spo.algos.common.td3_losses import (
     cost_critic_loss,
     soft_update,
@@ -13,6 +12,7 @@ from d2spo.algos.common.td3_losses import (
     td3_actor_loss,
     td3_critic_loss,
 )
+from d2spo.replay import Transition
 
 
 def actor_apply(p, s):  # pi(s) = p * s, 1-D actions

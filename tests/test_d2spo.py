@@ -10,7 +10,7 @@ from _reproduce import FIG5_EPISODES
 from d2spo.config import TrainConfig
 from d2spo.envs import EnvConfig
 from d2spo.rollout import random_proposal_safety
-from d2spo.train import build
+from d2spo.run import build
 
 
 def test_cautious_start_makes_random_exploration_safe():
@@ -56,16 +56,16 @@ def test_short_run_on_relaxed_learns_to_reach_a1_safely(tmp_path):
     assert len(collided) == 500 and sum(collided) / 500 <= 0.1
     # `d2spo eval --runtime-filter True --filter-alpha A --filter-iters N` on the same run
     from d2spo.errors import ConfigError
-    from d2spo.evaluate import evaluate_run
+    from d2spo.evaluate import EvalConfig, evaluate_run
 
-    res = evaluate_run(tmp_path / "run", episodes=16, runtime_filter=True, filter_alpha=1.5, filter_iters=5)
+    res = evaluate_run(tmp_path / "run", EvalConfig(episodes=16, runtime_filter=True, filter_alpha=1.5, filter_iters=5))
     assert res["runtime_filter"] is True and res["filter_alpha"] == 1.5 and res["filter_iters"] == 5
     assert res["safety_rate"] == 1.0
     with pytest.raises(ConfigError):
-        evaluate_run(tmp_path / "run", episodes=4, runtime_filter=True, filter_alpha=0.0)
+        EvalConfig(episodes=4, runtime_filter=True, filter_alpha=0.0)
     # the demo's picture of it: named, with units, legends and a colourbar label, and no title clipped
-    from d2spo.evaluate import load_policy
     from d2spo.plots import draw_policy_figure
+    from d2spo.run import load_policy
 
     _, learner, policy, _ = load_policy(tmp_path / "run")
     fig, rates = draw_policy_figure(learner, policy, learner.env, learner.params, episodes=4,
@@ -120,3 +120,22 @@ def test_one_compiled_rollout_serves_every_random_layout():
     # and the layouts really differ (else the check above could not fail)
     assert not jnp.array_equal(params0.geom.box_lo, params4.geom.box_lo)
     assert not jnp.array_equal(shared(params0, policy, key)[4], alone[4], equal_nan=True)
+
+
+def test_a_checkpoint_holds_the_d2spo_carry_as_one_flat_dict():
+    """``D2SPOCarry`` holds a ``TD3Carry``; its checkpoint keeps the flat layout, in the order that
+    older checkpoints hold it, and restores to the nested carry."""
+    import numpy as np
+    from flax import serialization
+
+    cfg = TrainConfig(algo="d2spo", task="F A1", env=EnvConfig(layout="relaxed"), episodes=10, num_envs=2).check()
+    _, _, learner = build(cfg)
+    shapes = jax.eval_shape(learner.init, jax.random.PRNGKey(0))
+    carry = jax.tree_util.tree_map(lambda s: jnp.asarray(np.arange(s.size).reshape(s.shape) % 7, s.dtype), shapes)
+    state = serialization.to_state_dict(carry)
+    assert list(state) == ["key", "env_state", "obs", "agent", "buffer", "safety", "data", "steps", "episodes"]
+    assert list(state["agent"]) == list(serialization.to_state_dict(carry.td3.agent))
+    back = serialization.from_bytes(jax.tree_util.tree_map(jnp.zeros_like, carry), serialization.to_bytes(carry))
+    assert jax.tree_util.tree_structure(back) == jax.tree_util.tree_structure(carry)
+    assert all(jnp.array_equal(a, b) for a, b in zip(jax.tree_util.tree_leaves(back), jax.tree_util.tree_leaves(carry)))
+    assert learner.policy(back)[0] is back.td3.agent.actor

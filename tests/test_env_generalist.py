@@ -2,15 +2,18 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from d2spo.envs import EnvConfig, generator, layout_bank, sensors
+from d2spo.envs import EnvConfig, generator, layout_bank, make_env, sensors
 from d2spo.envs.generalist import GeneralistEnv, make_generalist_env, subgoal, view
 from d2spo.envs.sensors import Sensed
 from d2spo.errors import ConfigError
+from d2spo.ltl.reward import RewardConfig
 
 SEEDS = (3, 4, 5)
 
@@ -84,16 +87,34 @@ def test_a_task_over_other_areas_is_refused(built):
     bank, _, _ = built
     with pytest.raises(ConfigError, match="A1..A4"):
         make_generalist_env(EnvConfig(), "F A5 & F A1", bank)
+    with pytest.raises(ConfigError, match="one area at a time"):  # the bank's areas never overlap
+        make_generalist_env(EnvConfig(), "F (A1 & A2)", bank)
+    with pytest.raises(ConfigError, match="robot_radius: .* at most 0.25 m"):
+        make_generalist_env(EnvConfig(robot_radius=0.3), "phi1", bank)
+
+
+def test_the_dynamics_robot_and_reward_are_the_configs(built):
+    bank, _, _ = built
+    cfg = EnvConfig(preset="turtlebot", max_steps=123, reward=RewardConfig(c_n=0.02))
+    env, params = make_generalist_env(cfg, "phi1", bank, max_steps=77)
+    _, nav = make_env(dataclasses.replace(cfg, layout="paper"), "phi1")
+    assert env.config == dataclasses.replace(cfg, max_steps=77).resolved()
+    assert int(params.max_steps) == 77 and params.reward == nav.reward
+    for name in ("dyn", "robot_radius", "sensing_radius", "start_jitter"):
+        for a, b in zip(jax.tree.leaves(getattr(params, name)), jax.tree.leaves(getattr(nav, name)), strict=True):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
 def test_the_generalist_learner_reads_x_and_o_s_per_environment(built):
-    from d2spo.algos.generalist import GeneralistD2SPO
+    from d2spo.algos.d2spo import D2SPOLearner
+    from d2spo.algos.generalist import LayoutBank
     from d2spo.algos.td3 import TD3Config
     from d2spo.ltl.anneal import AnnealConfig
     from d2spo.safety.cbf import CBFConfig
 
     bank, env, params = built
-    learner = GeneralistD2SPO(env, params, TD3Config(), CBFConfig(), AnnealConfig(enabled=False), 4, 10, 100)
+    learner = D2SPOLearner(env, params, TD3Config(), CBFConfig(), AnnealConfig(enabled=False), 4, 10, 100,
+                           layouts=LayoutBank)
     states, obs = env.reset_batch(jax.random.PRNGKey(5), params, 16)  # the shapes of the test above: one compile
     _, _, _, _, _, info = jax.jit(env.step_batch)(jax.random.PRNGKey(6), states, jnp.zeros((16, 2)), params)
     ctx = learner.context(info)
@@ -158,13 +179,15 @@ def test_a_mixture_of_tasks_draws_each_tasks_initial_state(built):
 def test_the_generalists_cbf_input_is_layout_free(built):
     """x = b(z, O_s) depends on the scene around the robot only: moving the robot and every box by
     the same offset (another place, another arena) leaves it unchanged."""
-    from d2spo.algos.generalist import GeneralistD2SPO
+    from d2spo.algos.d2spo import D2SPOLearner
+    from d2spo.algos.generalist import LayoutBank
     from d2spo.algos.td3 import TD3Config
     from d2spo.ltl.anneal import AnnealConfig
     from d2spo.safety.cbf import CBFConfig
 
     bank, env, params = built
-    learner = GeneralistD2SPO(env, params, TD3Config(), CBFConfig(), AnnealConfig(enabled=False), 4, 10, 100)
+    learner = D2SPOLearner(env, params, TD3Config(), CBFConfig(), AnnealConfig(enabled=False), 4, 10, 100,
+                           layouts=LayoutBank)
     g = view(params, jnp.int32(1)).geom
     pose = jnp.asarray([*generator.generate(SEEDS[1]).start[:2], 0.7], jnp.float32)
     sensed = Sensed(g.box_lo, g.box_hi, jnp.ones(g.box_lo.shape[:1], bool))

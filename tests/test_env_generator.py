@@ -2,14 +2,14 @@
 
 import numpy as np
 
-from d2spo.envs import generator, layouts
+from d2spo.envs import generator, layouts, workspace
 
 
 def test_generate_is_deterministic_and_is_what_random_seed_loads():
     assert generator.generate(3) == generator.generate(3) == layouts.load("random:3")
     assert layouts.load("random") == generator.generate(0)
     assert generator.generate(3) != generator.generate(4)
-    assert layouts.load("random5:3") == layouts.random_layout(3)  # the earlier 5 m generator, kept
+    assert layouts.load("random5:3") == generator.random_layout(3)  # the earlier 5 m generator, kept
 
 
 def test_layouts_are_valid_and_varied():
@@ -23,8 +23,8 @@ def test_layouts_are_valid_and_varied():
         assert lay.area_names == ("A1", "A2", "A3", "A4")
         assert all(0.35 <= a.radius <= 0.5 for a in lay.areas)
         assert 1 <= len(lay.obstacles) <= generator.MAX_BOXES
-        layouts.validate(lay)
-        layouts.check_robot_fits(lay, layouts.RANDOM_RADIUS)
+        workspace.validate(lay)
+        workspace.check_robot_fits(lay, generator.RANDOM_RADIUS)
         centres = np.array([a.center for a in lay.areas])
         radii = np.array([a.radius for a in lay.areas])
         apart = np.linalg.norm(centres[:, None] - centres[None], axis=-1) - radii[:, None] - radii[None]

@@ -9,7 +9,7 @@ import pytest
 
 from d2spo.envs import generator, geodesic
 from d2spo.envs import layout_bank as lb
-from d2spo.envs.layouts import Area, Layout
+from d2spo.envs.workspace import Area, Layout
 
 GRID = 32
 # an empty 5 m arena: A1 left, A2 in the middle on the straight line from A1 to the right side

@@ -13,9 +13,9 @@ from matplotlib.figure import Figure
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from d2spo.envs import EnvConfig, layouts, make_env, render
+from d2spo.envs import EnvConfig, generator, layouts, make_env, render, workspace
 from d2spo.envs.dynamics import PRESETS
-from d2spo.envs.layouts import Area, Layout
+from d2spo.envs.workspace import Area, Layout
 from d2spo.errors import ConfigError
 
 TINY = {
@@ -124,20 +124,20 @@ def test_presets_fill_only_unset_fields():
 @pytest.mark.parametrize("name", layouts.BUILTIN)
 def test_builtin_layouts_validate_for_every_preset(name):
     layout = layouts.load(name)
-    layouts.validate(layout)
+    workspace.validate(layout)
     for preset in PRESETS.values():
         scaled = layout.scaled(preset.layout_scale)
-        layouts.check_robot_fits(scaled, preset.robot_radius, 0.05 * preset.layout_scale)
+        workspace.check_robot_fits(scaled, preset.robot_radius, 0.05 * preset.layout_scale)
 
 
 def test_random5_layouts_are_feasible_and_deterministic():
     assert layouts.load("random5") == layouts.load("random5:0")
-    assert layouts.load("random5:7") == layouts.random_layout(7) != layouts.load("random5:8")
+    assert layouts.load("random5:7") == generator.random_layout(7) != layouts.load("random5:8")
     for seed in range(40):
         layout = layouts.load(f"random5:{seed}")
         assert len(layout.obstacles) == 6 and layout.area_names == ("A1", "A2", "A3", "A4")
-        layouts.validate(layout)
-        layouts.check_robot_fits(layout, layouts.RANDOM_RADIUS)
+        workspace.validate(layout)
+        workspace.check_robot_fits(layout, generator.RANDOM_RADIUS)
         for a in layout.areas:  # no area inside an obstacle; robot fits in every area
             assert layout.clearance(np.array(a.center)) > a.radius
 
@@ -202,7 +202,7 @@ def test_render_writes_png_without_pyplot(tmp_path):
 def shortest_path(layout, clearance, a, b, avoid=(), res=0.05):
     """Grid (8-connected) shortest path from a to the disk b, keeping ``clearance`` from obstacles
     and walls and staying out of the areas in ``avoid``. Returns waypoints [T, 2]."""
-    free, centres = layouts.free_grid(layout, clearance, res)
+    free, centres = workspace.free_grid(layout, clearance, res)
     for area in avoid:
         free &= np.linalg.norm(centres - np.asarray(area.center), axis=-1) > area.radius + 0.1
     ny, nx = free.shape

@@ -10,8 +10,9 @@ import re
 import pytest
 from _reproduce import TINY_EPISODES, use_small_configs
 
+from d2spo import record as record_mod
 from d2spo import reproduce as rp
-from d2spo import train as train_mod
+from d2spo import run as run_mod
 
 
 def _exit_code(args: list[str]) -> int:
@@ -41,7 +42,7 @@ def test_interrupted_reproduce_resumes_its_seed_group_exactly(tmp_path, monkeypa
     kw = {"seeds": 2, "episodes": TINY_EPISODES, "methods": ["ppo-lag"], "progress": False, "log": lambda s: None}
     rp.reproduce(["table3"], tmp_path / "a", **kw)
 
-    record, calls = train_mod._Run.record, []
+    record, calls = record_mod.RunRecord.record, []
 
     def killed_in_chunk_3(run, log, progress):
         calls.append(run)
@@ -49,10 +50,10 @@ def test_interrupted_reproduce_resumes_its_seed_group_exactly(tmp_path, monkeypa
             raise KeyboardInterrupt
         record(run, log, progress)
 
-    monkeypatch.setattr(train_mod._Run, "record", killed_in_chunk_3)
+    monkeypatch.setattr(record_mod.RunRecord, "record", killed_in_chunk_3)
     with pytest.raises(KeyboardInterrupt):
         rp.reproduce(["table3"], tmp_path / "b", **kw)
-    monkeypatch.setattr(train_mod._Run, "record", record)
+    monkeypatch.setattr(record_mod.RunRecord, "record", record)
     runs = tmp_path / "b" / "runs"
     assert len(list(runs.glob(".group-*/checkpoint.json"))) == 1
     assert list(runs.glob("ppo-lag-*/checkpoint.json"))  # what made a seed resume alone, the other restart
@@ -70,7 +71,7 @@ def test_a_finished_groups_leftover_directory_is_removed(tmp_path):
     for s in (spec0, spec1):
         rp.run_dir(tmp_path, s).mkdir(parents=True)
         (rp.run_dir(tmp_path, s) / "summary.json").write_text("{}")
-    group = train_mod.group_dir([rp.run_dir(tmp_path, spec0), rp.run_dir(tmp_path, spec1)])
+    group = run_mod.group_dir([rp.run_dir(tmp_path, spec0), rp.run_dir(tmp_path, spec1)])
     group.mkdir()
     (group / "checkpoint.msgpack").write_bytes(b"x" * 1000)
     assert rp.started_groups(tmp_path, [spec0, spec1]) == [] and not group.exists()
@@ -91,7 +92,9 @@ def test_bad_hyper_parameter_is_one_line_exit_2_and_writes_nothing(flag, tmp_pat
     out = tmp_path / "run"
     out.mkdir()
     (out / "config.json").write_text("mine")  # the user's own file must survive a rejected train
-    assert _exit_code(["train", "--episodes", "1", "--out", str(out), "--no-progress", *flag]) == 2
+    section = flag[0][2:].split(".")[0]
+    algo = ["--algo", section] if section in ("td3-lag", "sac-lag", "rcrl", "ppo-lag", "cpo") else []  # its flags
+    assert _exit_code(["train", *algo, "--episodes", "1", "--out", str(out), "--no-progress", *flag]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     field = flag[0][2:].replace("-", "_").split(".")[-1]
     assert len(err) == 1 and err[0].startswith("d2spo: error:") and field in err[0], err
@@ -139,7 +142,7 @@ def test_nan_guard_watches_returns_metrics_and_losses_before_writing(tmp_path):
     cfg = TrainConfig(episodes=100, chunk_steps=4, num_envs=2)
     from d2spo.checkpoint import Checkpoints
 
-    run = train_mod._Run(cfg, tmp_path, None, Checkpoints(tmp_path, None))
+    run = record_mod.RunRecord(cfg, tmp_path, None, Checkpoints(tmp_path, None))
     nan = np.nan
     run.record(_log(metrics={"losses/qf": np.array([1.0, nan, 1.0, nan])}), None)
     assert len(run.writer) == 1
@@ -172,7 +175,7 @@ def tiny_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("eval") / "run"
     out.mkdir()
     (out / "config.json").write_text(json.dumps(config_to_dict(cfg)))
-    _, _, learner = train_mod.build(cfg)  # an untrained policy is as good as any for a refusal
+    _, _, learner = run_mod.build(cfg)  # an untrained policy is as good as any for a refusal
     Checkpoints(out, run_fingerprint(out)).save(jax.jit(learner.init)(jax.random.PRNGKey(0)),
                                                 {"episodes": 0, "env_steps": 0, "chunks": 0, "wall_seconds": 0.0})
     return out

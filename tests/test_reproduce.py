@@ -13,13 +13,14 @@ import pytest
 from _reproduce import TINY_EPISODES, use_small_configs
 
 from d2spo import reproduce as rp
+from d2spo import targets
 from d2spo.cli import main
 from d2spo.errors import UserError
 
 
 def test_targets_need_the_paper_runs():
     t2 = rp.runs_for("table2", seeds=3, episodes=20_000)
-    assert len(t2) == 18 and {s.algo for s in t2} == set(rp.METHODS)
+    assert len(t2) == 18 and {s.algo for s in t2} == set(targets.METHODS)
     assert {(s.task, s.layout) for s in t2} == {("phi1", "paper")}
     t3 = rp.runs_for("table3", seeds=2, episodes=100)
     assert {(s.task, s.layout, s.episodes) for s in t3} == {("relaxed", "relaxed", 100)}
@@ -28,12 +29,12 @@ def test_targets_need_the_paper_runs():
     assert {(s.algo, s.layout) for s in f3} == {("td3", "open"), ("tlgrl", "open"), ("sl", "paper"), ("d2spo", "paper")}
     assert {s.task for s in f3} == {"phi1", "phi2"}
     f4 = rp.runs_for("fig4", 3, 20_000)
-    assert [s.layout for s in f4] == list(rp.PHYSICAL) and {s.preset for s in f4} == {"turtlebot"}
-    assert {s.episodes for s in f4} == {rp.FIG4_EPISODES}
+    assert [s.layout for s in f4] == list(targets.PHYSICAL) and {s.preset for s in f4} == {"turtlebot"}
+    assert {s.episodes for s in f4} == {targets.FIG4_EPISODES}
     (f5,) = rp.runs_for("fig5", 3, 20_000)
     assert f5.snapshots == (2_000, 10_000, 20_000) and f5.name == "d2spo-phi1-paper-snapshots-s0"
-    assert rp.fig5_snapshots(200) == (20, 100, 200)
-    assert rp.expand(["all"]) == list(rp.TARGETS) and rp.expand(["fig2", "table2", "fig2"]) == ["fig2", "table2"]
+    assert targets.fig5_snapshots(200) == (20, 100, 200)
+    assert rp.expand(["all"]) == list(targets.TARGETS) and rp.expand(["fig2", "table2", "fig2"]) == ["fig2", "table2"]
     with pytest.raises(UserError, match="unknown target"):
         rp.expand(["table4"])
     names = [s.name for s in rp.runs_for("fig4", 1, 100)]
@@ -194,7 +195,8 @@ def test_runs_trained_with_other_settings_are_refused_unless_allowed(tmp_path, c
 def test_snapshots_are_saved_and_loaded(tmp_path):
     from test_train import tiny  # its learner: the compiled chunk of tests/test_train.py is reused
 
-    from d2spo.train import build, load_snapshot, snapshot_path, train
+    from d2spo.run import build, load_snapshot, snapshot_path
+    from d2spo.train import train
 
     cfg = tiny(eval_episodes=0, snapshots=(5, 40))
     train(cfg, tmp_path / "run")

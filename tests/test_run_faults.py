@@ -143,7 +143,7 @@ def cli(capsys, *args) -> tuple[int, list[str]]:
     rc = main([str(a) for a in args])
     err = capsys.readouterr().err
     assert "Traceback" not in err, err
-    # the 40-step episodes draw the episode-time warning (nav.check_episode_time) at every training
+    # the 40-step episodes draw the episode-time warning (preflight.check_time) at every training
     # start: it is not what these tests are about
     time_warning = re.compile(r"^d2spo: warning: 'relaxed' (cannot be completed|: the shortest route) on layout")
     return rc, [ln for ln in err.splitlines() if ln.strip() and not time_warning.match(ln)]
@@ -429,12 +429,12 @@ def test_the_nan_message_names_a_checkpoint_that_exists(tmp_path):
     from d2spo.algos.base import ChunkLog
     from d2spo.checkpoint import Checkpoints
     from d2spo.errors import NaNError
-    from d2spo.train import _Run
+    from d2spo.record import RunRecord
 
     z = np.zeros((2, 3))
     log = ChunkLog(z.astype(bool), z, z, z, z, z, z, np.zeros((2, 3, 2)), {}, np.bool_(True))
     (tmp_path / "config.json").write_text("{}")
-    run = _Run(CFG, tmp_path, None, Checkpoints(tmp_path, "fingerprint"))
+    run = RunRecord(CFG, tmp_path, None, Checkpoints(tmp_path, "fingerprint"))
     with pytest.raises(NaNError, match="no checkpoint was written"):
         run.record(log, None)
     run.checkpoints.save({"w": np.ones(3)}, {"episodes": 7, "env_steps": 9, "chunks": 1, "wall_seconds": 1.0})

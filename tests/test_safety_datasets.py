@@ -4,8 +4,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from d2spo.algos.common import replay
-from d2spo.algos.common.replay import ReplayBuffer
+from d2spo import replay
+from d2spo.replay import ReplayBuffer
 from d2spo.safety.cbf import CBFConfig
 from d2spo.safety.datasets import (
     Transition,

@@ -1,4 +1,5 @@
-"""The shaping distance per automaton state (envs/state_fields.py) and the task-on-layout check."""
+"""The shaping distance per automaton state (envs/state_fields.py), the task compiled on a layout
+(envs/compiled_task.py), its routes (envs/routes.py) and the pre-flight checks (envs/preflight.py)."""
 
 from __future__ import annotations
 
@@ -11,8 +12,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from d2spo.envs import EnvConfig, geodesic, layouts, make_env, state_fields
-from d2spo.envs.nav import check_barrier_margin, check_episode_time
+from d2spo.envs import EnvConfig, geodesic, layouts, make_env, preflight, routes, state_fields
+from d2spo.envs.compiled_task import compile_task
 from d2spo.errors import ConfigError, TaskWarning
 from d2spo.ltl import task_formula, translate
 from d2spo.ltl.reward import RewardConfig
@@ -22,8 +23,19 @@ PAPER = layouts.load("paper")
 
 
 def _split(task: str, layout=PAPER) -> dict[int, tuple[tuple[str, ...], tuple[str, ...]]]:
-    sf = state_fields.state_fields(translate(task_formula(task)), layout, "event", 0.3)
-    return {q: (t, f) for q, (t, f) in enumerate(zip(sf.targets, sf.forbidden, strict=True))}
+    compiled = compile_task(translate(task_formula(task)), layout, "event", 0.15)
+    targets, forbidden = (state_fields.named_areas(compiled.automaton, layout, compiled.roles, role)
+                          for role in (state_fields.TARGET, state_fields.FORBIDDEN))
+    return {q: (t, f) for q, (t, f) in enumerate(zip(targets, forbidden, strict=True))}
+
+
+def _fields(aut, layout, costs: dict | None = None) -> state_fields.StateFields:
+    """The per-state fields of ``aut`` on ``layout`` (default: clearance 0.3 m, no collision tier)."""
+    return compile_task(aut, layout, "event", 0.15, costs or {"clearance": 0.3}).fields
+
+
+def _check(aut, layout, name: str) -> None:
+    preflight.check_feasible(compile_task(aut, layout, "event", 0.15), name)
 
 
 def test_phi1_targets_and_forbidden_areas():
@@ -77,8 +89,8 @@ def test_the_field_goes_round_a_forbidden_area_and_not_round_a_neutral_one():
     lay = CORRIDOR
     start = jnp.array(lay.start[:2], jnp.float32)
     straight = 3.0 - 0.3  # to A1's disk along the corridor's axis, through A2; no obstacles
-    avoid = state_fields.state_fields(translate("!A2 U A1"), lay, "event", 0.3)
-    plain = state_fields.state_fields(translate("F A1"), lay, "event", 0.3)  # A2 is no proposition
+    avoid = _fields(translate("!A2 U A1"), lay)
+    plain = _fields(translate("F A1"), lay)  # A2 is no proposition
     assert avoid.forbidden[0] == ("A2",) and plain.forbidden[0] == ()
     around = float(geodesic.lookup(jnp.asarray(avoid.field), start, index=0))
     through = float(geodesic.lookup(jnp.asarray(plain.field), start, index=0))
@@ -89,8 +101,7 @@ def test_the_field_goes_round_a_forbidden_area_and_not_round_a_neutral_one():
 
 def test_a_robot_inside_a_forbidden_area_it_just_entered_may_leave_it():
     # phi2 state 2 (A1 read): A1 is forbidden (entering it again rejects), but leaving costs nothing
-    sf = state_fields.state_fields(translate(task_formula("phi2")), PAPER, "event", 0.3)
-    fields = jnp.asarray(sf.field)
+    fields = jnp.asarray(_fields(translate(task_formula("phi2")), PAPER).field)
     centre = float(geodesic.lookup(fields, jnp.array([4.35, 0.8]), index=2))
     rim = float(geodesic.lookup(fields, jnp.array([4.05, 0.95]), index=2))
     assert centre < rim + 0.4  # no penalty for crossing A1 from inside
@@ -103,9 +114,9 @@ def test_suite_tasks_pass_the_check_on_paper_and_the_impossible_one_does_not():
         aut = translate(task_formula(name))
         if name == "a1-and-a2":
             with pytest.raises(ConfigError, match="cannot be completed"):
-                state_fields.check_task(aut, PAPER, "event", 0.15, name)
+                _check(aut, PAPER, name)
         else:
-            state_fields.check_task(aut, PAPER, "event", 0.15, name)
+            _check(aut, PAPER, name)
     assert len(SUITE) >= 10
 
 
@@ -116,8 +127,8 @@ def test_check_rejects_a_forbidden_area_that_cuts_every_path_and_an_unknown_prop
                   {"name": "A2", "center": [2.0, 0.5], "radius": 0.45}],
     })
     with pytest.raises(ConfigError, match=r"state 0 .*cannot reach A1 without entering A2"):
-        state_fields.check_task(translate("!A2 U A1"), cut, "event", 0.15, "t")
-    state_fields.check_task(translate("F A2 & F A1"), cut, "event", 0.15, "t")  # crossing A2 is fine here
+        _check(translate("!A2 U A1"), cut, "t")
+    _check(translate("F A2 & F A1"), cut, "t")  # crossing A2 is fine here
     with pytest.raises(ConfigError, match="'A9' names no area"):
         make_env(EnvConfig(layout="paper", reward=RewardConfig(shaping_metric="geodesic-per-state")),
                  task="!A9 U A1")
@@ -174,65 +185,65 @@ def test_route_length_is_the_shortest_drive_and_goes_round_what_rejects():
     lay = CORRIDOR
     # "F A1" (A2 is no proposition): straight along the axis to A1's disk; the grid's cells are
     # 5 cm and the route starts from the start cell's centre
-    straight = state_fields.route_length(translate("F A1"), lay, "event", 0.15)
+    straight = routes.route_length(translate("F A1"), lay, "event", 0.15)
     assert straight == pytest.approx(3.0 - 0.3, abs=0.1)
     # "!A2 U A1" must keep its centre out of A2's disk (radius 0.5 m): tangent, arc, tangent to
     # A1's disk, 2.89 m on the continuous plane (at most 8.2% more on the grid)
-    around = state_fields.route_length(translate("!A2 U A1"), lay, "event", 0.15)
+    around = routes.route_length(translate("!A2 U A1"), lay, "event", 0.15)
     arc = math.sqrt(1.5**2 - 0.25) + math.sqrt(1.2**2 - 0.25) + 0.5 * (math.pi - math.acos(0.5 / 1.5)
                                                                        - math.acos(0.5 / 1.2))
-    assert arc - 0.05 < around < arc * state_fields.OCTILE_EXCESS
+    assert arc - 0.05 < around < arc * routes.OCTILE_EXCESS
     # A1, then A2, then A1 again: to A1's disk (through A2, neutral then), back to A2's rim (2.5 m)
     # and on to A1's rim (3.2 m) again: 2.7 + 0.7 + 0.7 m
-    back = state_fields.route_length(translate("F (A1 & X F (A2 & X F A1))"), lay, "event", 0.15)
+    back = routes.route_length(translate("F (A1 & X F (A2 & X F A1))"), lay, "event", 0.15)
     assert 4.1 - 0.05 < back < 4.1 + 0.15
-    assert state_fields.route_length(translate(task_formula("a1-and-a2")), PAPER, "event", 0.15) == math.inf
+    assert routes.route_length(translate(task_formula("a1-and-a2")), PAPER, "event", 0.15) == math.inf
 
 
 def test_check_time_warns_when_a_task_cannot_fit_in_an_episode_and_when_tight():
-    aut = translate(task_formula("phi2"))
-    length = state_fields.route_length(aut, PAPER, "event", 0.15)
-    steps = length / (0.1 * 1.0)
+    task = compile_task(translate(task_formula("phi2")), PAPER, "event", 0.15)
+    assert task.route_length == routes.route_length(task.automaton, PAPER, "event", 0.15)
+    steps = task.route_length / (0.1 * 1.0)
     with pytest.warns(TaskWarning, match=r"'phi2' cannot be completed .* within .* every episode will time out"):
-        state_fields.check_time(aut, PAPER, "event", 0.15, int(steps / state_fields.OCTILE_EXCESS) - 1, 0.1, 1.0,
+        preflight.check_time(task, int(steps / routes.OCTILE_EXCESS) - 1, 0.1, 1.0,
                                 "'phi2'")
     with pytest.warns(TaskWarning, match="may run out of time"):  # the grid's route may exceed the continuous one
-        state_fields.check_time(aut, PAPER, "event", 0.15, int(steps / state_fields.OCTILE_EXCESS) + 1, 0.1, 1.0,
+        preflight.check_time(task, int(steps / routes.OCTILE_EXCESS) + 1, 0.1, 1.0,
                                 "'phi2'")
     with pytest.warns(TaskWarning, match="shortest route"):
-        state_fields.check_time(aut, PAPER, "event", 0.15, int(steps / state_fields.TIGHT_FRACTION) - 1, 0.1, 1.0,
+        preflight.check_time(task, int(steps / preflight.TIGHT_FRACTION) - 1, 0.1, 1.0,
                                 "'phi2'")
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        state_fields.check_time(aut, PAPER, "event", 0.15, int(steps / state_fields.TIGHT_FRACTION) + 1, 0.1, 1.0,
+        preflight.check_time(task, int(steps / preflight.TIGHT_FRACTION) + 1, 0.1, 1.0,
                                 "'phi2'")
 
 
 def test_default_step_limit_gives_a_long_task_room_and_a_short_one_the_base():
-    phi1, phi2 = (translate(task_formula(t)) for t in ("phi1", "phi2"))
-    need = {t: state_fields.route_length(a, PAPER, "event", 0.15) / 0.1 for t, a in (("phi1", phi1), ("phi2", phi2))}
+    phi1, phi2 = (compile_task(translate(task_formula(t)), PAPER, "event", 0.15) for t in ("phi1", "phi2"))
+    need = {t: a.route_length / 0.1 for t, a in (("phi1", phi1), ("phi2", phi2))}
     # the former base, 200 steps (old config.json files): phi1 fits, phi2 is tight and gets twice its route
-    assert need["phi1"] <= state_fields.TIGHT_FRACTION * 200 < need["phi2"]
-    assert state_fields.default_max_steps(phi1, PAPER, "event", 0.15, 0.1, 1.0, 200) == 200
-    auto = state_fields.default_max_steps(phi2, PAPER, "event", 0.15, 0.1, 1.0, 200)
-    assert auto % 50 == 0 and state_fields.ROOM * need["phi2"] <= auto < state_fields.ROOM * need["phi2"] + 50
+    assert need["phi1"] <= preflight.TIGHT_FRACTION * 200 < need["phi2"]
+    assert preflight.default_max_steps(phi1, 0.1, 1.0, 200) == 200
+    auto = preflight.default_max_steps(phi2, 0.1, 1.0, 200)
+    assert auto % 50 == 0 and preflight.ROOM * need["phi2"] <= auto < preflight.ROOM * need["phi2"] + 50
     # today's base, 300: both fit; at half the speed phi2 needs twice the steps and gets twice its route
     assert EnvConfig().base_max_steps == 300
-    assert need["phi2"] <= state_fields.TIGHT_FRACTION * 300 < 2 * need["phi2"]
-    for aut in (phi1, phi2):
-        assert state_fields.default_max_steps(aut, PAPER, "event", 0.15, 0.1, 1.0, 300) == 300
-    slow = state_fields.default_max_steps(phi2, PAPER, "event", 0.15, 0.1, 0.5, 300)
-    assert slow % 50 == 0 and 2 * state_fields.ROOM * need["phi2"] <= slow < 2 * state_fields.ROOM * need["phi2"] + 50
+    assert need["phi2"] <= preflight.TIGHT_FRACTION * 300 < 2 * need["phi2"]
+    for task in (phi1, phi2):
+        assert preflight.default_max_steps(task, 0.1, 1.0, 300) == 300
+    slow = preflight.default_max_steps(phi2, 0.1, 0.5, 300)
+    assert slow % 50 == 0 and 2 * preflight.ROOM * need["phi2"] <= slow < 2 * preflight.ROOM * need["phi2"] + 50
     with warnings.catch_warnings():  # the automatic limit is never tight
         warnings.simplefilter("error")
-        state_fields.check_time(phi2, PAPER, "event", 0.15, auto, 0.1, 1.0, "'phi2'")
-        state_fields.check_time(phi2, PAPER, "event", 0.15, slow, 0.1, 0.5, "'phi2'")
+        preflight.check_time(phi2, auto, 0.1, 1.0, "'phi2'")
+        preflight.check_time(phi2, slow, 0.1, 0.5, "'phi2'")
     # the env takes it when max_steps is unset, and an explicit limit wins
     assert int(make_env(EnvConfig(layout="paper", preset="ideal", base_max_steps=200), "phi2")[1].max_steps) == auto
     env, explicit = make_env(EnvConfig(layout="paper", preset="ideal", max_steps=200), "phi2")
     assert int(explicit.max_steps) == 200
     with pytest.warns(TaskWarning, match="may run out of time"):  # what training checks: tight
-        check_episode_time(env, explicit, "'phi2'")
+        preflight.preflight(env, explicit, "'phi2'")
     assert int(make_env(EnvConfig(layout="paper", preset="ideal", base_max_steps=200), "phi1")[1].max_steps) == 200
     assert int(make_env(EnvConfig(layout="paper", preset="ideal"), "phi1")[1].max_steps) == 300
 
@@ -243,12 +254,12 @@ def test_barrier_margin_warns_when_every_route_passes_closer_than_d():
     passages leave every route 0.3 m."""
     env, _ = make_env(EnvConfig(layout="random:100012"), "phi2")
     with pytest.warns(TaskWarning, match=r"without entering A2, A3, A4 .* keeping 0.3 m .*--cbf.d"):
-        check_barrier_margin(env, 0.3, "'phi2'")
+        preflight.preflight(env, None, "'phi2'", margin=0.3, episode_time=False)
     paper, _ = make_env(EnvConfig(layout="paper"), "phi2")
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        check_barrier_margin(env, 0.25, "'phi2'")
-        check_barrier_margin(paper, 0.3, "'phi2'")
+        preflight.preflight(env, None, "'phi2'", margin=0.25, episode_time=False)
+        preflight.preflight(paper, None, "'phi2'", margin=0.3, episode_time=False)
 
 
 def _steepest(sf: state_fields.StateFields, q: int, layout, robot_radius: float) -> float:
@@ -271,8 +282,8 @@ def test_the_field_rises_at_most_clearance_cost_per_metre_where_the_robot_fits()
     # At 10x (until 2026-11-25) it rose 10 m per metre sideways across the mouth of the 0.79 m
     # openings round A4, where D²SPO's policy dithered.
     aut = translate(task_formula("phi2"))
-    mild = state_fields.state_fields(aut, PAPER, "event", **RewardConfig().field_costs(0.15))
-    steep = state_fields.state_fields(aut, PAPER, "event", 0.3, 0.15, clearance_cost=10.0, collide_cost=10.0)
+    mild = _fields(aut, PAPER, RewardConfig().field_costs(0.15))
+    steep = _fields(aut, PAPER, dict(clearance=0.3, robot_radius=0.15, clearance_cost=10.0, collide_cost=10.0))
     assert mild.targets[6] == ("A2",) and mild.forbidden[6] == ()
     assert _steepest(mild, 6, PAPER, 0.15) <= geodesic.CLEARANCE_COST + 1e-3
     assert _steepest(steep, 6, PAPER, 0.15) > 8.0

@@ -109,11 +109,11 @@ def test_same_seed_same_run_and_resume_is_exact(tmp_path):
 def test_a_checkpoint_taken_before_an_interrupt_is_written_and_resumes_exactly(tmp_path, monkeypatch):
     """Interrupted (Ctrl-C) in the fourth chunk, a run has the checkpoint taken after the third, and
     resumes from it to the episodes of an uninterrupted run."""
-    import d2spo.train as train_mod
+    import d2spo.record as record_mod
 
     cfg = tiny(checkpoint_every=1, chunk_steps=40)  # episodes end in every chunk: a checkpoint after each
     train(cfg, tmp_path / "a")
-    record, calls = train_mod._Run.record, []
+    record, calls = record_mod.RunRecord.record, []
 
     def interrupted_in_chunk_4(run, log, progress):  # as tests/test_fault_battery.py interrupts a group
         calls.append(run)
@@ -121,10 +121,10 @@ def test_a_checkpoint_taken_before_an_interrupt_is_written_and_resumes_exactly(t
             raise KeyboardInterrupt
         record(run, log, progress)
 
-    monkeypatch.setattr(train_mod._Run, "record", interrupted_in_chunk_4)
+    monkeypatch.setattr(record_mod.RunRecord, "record", interrupted_in_chunk_4)
     with pytest.raises(KeyboardInterrupt):
         train(cfg, tmp_path / "b")
-    monkeypatch.setattr(train_mod._Run, "record", record)
+    monkeypatch.setattr(record_mod.RunRecord, "record", record)
     manifest = json.loads((tmp_path / "b" / "checkpoint.json").read_text())
     written = rows(tmp_path / "b" / "episodes.csv")
     assert manifest["meta"]["chunks"] == 3 and manifest["meta"]["episodes"] == len(written) - 1 > 0
@@ -201,7 +201,7 @@ def test_effective_differences_ignore_what_the_learner_does_not_read():
 
 def test_the_learner_table_says_reward_annealing_sections_and_filter():
     from d2spo.algos import LEARNERS, config_sections, has_runtime_filter
-    from d2spo.train import build
+    from d2spo.run import build
 
     fields = {f.name for f in dataclasses.fields(TrainConfig)}
     for algo, spec in LEARNERS.items():
@@ -238,9 +238,9 @@ def test_seeds_vmapped_together_write_ordinary_runs_and_resume_exactly(tmp_path)
         for k in ("safety_rate", "completion_rate", "mean_return", "eval", "env_steps"):
             assert sa[k] == sb[k], k
     # a seed trained in a group is a run like any other: eval reads it
-    from d2spo.evaluate import evaluate_run
+    from d2spo.evaluate import EvalConfig, evaluate_run
 
-    assert 0.0 <= evaluate_run(outs[1], episodes=4)["safety_rate"] <= 1.0
+    assert 0.0 <= evaluate_run(outs[1], EvalConfig(episodes=4))["safety_rate"] <= 1.0
     with pytest.raises(ConfigError, match="only in their seed"):
         train_seeds([tiny(seed=0), tiny(seed=1, num_envs=4)], [tmp_path / "c0", tmp_path / "c1"])
 
@@ -259,12 +259,13 @@ def test_eval_rates_measure_the_distance_driven():
 
 
 def test_validation_keeps_the_earliest_best_policy_and_a_resume_keeps_it(tmp_path):
-    """``_Run.validate`` (the generalist's model selection) with a stub validation: every
+    """``RunRecord.validate`` (the generalist's model selection) with a stub validation: every
     ``validate_every`` episodes a score is recorded; the kept policy is the first of the highest."""
     from flax import serialization
 
     from d2spo.checkpoint import Checkpoints
-    from d2spo.train import _Run, best_policy_path
+    from d2spo.record import RunRecord
+    from d2spo.run import best_policy_path
 
     scores = iter([0.2, 0.5, 0.5, 0.3])
 
@@ -283,7 +284,7 @@ def test_validation_keeps_the_earliest_best_policy_and_a_resume_keeps_it(tmp_pat
     cfg = tiny(validate_every=10)
     out = tmp_path / "run"
     out.mkdir()
-    run = _Run(cfg, out, None, Checkpoints(out, "x"), validation=Stub())
+    run = RunRecord(cfg, out, None, Checkpoints(out, "x"), validation=Stub())
     metas = {}
     for k in range(4):
         run.writer.append([(10 * k + i, 0.0, 0.0, 0, 0, 0, 40, 0.0, 0.0) for i in range(10)])
@@ -295,7 +296,7 @@ def test_validation_keeps_the_earliest_best_policy_and_a_resume_keeps_it(tmp_pat
     assert run.meta["best"]["episodes"] == 20  # the first of the two 0.5s
     kept = serialization.from_bytes({"w": np.zeros(2, np.float32)}, best_policy_path(out).read_bytes())
     np.testing.assert_array_equal(kept["w"], [1.0, 1.0])
-    again = _Run(cfg, out, metas[20], Checkpoints(out, "x"), validation=Stub())
+    again = RunRecord(cfg, out, metas[20], Checkpoints(out, "x"), validation=Stub())
     assert again.next_validation == 30 and again.meta["best"]["episodes"] == 20
 
 

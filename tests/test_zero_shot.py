@@ -141,8 +141,7 @@ def test_eval_runs_the_validated_policy_unless_the_last_is_asked_for(gen_run, tm
     from flax import serialization
 
     from d2spo.checkpoint import Checkpoints, load_checkpoint, run_fingerprint
-    from d2spo.evaluate import load_policy
-    from d2spo.train import best_policy_path
+    from d2spo.run import best_policy_path, load_policy
 
     run = tmp_path / "run"
     shutil.copytree(gen_run, run)
@@ -164,11 +163,34 @@ def test_eval_runs_the_validated_policy_unless_the_last_is_asked_for(gen_run, tm
 def test_the_validation_layouts_are_held_out():
     from d2spo.config import VALIDATION_SEED
     from d2spo.envs import generator
-    from d2spo.train import _Validation
+    from d2spo.record import Validation
 
     cfg = dataclasses.replace(_cfg(), validation_layouts=2, validation_episodes=4)
     env, params, learner = build_generalist(cfg, layout_bank.build_bank([0]), 400)
-    v = _Validation(cfg, env, params, learner)
+    v = Validation(cfg, env, params, learner)
     assert v.layouts == f"random:{VALIDATION_SEED}..{VALIDATION_SEED + 1}"
     want = [generator.generate(VALIDATION_SEED + i).arena[0] for i in range(2)]
     np.testing.assert_allclose(np.asarray(v.params.bank.arena)[:, 0], want, rtol=1e-6)
+
+
+def test_a_zero_shot_eval_of_n_layouts_builds_one_generalist_and_n_envs(gen_run, monkeypatch):
+    """``d2spo eval GENERALIST --layout random:S --layout-seeds N`` checks each of the N layouts once
+    (one ``make_env`` each), builds the generalist once, and builds nothing else."""
+    from d2spo import run as run_mod
+    from d2spo import zero_shot
+    from d2spo.evaluate import EvalConfig, evaluate_run
+
+    calls = {"make_env": 0, "build_generalist": 0, "run.build": 0}
+
+    def counted(name, fn):
+        def wrapper(*args, **kwargs):
+            calls[name] += 1
+            return fn(*args, **kwargs)
+        return wrapper
+
+    monkeypatch.setattr(zero_shot, "make_env", counted("make_env", zero_shot.make_env))
+    monkeypatch.setattr(zero_shot, "build_generalist", counted("build_generalist", zero_shot.build_generalist))
+    monkeypatch.setattr(run_mod, "build", counted("run.build", run_mod.build))
+    res = evaluate_run(gen_run, EvalConfig(episodes=2, task="phi2", layout="random:21", layout_seeds=3))
+    assert res["layouts"] == ["random:21", "random:22", "random:23"]
+    assert calls == {"make_env": 3, "build_generalist": 1, "run.build": 0}

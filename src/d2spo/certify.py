@@ -27,9 +27,16 @@ import jax.numpy as jnp
 import numpy as np
 
 from d2spo import certify_search as search
-from d2spo.certify_search import search_counterexamples
+from d2spo.algos import config_sections
+from d2spo.certify_search import cell_index, explored_cells, grid_axes, live_states, pose_grid, search_counterexamples
+from d2spo.checkpoint import has_checkpoint, load_checkpoint, run_fingerprint
 from d2spo.config import config_to_dict
-from d2spo.errors import ConfigError, RunDirError
+from d2spo.envs import geometry
+from d2spo.errors import RunDirError
+from d2spo.fields import check_fields
+from d2spo.plots import certify_figure
+from d2spo.run import build, load_run_config
+from d2spo.runio import atomic_write_json
 from d2spo.safety import bounds
 from d2spo.safety import certify as cert
 from d2spo.safety.cbf import class_k, p_exp_threshold
@@ -64,16 +71,10 @@ class CertifyConfig:
     """Also check Proposition 2 on every free grid pose with every live automaton state (beyond D:
     poses and states the policy may never visit; reported apart, not part of the targets)."""
 
-    def check(self) -> CertifyConfig:
-        for name in ("eps_unsafe", "eps_safe", "grid_step"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(name, f"must be > 0, got {getattr(self, name)}")
-        for name in ("headings", "residual_episodes"):
-            if getattr(self, name) < 1:
-                raise ConfigError(name, f"must be ≥ 1, got {getattr(self, name)}")
-        if not 0.0 < self.residual_quantile <= 1.0:
-            raise ConfigError("residual_quantile", f"must lie in (0, 1], got {self.residual_quantile}")
-        return self
+    def __post_init__(self):
+        check_fields(self, positive=("eps_unsafe", "eps_safe", "grid_step"), count=("headings", "residual_episodes",
+                     "search_starts"), natural=("search_steps",), rate=("residual_quantile",), seed=("seed",),
+                     flag=("free_grid",))
 
 
 class CBFRun(NamedTuple):
@@ -89,10 +90,6 @@ class CBFRun(NamedTuple):
 
 def load_cbf_run(run_dir: Path) -> CBFRun:
     """Load a run of a learner with a learned CBF (d2spo, sl). RunDirError/ConfigError on bad input."""
-    from d2spo.algos import config_sections
-    from d2spo.checkpoint import has_checkpoint, load_checkpoint, run_fingerprint
-    from d2spo.train import build, load_run_config
-
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise RunDirError(f"{run_dir}: no such run directory")
@@ -151,8 +148,6 @@ def _compiled(run: CBFRun, ccfg: CertifyConfig) -> dict[str, Any]:
     alpha = class_k(cbf_cfg.alpha, cbf_cfg.alpha_coef)
 
     def context(pose):
-        from d2spo.envs import geometry
-
         return lrn.sensed(jax.vmap(lambda p: geometry.sensed_mask(p[:2], params.geom, params.sensing_radius))(pose))
 
     def observe(pose, q):
@@ -253,50 +248,6 @@ def model_residual(run: CBFRun, ccfg: CertifyConfig, pol: Policy | None = None) 
     return np.asarray(fx), np.asarray(fh)
 
 
-def grid_axes(run: CBFRun, ccfg: CertifyConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The grid's cell centres in x and y (every `grid_step` metres over the arena) and its headings."""
-    lo, hi = np.asarray(run.params.geom.arena_lo), np.asarray(run.params.geom.arena_hi)
-    xs = np.arange(lo[0] + ccfg.grid_step / 2, hi[0], ccfg.grid_step)
-    ys = np.arange(lo[1] + ccfg.grid_step / 2, hi[1], ccfg.grid_step)
-    return xs, ys, np.linspace(-np.pi, np.pi, ccfg.headings, endpoint=False)
-
-
-def pose_grid(run: CBFRun, ccfg: CertifyConfig) -> np.ndarray:
-    """[G, 3] poses: the cell centres, `headings` each."""
-    gx, gy, gt = np.meshgrid(*grid_axes(run, ccfg), indexing="ij")
-    return np.stack([gx.ravel(), gy.ravel(), gt.ravel()], -1).astype(np.float32)
-
-
-def cell_index(pose, lo, ccfg: CertifyConfig, shape, xp=np) -> tuple:
-    """(ix, iy, iθ) of the grid cell holding each pose: 5 cm squares and heading sectors centred on
-    the grid's headings. Works in numpy and (xp=jnp) inside jit."""
-    ix = xp.clip(xp.floor((pose[..., 0] - lo[0]) / ccfg.grid_step), 0, shape[0] - 1).astype(xp.int32)
-    iy = xp.clip(xp.floor((pose[..., 1] - lo[1]) / ccfg.grid_step), 0, shape[1] - 1).astype(xp.int32)
-    it = xp.mod(xp.round((pose[..., 2] + np.pi) * ccfg.headings / (2 * np.pi)), ccfg.headings).astype(xp.int32)
-    return ix, iy, it
-
-
-def live_states(run: CBFRun) -> list[int]:
-    """Automaton states that are neither accepting nor rejecting (the robot still moves there)."""
-    aut = run.params.aut
-    return [q for q in range(int(aut.accepting.shape[0])) if not (bool(aut.accepting[q]) or bool(aut.rejecting[q]))]
-
-
-def explored_cells(run: CBFRun, ccfg: CertifyConfig, data) -> np.ndarray:
-    """bool [nx, ny, headings, n_states]: the grid cells (with the automaton state) that hold at least
-    one row of P_exp, the explored set D. The state of a row is read from its stored observation."""
-    xs, ys, _ = grid_axes(run, ccfg)
-    n_states = int(run.params.aut.accepting.shape[0])
-    pe = data.p_exp
-    n = int(pe.size)
-    table = np.zeros((len(xs), len(ys), ccfg.headings, n_states), bool)
-    if n:
-        pose = np.asarray(pe.data.pose[:n])
-        q = np.argmax(np.asarray(pe.data.obs[:n, run.env.observation_slices["automaton"]]), -1)
-        table[cell_index(pose, np.asarray(run.params.geom.arena_lo), ccfg, table.shape) + (q,)] = True
-    return table
-
-
 def check_nets(run: CBFRun, ccfg: CertifyConfig, rho_h: float, data=None) -> dict[str, Any]:
     """Propositions 1-2 on every net, with the parameters of `run` and the datasets `data` (default: the
     run's own). Returns per-net arrays (status, margins, values, poses) and the explored-cell table."""
@@ -376,7 +327,7 @@ def certify_run(run_dir: Path, ccfg: CertifyConfig | None = None, run: CBFRun | 
                 search: bool = True, data=None) -> tuple[dict, dict]:
     """Check Propositions 1-2 on a run (on the datasets `data`, default the run's own). Returns
     (summary, nets); `write_outputs` saves them."""
-    ccfg = (ccfg or CertifyConfig()).check()
+    ccfg = ccfg or CertifyConfig()
     t0, c0 = time.perf_counter(), time.process_time()
     run = run or load_cbf_run(run_dir)
     times = {}
@@ -417,9 +368,6 @@ def certify_run(run_dir: Path, ccfg: CertifyConfig | None = None, run: CBFRun | 
 
 def write_outputs(run_dir: Path, run: CBFRun, ccfg: CertifyConfig, summary: dict, nets: dict) -> tuple[Path, Path]:
     """RUN/certify.json and RUN/certify.png."""
-    from d2spo.plots import certify_figure
-    from d2spo.runio import atomic_write_json
-
     run_dir = Path(run_dir)
     j, p = run_dir / "certify.json", run_dir / "certify.png"
     atomic_write_json(j, summary)

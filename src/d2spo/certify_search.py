@@ -1,6 +1,9 @@
-"""The search for counterexamples of `d2spo certify` (docs/certify.md, "Counterexamples").
+"""The pose grid of `d2spo certify` and its search for counterexamples (docs/certify.md, "Counterexamples").
 
-Signed steps along a central-difference gradient of h (to maximise, in ℒ and contact) or of −e
+The grid: cells of `grid_step` metres over the arena, `headings` headings each; the cells of the
+explored set D are those that hold a row of P_exp.
+
+The search: signed steps along a central-difference gradient of h (to maximise, in ℒ and contact) or of −e
 (in D's explored part) over the pose, from the worst grid points, all starts and probes in one
 batch. A heuristic: it enters no certificate; a point is a counterexample because h ≥ 0 or e < 0
 was evaluated there. The jitted searches themselves are built in `certify._compiled`.
@@ -89,3 +92,47 @@ def search_counterexamples(run, ccfg, nets: dict, fn: dict, pol) -> dict[str, li
             found["D"].append({"pose": [round(float(a), 4) for a in p], "q": int(q), "e": float(v),
                                "counterexample": bool(v < 0)})
     return found
+
+
+def grid_axes(run, ccfg) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The grid's cell centres in x and y (every `grid_step` metres over the arena) and its headings."""
+    lo, hi = np.asarray(run.params.geom.arena_lo), np.asarray(run.params.geom.arena_hi)
+    xs = np.arange(lo[0] + ccfg.grid_step / 2, hi[0], ccfg.grid_step)
+    ys = np.arange(lo[1] + ccfg.grid_step / 2, hi[1], ccfg.grid_step)
+    return xs, ys, np.linspace(-np.pi, np.pi, ccfg.headings, endpoint=False)
+
+
+def pose_grid(run, ccfg) -> np.ndarray:
+    """[G, 3] poses: the cell centres, `headings` each."""
+    gx, gy, gt = np.meshgrid(*grid_axes(run, ccfg), indexing="ij")
+    return np.stack([gx.ravel(), gy.ravel(), gt.ravel()], -1).astype(np.float32)
+
+
+def cell_index(pose, lo, ccfg, shape, xp=np) -> tuple:
+    """(ix, iy, iθ) of the grid cell holding each pose: 5 cm squares and heading sectors centred on
+    the grid's headings. Works in numpy and (xp=jnp) inside jit."""
+    ix = xp.clip(xp.floor((pose[..., 0] - lo[0]) / ccfg.grid_step), 0, shape[0] - 1).astype(xp.int32)
+    iy = xp.clip(xp.floor((pose[..., 1] - lo[1]) / ccfg.grid_step), 0, shape[1] - 1).astype(xp.int32)
+    it = xp.mod(xp.round((pose[..., 2] + np.pi) * ccfg.headings / (2 * np.pi)), ccfg.headings).astype(xp.int32)
+    return ix, iy, it
+
+
+def live_states(run) -> list[int]:
+    """Automaton states that are neither accepting nor rejecting (the robot still moves there)."""
+    aut = run.params.aut
+    return [q for q in range(int(aut.accepting.shape[0])) if not (bool(aut.accepting[q]) or bool(aut.rejecting[q]))]
+
+
+def explored_cells(run, ccfg, data) -> np.ndarray:
+    """bool [nx, ny, headings, n_states]: the grid cells (with the automaton state) that hold at least
+    one row of P_exp, the explored set D. The state of a row is read from its stored observation."""
+    xs, ys, _ = grid_axes(run, ccfg)
+    n_states = int(run.params.aut.accepting.shape[0])
+    pe = data.p_exp
+    n = int(pe.size)
+    table = np.zeros((len(xs), len(ys), ccfg.headings, n_states), bool)
+    if n:
+        pose = np.asarray(pe.data.pose[:n])
+        q = np.argmax(np.asarray(pe.data.obs[:n, run.env.observation_slices["automaton"]]), -1)
+        table[cell_index(pose, np.asarray(run.params.geom.arena_lo), ccfg, table.shape) + (q,)] = True
+    return table

@@ -11,21 +11,45 @@ import contextlib
 import dataclasses
 import io
 import json
+import os
 import sys
 import warnings
 from pathlib import Path
 from typing import Annotated, Union
 
 import tyro
+from rich.console import Console
 
 from d2spo import compile_cache
-from d2spo.certify import CertifyConfig
-from d2spo.config import TrainConfig
-from d2spo.console import error, show_warning, tyro_error_line, version
+from d2spo.certify import CertifyConfig, certify_run, load_cbf_run, write_outputs
+from d2spo.config import TrainConfig, algo_named, flags_for, plain
+from d2spo.console import (
+    error,
+    print_certify,
+    print_evaluation,
+    print_repair_round,
+    show_warning,
+    tyro_error_line,
+    version,
+)
+from d2spo.demo import random_rollout, run_demo
+from d2spo.envs import EnvConfig, layouts, make_env
+from d2spo.envs.compiled_task import default_task
+from d2spo.envs.dynamics import load_dynamics
+from d2spo.envs.nav import checked_layout
+from d2spo.envs.preflight import check_feasible
+from d2spo.envs.render import save_layout_png
 from d2spo.errors import ConfigError, D2SPOWarning, LTLSyntaxError, NaNError, UserError
+from d2spo.evaluate import EvalConfig, evaluate_run, write_evaluation
+from d2spo.fields import check_fields
+from d2spo.ltl import task_formula, translate
+from d2spo.plots import evaluation_figure, state_fields_figure
+from d2spo.progress import train_with_progress
+from d2spo.repair import RepairConfig, repair_run
+from d2spo.report import build_report
+from d2spo.reproduce import reproduce
 
 
-# --------------------------------------------------------------------------------------- ltl
 @dataclasses.dataclass
 class LtlCmd:
     """Translate an LTL formula (or a task name: phi1, phi1-printed, phi2, relaxed) to an automaton."""
@@ -47,8 +71,6 @@ class LtlCmd:
     geodesic-per-state) with its target and forbidden areas into this PNG, then check the task can be done."""
 
     def run(self) -> int:
-        from d2spo.ltl import task_formula, translate
-
         if self.json and self.dot:
             raise UserError("--json and --dot are exclusive; choose one")
         if self.layout is not None and self.all_letters:
@@ -59,8 +81,6 @@ class LtlCmd:
         if self.all_letters:
             feasible, letters = None, "every letter (all areas may hold at once)"
         elif self.layout is not None:
-            from d2spo.envs import layouts
-
             lay = layouts.load(self.layout)
             feasible = layouts.feasible_letters(lay, aut.aps, self.label_mode)
             letters = f"the letters layout {lay.name!r} can produce"
@@ -76,17 +96,13 @@ class LtlCmd:
             print(aut.pretty(feasible))
             print(f"distance: area visits (letters) still needed to accept, over {letters}")
         if self.plot is not None:
-            from d2spo.envs.state_fields import check_task, default_fields
-            from d2spo.plots import state_fields_figure
-
-            layout, sf, distance, radius = default_fields(aut, self.layout, self.label_mode)
-            state_fields_figure(layout, aut, sf, self.plot, distance)
-            check_task(aut, layout, self.label_mode, radius, repr(self.formula))  # the picture shows why
+            task = default_task(aut, self.layout, self.label_mode)
+            state_fields_figure(task.layout, aut, task.fields, self.plot, list(task.distance))
+            check_feasible(task, repr(self.formula))  # after the picture, which shows why
             print(f"wrote {self.plot}")
         return 0
 
 
-# --------------------------------------------------------------------------------------- env
 @dataclasses.dataclass
 class EnvShowCmd:
     """Draw a layout: obstacles, labelled areas, the start and the sensing radius."""
@@ -102,14 +118,9 @@ class EnvShowCmd:
     """Seed for the rollout."""
 
     def run(self) -> int:
-        from d2spo.envs import layouts
-        from d2spo.envs.render import save_layout_png
-
         lay = layouts.load(self.layout)
         trajs, title = None, None
         if self.rollout_steps > 0:
-            from d2spo.demo import random_rollout
-
             task = f"F {lay.area_names[-1]}"  # the rollout's task: it ends on reaching the last area
             trajs = [random_rollout(self.layout, self.rollout_steps, self.seed, task=task)]
             title = f"layout {lay.name!r}: a random-action rollout, task {task!r} (seed {self.seed})"
@@ -118,7 +129,6 @@ class EnvShowCmd:
         return 0
 
 
-# --------------------------------------------------------------------------------------- demo
 @dataclasses.dataclass
 class DemoCmd:
     """The main job, short: what `make demo` runs."""
@@ -131,69 +141,37 @@ class DemoCmd:
     """Training episodes of the short D²SPO run."""
 
     def run(self) -> int:
-        from d2spo.demo import run_demo
-
         return run_demo(self.out, self.seed, self.episodes)
 
 
-# ------------------------------------------------------------------------------------- train
 @dataclasses.dataclass
 class TrainCmd:
-    """Train a learner on an LTL task; writes config.json, episodes.csv, summary.json, checkpoints."""
+    """Train a learner on an LTL task; writes config.json, episodes.csv, summary.json, checkpoints. The
+    flags listed are those of the learner --algo names (default d2spo): `d2spo train --algo cpo --help`."""
 
     cfg: Annotated[TrainConfig, tyro.conf.arg(name="")]
     out: Path | None = None
-    """Run directory (default: runs/ALGO-TASK-LAYOUT-sSEED)."""
+    """Run directory; None: runs/ALGO-TASK-LAYOUT-sSEED."""
     resume: Path | None = None
-    """Continue the interrupted run in this directory (its config.json wins over other flags)."""
+    """Resume this run directory (its config.json wins)."""
     progress: bool = True
-    """Show a progress bar (on a terminal; plain periodic lines otherwise)."""
+    """Show a progress bar (plain lines if not a terminal)."""
     dynamics: Path | None = None
     """JSON file of the robot's dynamics (docs/env.md): replaces the preset's; flags like --v-gain override it."""
 
     def config(self) -> TrainConfig:
         """The run's config: the flags, with the --dynamics file filling the dynamics fields they leave unset."""
+        cfg = plain(self.cfg)
         if self.dynamics is None:
-            return self.cfg
-        from d2spo.envs.dynamics import load_dynamics
-
+            return cfg
         if self.resume is not None:
             raise ConfigError("dynamics", "--resume continues the run with its own config.json; leave out --dynamics")
         values = load_dynamics(self.dynamics)
-        env = dataclasses.replace(self.cfg.env, **{k: v for k, v in values.items() if getattr(self.cfg.env, k) is None})
-        return dataclasses.replace(self.cfg, env=env)
+        env = dataclasses.replace(cfg.env, **{k: v for k, v in values.items() if getattr(cfg.env, k) is None})
+        return dataclasses.replace(cfg, env=env)
 
     def run(self) -> int:
-        from d2spo.progress import train_with_progress
-
         return train_with_progress(self.config(), self.out, self.resume, self.progress)
-
-
-@dataclasses.dataclass(frozen=True)
-class DynamicsFlags:
-    """Per-field dynamics of an evaluation (each one replaces the trained value, or --dynamics')."""
-
-    dt: float | None = None
-    """Control period (s)."""
-    v_max: float | None = None
-    """Largest linear speed (m/s): action[0] = 1 commands v_max."""
-    omega_max: float | None = None
-    """Largest angular speed (rad/s): action[1] = 1 commands omega_max."""
-    actuator_tau: float | None = None
-    """Time constant of the first-order actuator lag (s); 0 = none."""
-    v_gain: float | None = None
-    """Realised / commanded linear speed."""
-    omega_gain: float | None = None
-    """Realised / commanded angular speed."""
-    slip: float | None = None
-    """Largest fraction of speed lost to wheel slip per step, in [0, 1)."""
-    noise_xy: float | None = None
-    """Std of the Gaussian process noise on x and on y per step (m)."""
-    noise_theta: float | None = None
-    """Std of the Gaussian process noise on theta per step (rad)."""
-
-    def given(self) -> dict[str, float]:
-        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if getattr(self, f.name) is not None}
 
 
 @dataclasses.dataclass
@@ -203,58 +181,24 @@ class EvalCmd:
 
     run_dir: tyro.conf.Positional[Path]
     """A run directory written by `d2spo train`."""
-    episodes: int = 100
-    """Evaluation episodes (run in parallel)."""
-    layout: str | None = None
-    """Evaluate on another layout (name or JSON file); default: the training layout."""
-    task: str | None = None
-    """Zero-shot: run a generalist (`d2spo train --generalist`) on this task, a name or a formula over
-    A1..A4 (needs --layout); other runs only take the task they learnt."""
-    dynamics: str | None = None
-    """Evaluate under other dynamics: a preset (ideal, default, turtlebot: its unmodelled effects, with the
-    trained time step and speed limits) or a JSON file (every field it gives: docs/env.md)."""
-    seed: int = 0
-    """Seed of the evaluation episodes."""
-    layout_seeds: int = 1
-    """With --layout random[:SEED] or random5[:SEED]: average over this many random layouts (seeds
-    SEED..SEED+n-1)."""
-    runtime_filter: bool | None = None
-    """D²SPO only: switch the runtime safety filter on or off for this evaluation; default: as trained on
-    the training layout and dynamics, on elsewhere (π_Ω alone transfers poorly to unseen layouts)."""
-    filter_iters: int | None = None
-    """D²SPO only: linearise-and-project iterations of the runtime filter; default: as trained."""
-    filter_alpha: float | None = None
-    """D²SPO only: coefficient of α in the runtime filter's condition (smaller brakes earlier); default: as trained."""
-    policy: str = "best"
-    """best: a generalist's policy kept on its validation layouts (`--validation-layouts`), where the run
-    has one, else the last; last: the newest checkpoint's."""
+    cfg: Annotated[EvalConfig, tyro.conf.arg(name="")]
     plot: Path | None = None
     """Also draw the trajectories of the first --plot-episodes episodes on each layout (the first 6
     layouts of --layout-seeds), coloured by outcome, into this PNG file."""
     plot_episodes: int = 8
     """With --plot: episodes drawn per layout."""
-    dynamics_fields: Annotated[DynamicsFlags, tyro.conf.arg(name="")] = DynamicsFlags()
 
     def run(self) -> int:
-        from d2spo.console import print_evaluation
-        from d2spo.evaluate import evaluate_run, write_evaluation
-
         keep = 0
         if self.plot is not None:  # checked before the rollouts, which may take minutes
-            from d2spo.fields import check_fields
-
             check_fields(self, count=("plot_episodes",))
             if not self.plot.parent.is_dir():
                 raise ConfigError("plot", f"{self.plot}: the folder {self.plot.parent} does not exist")
             keep = self.plot_episodes
-        res = evaluate_run(self.run_dir, self.episodes, self.layout, self.dynamics, self.seed, self.layout_seeds,
-                           self.runtime_filter, self.filter_iters, self.filter_alpha, self.dynamics_fields.given(),
-                           self.task, self.policy, keep_paths=keep)
+        res = evaluate_run(self.run_dir, self.cfg, keep_paths=keep)
         paths = res.pop("paths", None)
-        print_evaluation(res, write_evaluation(self.run_dir, res), filter_asked=self.runtime_filter)
+        print_evaluation(res, write_evaluation(self.run_dir, res), filter_asked=self.cfg.runtime_filter)
         if paths is not None:
-            from d2spo.plots import evaluation_figure
-
             filt = "" if res["runtime_filter"] is None else f", runtime filter {'on' if res['runtime_filter'] else 'off'}"
             evaluation_figure(self.plot, paths, res["per_layout"],
                               f"{self.run_dir.name}: {res['task']} / {res['dynamics']}{filt}")
@@ -274,9 +218,6 @@ class EnvCheckCmd:
     """Robot preset whose size and layout scale the layout is checked with: ideal, default or turtlebot."""
 
     def run(self) -> int:
-        from d2spo.envs import EnvConfig, make_env
-        from d2spo.envs.nav import checked_layout
-
         cfg, lay = checked_layout(EnvConfig(layout=self.layout, preset=self.preset))
         n_obs = len(lay.obstacles)
         print(f"layout {lay.name!r}: arena {lay.arena[0]:g} x {lay.arena[1]:g} m, "
@@ -337,8 +278,6 @@ class ReproduceCmd:
     an older d2spo) instead of stopping; the report counts them."""
 
     def run(self) -> int:
-        from d2spo.reproduce import reproduce
-
         reproduce(self.targets, self.out, self.seeds, self.episodes, self.backend, self.address, self.methods,
                   self.progress, train=self.train, vmap_seeds=self.vmap_seeds, allow_stale=self.allow_stale)
         return 0
@@ -352,13 +291,10 @@ class ReportCmd:
     """The --out directory of `d2spo reproduce`."""
 
     def run(self) -> int:
-        from d2spo.report import build_report
-
         print(build_report(self.out))
         return 0
 
 
-# ------------------------------------------------------------------------------------ certify
 @dataclasses.dataclass
 class CertifyCmd:
     """Check Propositions 1-2 (the learned CBF) on a trained d2spo/sl run; writes RUN/certify.json and
@@ -371,40 +307,17 @@ class CertifyCmd:
     """Add the counterexamples to the datasets and train h and π_Ω until the certified fraction stops rising."""
     out: Path | None = None
     """With --repair: the new run directory (default: RUN-repaired)."""
-    rounds: int = 6
-    """With --repair: at most this many rounds of (certify, add counterexamples, train)."""
-    calls: int = 50
-    """With --repair: UPDATE(Ω, Θ) calls of Algorithm 1 per round (each `cbf.updates_per_iter` steps)."""
-    copies: int = 4
-    """With --repair: copies of each counterexample added to the datasets."""
-    gamma_exp: float | None = None
-    """With --repair: T_e's margin γ_exp while repairing (default: the margin certification asks of the
-    median point of D, ρ_h/Δt + L_e ε; 0: the run's own)."""
-    eval_episodes: int = 100
-    """With --repair: evaluate the original and the repaired policy on these episodes (as `d2spo eval`)
-    and keep the original state if the repaired one is less safe or completes less (0: skip)."""
+    fix: Annotated[RepairConfig, tyro.conf.arg(name="")] = dataclasses.field(default_factory=RepairConfig)
 
     def run(self) -> int:
-        from rich.console import Console
-
-        from d2spo.console import print_certify, print_repair_round
-
         console = Console()
         if self.repair:
-            from d2spo.repair import repair_run
-
-            if self.rounds < 1 or self.calls < 1 or self.copies < 1 or self.eval_episodes < 0:
-                raise UserError("--rounds, --calls and --copies must be ≥ 1, --eval-episodes ≥ 0")
             out = self.out or self.run_dir.with_name(self.run_dir.name + "-repaired")
-            res = repair_run(self.run_dir, out, self.check, self.rounds, self.calls, self.copies,
-                             self.eval_episodes, self.gamma_exp,
-                             progress=lambda r: print_repair_round(console, r, self.eval_episodes))
+            res = repair_run(self.run_dir, out, self.check, self.fix,
+                             progress=lambda r: print_repair_round(console, r, self.fix.eval_episodes))
             print_certify(console, res["after"])
             print(f"wrote the repaired run {out} (round {res['kept']} kept; certify.json, certify.png, checkpoint)")
             return 0
-        from d2spo.certify import certify_run, load_cbf_run, write_outputs
-
-        self.check.check()
         run = load_cbf_run(self.run_dir)
         summary, nets = certify_run(self.run_dir, self.check, run=run)
         j, p = write_outputs(self.run_dir, run, self.check, summary, nets)
@@ -413,16 +326,22 @@ class CertifyCmd:
         return 0
 
 
-Commands = Union[
-    Annotated[TrainCmd, tyro.conf.subcommand("train")],
-    Annotated[EvalCmd, tyro.conf.subcommand("eval")],
-    Annotated[LtlCmd, tyro.conf.subcommand("ltl")],
-    Annotated[EnvCmd, tyro.conf.subcommand("env")],
-    Annotated[DemoCmd, tyro.conf.subcommand("demo")],
-    Annotated[ReproduceCmd, tyro.conf.subcommand("reproduce")],
-    Annotated[ReportCmd, tyro.conf.subcommand("report")],
-    Annotated[CertifyCmd, tyro.conf.subcommand("certify")],
-]
+def commands(algo: str):
+    """The subcommands, ``train`` with the flags of the learner ``algo`` (``config.flags_for``)."""
+    train = dataclasses.make_dataclass("TrainCmd", [("cfg", Annotated[flags_for(algo), tyro.conf.arg(name="")])],
+                                       bases=(TrainCmd,))
+    train.__doc__ = TrainCmd.__doc__
+    return Union[
+        Annotated[train, tyro.conf.subcommand("train")],
+        Annotated[EvalCmd, tyro.conf.subcommand("eval")],
+        Annotated[LtlCmd, tyro.conf.subcommand("ltl")],
+        Annotated[EnvCmd, tyro.conf.subcommand("env")],
+        Annotated[DemoCmd, tyro.conf.subcommand("demo")],
+        Annotated[ReproduceCmd, tyro.conf.subcommand("reproduce")],
+        Annotated[ReportCmd, tyro.conf.subcommand("report")],
+        Annotated[CertifyCmd, tyro.conf.subcommand("certify")],
+    ]
+
 
 def parse(args: list[str]):
     """Parse the command line; on a usage error print one line and exit 2."""
@@ -432,7 +351,7 @@ def parse(args: list[str]):
     buf = io.StringIO()
     try:
         with contextlib.redirect_stderr(buf):
-            return tyro.cli(Commands, args=args, prog="d2spo",
+            return tyro.cli(commands(algo_named(args)), args=args, prog="d2spo",
                             description="D²SPO: safe RL with LTL tasks and learned control barrier functions. "
                                         "`d2spo --version` prints the version.")
     except SystemExit as e:
@@ -463,8 +382,6 @@ def main(argv: list[str] | None = None) -> int:
         error(str(e))
         return 3
     except BrokenPipeError:  # output piped into `head` and the like
-        import os
-
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
     except OSError as e:  # the machine's fault: a full disk, a read-only or vanished directory

@@ -15,6 +15,7 @@ from typing import Annotated, Any
 
 import tyro
 
+from d2spo.algos import all_config_sections, config_sections, has_runtime_filter, known_algos, reward_mode
 from d2spo.algos.cpo import CPOConfig
 from d2spo.algos.d2spo import D2SPOConfig
 from d2spo.algos.ppo_lag import PPOLagConfig
@@ -31,17 +32,13 @@ from d2spo.safety.cbf import CBFConfig
 PAPER_EPISODES = 20_000
 """Training episodes of a run on one layout (the paper's)."""
 GENERALIST_EPISODES = 4_000
-"""Training episodes of a generalist (``--generalist``): its validated policy peaks within them
-(bench/RESULTS.md, issue 16), and the run fits the issue's 30 minutes."""
+"""Training episodes of a generalist (``--generalist``); docs/config.md says why."""
 GENERALIST_TASKS = 16
-"""Random reach-avoid sequences a generalist trains on beside ``--task`` (``generalist_tasks``): on
-ϕ1 alone the validated policy fell after ~750 episodes (0.80 -> 0.42 by 4000) and ϕ2 completed
-77% on the validation layouts; with the mixture it did not fall and ϕ2 completed 93%
-(bench/RESULTS.md, issue 16, session 10)."""
+"""Random reach-avoid sequences a generalist trains on beside ``--task`` (``generalist_tasks``);
+docs/config.md says why."""
 FAST_SETTINGS: dict[str, Any] = {"num_envs": 32, "td3.hidden": (64, 64)}
 """What ``--fast`` gives D²SPO and SL on one layout (``TrainConfig.fast``): half the TD3 updates per
-transition, with a quarter of their arithmetic. ϕ1 in under 3 minutes on 2 CPU cores with the cache
-warm, at the price of more training collisions (README, "Departures"; bench/RESULTS.md, 2026-11-26)."""
+transition, with a quarter of their arithmetic; docs/config.md gives its gain and its price."""
 DEFAULT_SETTINGS: dict[str, Any] = {"num_envs": 16, "td3.hidden": DEFAULT_WIDTHS}
 """The same settings without ``--fast``, for every learner and the generalist."""
 VALIDATION_SEED = 50_000
@@ -54,53 +51,42 @@ class TrainConfig:
     """A training run: the learner, the task, the environment and every hyper-parameter."""
 
     algo: str = "d2spo"
-    """Learner: d2spo, td3 (RL-phi, sparse reward), tlgrl (TD3 + Eq. (8), no CBF), sl (D²SPO without Eq. (8));
-    baselines td3-lag, sac-lag, rcrl, ppo-lag, cpo (same reward and annealed radius as tlgrl)."""
+    """Learner: d2spo, sl (D²SPO, sparse reward), tlgrl (TD3 + Eq. (8)),
+    td3 (sparse), td3-lag, sac-lag, rcrl, ppo-lag, cpo."""
     task: str = "phi1"
-    """Task name (phi1, phi1-printed, phi2, relaxed) or an LTL formula."""
+    """Task name (phi1, phi2, relaxed, ...) or LTL formula."""
     episodes: int | None = None
-    """Training episodes; default 20000 (the paper), or ``GENERALIST_EPISODES`` with ``generalist``."""
+    """Episodes; None: 20000, or 4000 with --generalist."""
     seed: int = 0
-    """Random seed; a run is deterministic given its seed and config."""
+    """Random seed; a seed and a config give one run, always."""
     num_envs: int | None = None
-    """Environments stepped in parallel (vmap). None: 16, or 32 with ``fast`` (``FAST_SETTINGS``)."""
+    """Parallel environments; None: 16, or 32 with --fast."""
     fast: bool = False
-    """D²SPO and SL on one layout: 32 envs and 64-64 TD3 networks (unless given): about 1.6x faster,
-    with more collisions while training (README, "Departures")."""
+    """D²SPO and SL on one layout: 32 envs, 64-64 TD3 networks (unless given); faster, more collisions."""
     chunk_steps: int = 250
-    """Vectorised steps per jitted chunk (between two host syncs)."""
+    """Vectorised steps per jitted chunk (one host sync each)."""
     checkpoint_every: int = 1_000
     """Write a checkpoint every this many episodes."""
     window: int = 2_000
-    """Trailing training episodes the safety and completion rates are computed on (the paper: 2000)."""
+    """Safety and completion rates cover the last N episodes."""
     snapshots: tuple[int, ...] = ()
-    """Also save the policy when these many episodes have finished (DIR/policy-EPISODES.msgpack),
-    e.g. for the trajectories of Fig. 5."""
+    """Also save policy-N.msgpack after N episodes, for each N."""
     eval_episodes: int = 100
-    """Episodes of the final deterministic policy evaluated at the end."""
+    """Episodes of the final deterministic evaluation."""
     generalist: bool = False
-    """Train one policy over a bank of random layouts with the subgoal observation
-    (``envs.generalist``, ``algos.generalist``; d2spo only; issue 16, in progress)."""
+    """Train one d2spo policy for a bank of random layouts."""
     generalist_layouts: int = 256
-    """With ``generalist``: train on the layouts random:0 .. random:N-1 (``envs.generator``)."""
+    """With --generalist: train on layouts random:0..N-1."""
     generalist_tasks: int | None = None
-    """With ``generalist``: also train on this many random reach-avoid sequences over A1..A4
-    (``ltl.tasks.reach_avoid_tasks``), each episode drawing one task of the mixture; 0: --task alone.
-    Default ``GENERALIST_TASKS`` with ``generalist`` (0 without)."""
+    """With --generalist: also train on N random reach-avoid tasks; 0: --task alone. None: 16."""
     validation_layouts: int = 16
-    """With ``generalist``: every ``validate_every`` episodes the policy runs ``validation_episodes``
-    deterministic episodes on the held-out layouts random:VALIDATION_SEED .. +N-1 (never trained on,
-    never in the benchmark's), and the best (fewest failures, the earliest on a tie) is kept as
-    DIR/policy-best.msgpack: what ``d2spo eval`` runs. 0: no validation; the last policy is used."""
+    """With --generalist: keep the policy that does best on N held-out layouts; 0: the last."""
     validation_episodes: int = 256
-    """With ``generalist``: episodes of each validation (run in parallel; layouts drawn from the
-    validation set, the same episodes every time)."""
+    """With --generalist: episodes of each validation."""
     validate_every: int = 250
-    """With ``generalist``: validate the policy every this many training episodes."""
+    """With --generalist: validate every N training episodes."""
     eval_untrained: bool = False
-    """Also evaluate the initial policy (after the cautious start, before the first env step) on
-    the same episodes, with the same compilation: summary.json's ``eval_untrained``. Needs a run
-    that starts from its first episode (not a resumed one)."""
+    """Also evaluate the untrained policy (summary.json's eval_untrained); not with --resume."""
     env: Annotated[EnvConfig, tyro.conf.OmitArgPrefixes] = field(default_factory=EnvConfig)
     """Environment (its flags carry no prefix: --layout, --preset, --dt, ...)."""
     td3: TD3Config = field(default_factory=TD3Config)
@@ -110,17 +96,17 @@ class TrainConfig:
     cbf: CBFConfig = field(default_factory=CBFConfig)
     """Data-driven CBF, nominal model and the executed policy pi_Omega (d2spo, sl)."""
     d2spo: D2SPOConfig = field(default_factory=D2SPOConfig)
-    """D²SPO's schedule: safety updates, cautious start, runtime filter (d2spo, sl)."""
+    """D²SPO's schedule: safety updates, cautious start, filter (d2spo, sl)."""
     td3_lag: TD3LagConfig = field(default_factory=TD3LagConfig)
     """TD3-Lagrangian (td3-lag): TD3, cost critics, Lagrange multiplier."""
     sac_lag: SACLagConfig = field(default_factory=SACLagConfig)
-    """SAC-Lagrangian (sac-lag): SAC with entropy tuning, cost critics, Lagrange multiplier."""
+    """SAC-Lagrangian (sac-lag): SAC, cost critics, Lagrange multiplier."""
     rcrl: RCRLConfig = field(default_factory=RCRLConfig)
-    """Reachability constrained RL (rcrl): SAC, safety value Q_h, multiplier network lambda(s)."""
+    """RCRL (rcrl): SAC, safety value Q_h, multiplier network lambda(s)."""
     ppo_lag: PPOLagConfig = field(default_factory=PPOLagConfig)
-    """PPO-Lagrangian (ppo-lag): PPO-clip, reward and cost critics, Lagrange multiplier."""
+    """PPO-Lagrangian (ppo-lag): PPO-clip, reward and cost critics, multiplier."""
     cpo: CPOConfig = field(default_factory=CPOConfig)
-    """Constrained Policy Optimization (cpo): trust region step with a linearised cost constraint."""
+    """CPO (cpo): trust region step, linearised cost constraint."""
 
     @property
     def layout(self) -> str:
@@ -128,14 +114,10 @@ class TrainConfig:
 
     def env_config(self) -> EnvConfig:
         """The env config with the reward mode this learner uses (``d2spo.algos.LEARNERS``)."""
-        from d2spo.algos import reward_mode
-
         mode = reward_mode(self.algo)
         return dataclasses.replace(self.env, reward=dataclasses.replace(self.env.reward, mode=mode))
 
     def __post_init__(self) -> None:
-        from d2spo.algos import known_algos
-
         if self.algo not in known_algos():
             raise ConfigError("algo", f"unknown algorithm {self.algo!r}; choose one of {list(known_algos())}")
         if self.generalist and self.algo != "d2spo":
@@ -160,8 +142,6 @@ class TrainConfig:
     def _resolve_speed_settings(self) -> None:
         """Fill ``num_envs`` and ``td3.hidden`` where None: ``FAST_SETTINGS`` with ``fast`` (D²SPO and SL
         on one layout only), else ``DEFAULT_SETTINGS``. config.json records the values."""
-        from d2spo.algos import has_runtime_filter
-
         if self.fast and (self.generalist or not has_runtime_filter(self.algo)):
             raise ConfigError("fast", f"is for d2spo and sl on one layout, not {self.algo}"
                               f"{' --generalist' if self.generalist else ''}")
@@ -211,10 +191,10 @@ def _build(cls: type, data: dict, where: str) -> Any:
 
 FORMER_DEFAULTS: dict[tuple[str, ...], Any] = {
     ("env", "reward", "shaping_clearance"): None,  # the default became 0.3 after the field was added
-    ("env", "reward", "shaping_metric"): "geodesic",  # today's default is geodesic-per-state (issue 15)
+    ("env", "reward", "shaping_metric"): "geodesic",  # geodesic-per-state became the default on 2026-11-23
     ("anneal", "relax"): "all",  # the field came with the option "targets", which became the default
     ("validation_layouts",): 0,  # generalists trained before validation kept their last policy
-    ("env", "base_max_steps"): 200,  # an unset max_steps gave 200 steps before issue 15's passages
+    ("env", "base_max_steps"): 200,  # an unset max_steps gave 200 steps until 2026-11-25
     ("env", "reward", "shaping_clearance_cost"): 10.0,  # the per-state field's clearance band cost 10x until 2026-11-25
     ("env", "reward", "shaping_collide_cost"): 10.0,
     ("env", "observe_path"): False,  # the observation had no path direction until 2026-11-25
@@ -250,8 +230,6 @@ def effective_config(cfg: TrainConfig) -> dict:
     """``config_to_dict(cfg)`` without what cannot change this learner's run: the sections of other
     learners, and, under the sparse reward (td3, sl), the shaping fields. Two runs with equal
     effective configs train identically."""
-    from d2spo.algos import all_config_sections, config_sections
-
     d = config_to_dict(cfg)
     for name in all_config_sections() - set(config_sections(cfg.algo)):
         d.pop(name, None)
@@ -274,3 +252,26 @@ def config_differences(old: TrainConfig, new: TrainConfig) -> list[str]:
 
     walk(effective_config(old), effective_config(new), "")
     return out
+
+
+def flags_for(algo: str) -> type:
+    """``TrainConfig`` as the command line shows it for ``algo``: the config sections other learners
+    read are hidden (``tyro.conf.Suppress``), so ``d2spo train --algo A --help`` lists the flags that
+    apply to A, and a flag A would ignore is refused. An unknown ``algo`` shows every section
+    (``TrainConfig`` then refuses the algorithm). ``plain`` turns what it parses into a ``TrainConfig``."""
+    keep = set(config_sections(algo)) if algo in known_algos() else all_config_sections()
+    hints = typing.get_type_hints(TrainConfig, include_extras=True)
+    hidden = [(f.name, Annotated[hints[f.name], tyro.conf.Suppress], field(default_factory=f.default_factory))
+              for f in dataclasses.fields(TrainConfig) if f.name in all_config_sections() - keep]
+    return dataclasses.make_dataclass("TrainConfig", hidden, bases=(TrainConfig,), frozen=True)
+
+
+def algo_named(args: list[str]) -> str:
+    """The learner a ``d2spo train`` command line names with ``--algo`` (default: ``TrainConfig``'s)."""
+    given = [b for a, b in zip(args, args[1:]) if a == "--algo"] + [a[7:] for a in args if a.startswith("--algo=")]
+    return given[-1] if given else TrainConfig.algo
+
+
+def plain(cfg: TrainConfig) -> TrainConfig:
+    """A ``TrainConfig`` with the values of ``cfg`` (an instance of a ``flags_for`` class)."""
+    return TrainConfig(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(TrainConfig)})

@@ -10,8 +10,13 @@ from __future__ import annotations
 import re
 import sys
 import warnings
+from importlib import metadata
 from pathlib import Path
 
+from rich.console import Console
+from rich.table import Table
+
+from d2spo import __version__
 from d2spo.errors import D2SPOWarning
 
 
@@ -81,9 +86,6 @@ def tyro_error_line(text: str, args: list[str] = ()) -> str:
 def print_evaluation(res: dict, path: Path, filter_asked: bool | None) -> None:
     """``d2spo.evaluate.evaluate_run``'s result as a table (a row per layout when there are several),
     then where it was written. ``filter_asked``: the --runtime-filter flag (None: not given)."""
-    from rich.console import Console
-    from rich.table import Table
-
     filt = ""
     if res["runtime_filter"] is not None:
         filt = ", runtime filter " + ("on" if res["runtime_filter"] else "off")
@@ -128,8 +130,6 @@ def print_repair_round(console, r: dict, eval_episodes: int) -> None:
 
 def print_certify(console, s: dict) -> None:
     """``d2spo.certify.certify_run``'s summary: a table per net, the model residual, counterexamples."""
-    from rich.table import Table
-
     cpu = f", {s['cpu_seconds']:.0f} s CPU" if "cpu_seconds" in s else ""
     t = Table(title=f"{s['run']}: Propositions 1-2 ({s['seconds']:.0f} s{cpu})")
     for name in ("net", "proposition", "points", "certified", "not certified", "violated", "worst margin", "worst value"):
@@ -167,11 +167,7 @@ def print_certify(console, s: dict) -> None:
 
 def version() -> str:
     """The installed d2spo's version (the package metadata; the source tree's when run from it)."""
-    from importlib import metadata
-
     try:
         return metadata.version("d2spo")
     except metadata.PackageNotFoundError:
-        from d2spo import __version__
-
         return __version__

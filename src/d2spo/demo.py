@@ -10,9 +10,23 @@ reaches A1 without a collision. The full tasks (relaxed ϕ1, ϕ1) need the paper
 
 from __future__ import annotations
 
+import dataclasses
+import shutil
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
 import numpy as np
+from rich.console import Console
+from rich.table import Table
+
+from d2spo.algos.td3 import TD3Config
+from d2spo.config import TrainConfig
+from d2spo.envs import EnvConfig, layouts, make_env
+from d2spo.ltl import TASKS, translate
+from d2spo.plots import policy_figure
+from d2spo.progress import train_with_progress
+from d2spo.run import load_policy
 
 
 def random_rollout(layout: str, steps: int, seed: int, task: str | None = None) -> np.ndarray:
@@ -20,10 +34,6 @@ def random_rollout(layout: str, steps: int, seed: int, task: str | None = None) 
 
     The default task is to reach the layout's last area, which every layout can express.
     """
-    import jax
-    import jax.numpy as jnp
-
-    from d2spo.envs import EnvConfig, layouts, make_env
 
     if task is None:
         task = f"F {layouts.load(layout).area_names[-1]}"
@@ -51,18 +61,7 @@ DEMO_TASK = "F A1"
 def run_demo(out: Path, seed: int = 0, episodes: int = 500) -> int:
     """The paper's tasks as automata, then a short D²SPO training (see the module docstring), a
     summary table and a picture of the trained policy with its learned barrier function."""
-    import dataclasses
 
-    from rich.console import Console
-    from rich.table import Table
-
-    from d2spo.algos.td3 import TD3Config
-    from d2spo.config import TrainConfig
-    from d2spo.envs import EnvConfig, layouts
-    from d2spo.evaluate import load_policy
-    from d2spo.ltl import TASKS, translate
-    from d2spo.plots import policy_figure
-    from d2spo.progress import train_with_progress
 
     console = Console()
     out = Path(out)
@@ -79,8 +78,6 @@ def run_demo(out: Path, seed: int = 0, episodes: int = 500) -> int:
 
     run = out / "d2spo-relaxed"
     if run.exists():
-        import shutil
-
         shutil.rmtree(run)
     cfg = TrainConfig(algo="d2spo", task=DEMO_TASK, episodes=episodes, seed=seed, window=min(200, episodes),
                       eval_episodes=50, env=EnvConfig(layout="relaxed"), fast=True,

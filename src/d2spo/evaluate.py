@@ -1,55 +1,97 @@
-"""Load a trained policy from a run directory and evaluate it, possibly elsewhere (``d2spo eval``).
+"""Evaluate a run's policy, on its own layout and dynamics or elsewhere (``d2spo eval``).
 
-The policy is restored with the training config (the checkpoint's shapes depend on it) and then
-run on any layout and dynamics whose observation has the same size (same task, same number of
-areas, same number of lidar rays). The rollouts are ``d2spo.rollout``'s; the run's config and
-learner come from ``d2spo.train`` (``load_run_config``, ``build``). Nothing here prints: the CLI
-shows the result with ``d2spo.console.print_evaluation``.
+What an evaluation runs is an ``EvalConfig``. A specialist's policy runs on any layout and dynamics
+whose observation has the same size (same task, same number of areas, same number of lidar rays);
+a generalist's on any task and any layout its field bank can hold (``d2spo.zero_shot`` checks the
+layouts; the generalist is built once and each layout swaps its bank in). The run's config, learner
+and policies come from ``d2spo.run``; the rollouts are ``d2spo.rollout``'s. Nothing here prints:
+the CLI shows the result with ``d2spo.console.print_evaluation``.
 """
 
 from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from types import SimpleNamespace
+from typing import Annotated
 
 import jax
 import numpy as np
+import tyro
 
-from d2spo.checkpoint import load_checkpoint, run_fingerprint
+from d2spo import zero_shot
+from d2spo.algos import has_runtime_filter
 from d2spo.config import TrainConfig
-from d2spo.errors import ConfigError, NaNError, RunDirError
-from d2spo.fields import check_fields
+from d2spo.envs import dynamics as dyn
+from d2spo.envs.env_config import EnvConfig
+from d2spo.errors import ConfigError, NaNError
+from d2spo.fields import check_choice, check_fields, field_docstring
 from d2spo.rollout import make_rollout, rates
+from d2spo.run import POLICY_CHOICES, build, load_policy, load_run_config
 from d2spo.runio import atomic_write_json
-from d2spo.train import best_policy_path, build, load_best_policy, load_run_config
 
-POLICY_CHOICES = ("best", "last")
-"""Which policy of a run ``load_policy`` returns (``d2spo eval --policy``)."""
+DynamicsOverrides = dataclasses.make_dataclass(
+    "DynamicsOverrides",
+    [(name, Annotated[float | None, tyro.conf.arg(help=field_docstring(EnvConfig, name))], dataclasses.field(default=None))
+     for name in dyn.DYNAMICS_FIELDS],
+    frozen=True,
+)
+DynamicsOverrides.__module__ = __name__
+DynamicsOverrides.__doc__ = """Per-field dynamics of an evaluation: each given field replaces the trained value (or
+the --dynamics preset's or file's). The fields are ``EnvConfig``'s ``DYNAMICS_FIELDS``."""
 
 
-def load_policy(run_dir: Path, which: str = "best"):
-    """(cfg, learner, policy, meta) of a finished or checkpointed run. ``which``: "best" is a
-    validated generalist's kept policy (``TrainConfig.validation_layouts``) where there is one, else
-    the last; "last" is the newest checkpoint's. ``meta["policy"]`` says which was taken."""
-    if which not in POLICY_CHOICES:
-        raise ConfigError("policy", f"expected one of {', '.join(POLICY_CHOICES)}, got {which!r}")
-    run_dir = Path(run_dir)
-    if not run_dir.is_dir():
-        raise RunDirError(f"{run_dir}: no such run directory")
-    cfg = load_run_config(run_dir)
-    # a generalist's checkpoint holds no layout: a one-layout bank gives the same shapes, fast
-    _, _, learner = build(dataclasses.replace(cfg, generalist_layouts=1, generalist_tasks=0) if cfg.generalist else cfg)
-    template = jax.eval_shape(learner.init, jax.random.PRNGKey(0))  # shapes only: no pre-training
-    carry, meta = load_checkpoint(run_dir, template, run_fingerprint(run_dir))
-    meta = dict(meta)
-    best = meta.get("best")
-    if which == "best" and best is not None and best_policy_path(run_dir).is_file():
-        meta["policy"] = f"best on validation (after {best['episodes']} episodes)"
-        return cfg, learner, load_best_policy(run_dir, learner), meta
-    meta["policy"] = f"last (after {meta.get('episodes')} episodes)"
-    return cfg, learner, learner.policy(carry), meta
+def given(overrides) -> dict[str, float]:
+    """The fields of a ``DynamicsOverrides`` that are set."""
+    return {f.name: getattr(overrides, f.name) for f in dataclasses.fields(overrides) if getattr(overrides, f.name) is not None}
 
+
+@dataclasses.dataclass(frozen=True)
+class EvalConfig:
+    """What `d2spo eval` runs: episodes, where, under which dynamics, which policy."""
+
+    episodes: int = 100
+    """Evaluation episodes per layout (run in parallel)."""
+    layout: str | None = None
+    """Evaluate on another layout (name or JSON file); default: the training layout."""
+    task: str | None = None
+    """Zero-shot: run a generalist (`d2spo train --generalist`) on this task, a name or a formula over
+    A1..A4 (needs --layout); other runs only take the task they learnt."""
+    dynamics: str | None = None
+    """Evaluate under other dynamics: a preset (ideal, default, turtlebot: its unmodelled effects, with the
+    trained time step and speed limits) or a JSON file (every field it gives: docs/env.md)."""
+    seed: int = 0
+    """Seed of the evaluation episodes."""
+    layout_seeds: int = 1
+    """With --layout random[:SEED] or random5[:SEED]: average over this many random layouts (seeds
+    SEED..SEED+n-1)."""
+    runtime_filter: bool | None = None
+    """D²SPO only: switch the runtime safety filter on or off for this evaluation; default: as trained on
+    the training layout and dynamics, on elsewhere (π_Ω alone transfers poorly to unseen layouts)."""
+    filter_iters: int | None = None
+    """D²SPO only: linearise-and-project iterations of the runtime filter; default: as trained."""
+    filter_alpha: float | None = None
+    """D²SPO only: coefficient of α in the runtime filter's condition (smaller brakes earlier); default: as trained."""
+    policy: str = "best"
+    """best: a generalist's policy kept on its validation layouts (`--validation-layouts`), where the run
+    has one, else the last; last: the newest checkpoint's."""
+    overrides: Annotated[DynamicsOverrides, tyro.conf.arg(name="")] = dataclasses.field(default_factory=DynamicsOverrides)
+
+    def __post_init__(self):
+        check_fields(self, nullable=("filter_iters", "filter_alpha"), count=("episodes", "layout_seeds"),
+                     seed=("seed",), natural=("filter_iters",), positive=("filter_alpha",))
+        check_choice(self, "policy", POLICY_CHOICES)
+        if self.layout_seeds != 1 and not (self.layout or "").startswith("random"):
+            raise ConfigError("layout_seeds", f"only applies with --layout random[:SEED] or random5[:SEED], got "
+                              f"{self.layout_seeds} with layout {self.layout or 'as trained'!r}")
+
+    def layouts(self) -> list[str | None]:
+        """The layouts evaluated: ``layout`` (None: the training one), or with ``layout_seeds`` > 1 the
+        random layouts SEED .. SEED + n - 1."""
+        if self.layout is not None and self.layout.startswith("random") and self.layout_seeds > 1:
+            kind, _, base = self.layout.partition(":")  # random:SEED or random5:SEED
+            if base.isdigit() or not base:  # else layouts.load names the bad seed
+                return [f"{kind}:{int(base or 0) + i}" for i in range(self.layout_seeds)]
+        return [self.layout]
 
 EFFECT_FIELDS = ("actuator_tau", "v_gain", "omega_gain", "slip", "noise_xy", "noise_theta")
 """What ``d2spo eval --dynamics PRESET`` changes."""
@@ -60,8 +102,6 @@ def eval_env_config(cfg: TrainConfig, layout: str | None, dynamics: str | None =
     """The env config of an evaluation: the training one on ``layout``, under ``dynamics`` (a preset:
     its unmodelled effects only, the robot's time step and speed limits stay those the policy was
     trained with; or a JSON file: every field it gives), then the per-field ``overrides``."""
-    from d2spo.envs import dynamics as dyn
-
     env_cfg = cfg.env
     if layout is not None:
         env_cfg = dataclasses.replace(env_cfg, layout=layout)
@@ -88,89 +128,65 @@ def dynamics_label(dynamics: str | None, overrides: dict[str, float] | None, tra
     return base + "".join(f"-{k}{v:g}" for k, v in sorted((overrides or {}).items()))
 
 
-def learner_on(cfg: TrainConfig, layout: str | None, preset: str | None, overrides: dict[str, float] | None = None):
-    """A learner of the same kind on another layout/dynamics (for acting only); ``preset`` is a preset
-    name or a dynamics JSON file (``eval_env_config``)."""
-    return build(dataclasses.replace(cfg, env=eval_env_config(cfg, layout, preset, overrides)))
+def learner_on(cfg: TrainConfig, layout: str | None, dynamics: str | None, overrides: dict[str, float] | None = None):
+    """A learner of the same kind on another layout/dynamics (for acting only); ``dynamics`` is a
+    preset name or a dynamics JSON file (``eval_env_config``)."""
+    return build(dataclasses.replace(cfg, env=eval_env_config(cfg, layout, dynamics, overrides)))
 
 
-def filter_choice(cfg: TrainConfig, layout: str | None, preset: str | None, asked: bool | None,
+def filter_choice(cfg: TrainConfig, layout: str | None, dynamics: str | None, asked: bool | None,
                   overrides: dict[str, float] | None = None) -> bool | None:
     """The runtime filter's setting for an evaluation: what was asked; else on for a D²SPO policy on
     another layout or other dynamics than it was trained on (deployment where the learned h never
     saw data); else None, as trained."""
-    from d2spo.algos import has_runtime_filter
-    from d2spo.envs.dynamics import DYNAMICS_FIELDS
-
     if asked is not None or not has_runtime_filter(cfg.algo):
         return asked
-    trained, now = cfg.env.resolved(), eval_env_config(cfg, layout, preset, overrides).resolved()
+    trained, now = cfg.env.resolved(), eval_env_config(cfg, layout, dynamics, overrides).resolved()
     elsewhere = ((layout is not None and layout != cfg.layout)
-                 or any(getattr(trained, k) != getattr(now, k) for k in DYNAMICS_FIELDS))
+                 or any(getattr(trained, k) != getattr(now, k) for k in dyn.DYNAMICS_FIELDS))
     return True if elsewhere else None
 
 
-def evaluate_run(run_dir: Path, episodes: int = 100, layout: str | None = None, preset: str | None = None,
-                 seed: int = 0, layout_seeds: int = 1, runtime_filter: bool | None = None,
-                 filter_iters: int | None = None, filter_alpha: float | None = None,
-                 dynamics: dict[str, float] | None = None, task: str | None = None, policy: str = "best",
-                 keep_paths: int = 0) -> dict:
-    """Safety and completion of the run's final policy, deterministic, on its own layout and dynamics
-    or others. ``runtime_filter=None``: as trained on the training layout and dynamics, and on for a
-    D²SPO policy evaluated on another layout or dynamics (π_Ω alone is far less safe on layouts it
-    never saw: docs/cbf.md); True/False force it. ``preset``: a dynamics preset or JSON file;
-    ``dynamics``: per-field values on top of it (``eval_env_config``). ``task``: another task (a
-    name or a formula) for a generalist run, zero-shot (``d2spo.zero_shot``); a generalist needs
-    ``layout``. ``policy``: "best" or "last" (``load_policy``). ``keep_paths`` > 0 adds ``"paths"``:
-    per layout, (Layout, poses [k, T + 1, 3], collided [k], completed [k]) of its first ``keep_paths``
-    episodes, for ``plots.evaluation_figure`` (arrays: drop the key before writing JSON)."""
-    from d2spo.algos import has_runtime_filter
-    from d2spo.envs.dynamics import DYNAMICS_FIELDS
-
-    asked = SimpleNamespace(episodes=episodes, layout_seeds=layout_seeds, seed=seed, filter_iters=filter_iters,
-                            filter_alpha=filter_alpha)
-    check_fields(asked, nullable=("filter_iters", "filter_alpha"), count=("episodes", "layout_seeds"),
-                 seed=("seed",), natural=("filter_iters",), positive=("filter_alpha",))
-    if layout_seeds != 1 and not (layout or "").startswith("random"):
-        raise ConfigError("layout_seeds", f"only applies with --layout random[:SEED] or random5[:SEED], got {layout_seeds} "
-                          f"with layout {layout or 'as trained'!r}")
-    cfg, learner, policy_params, meta = load_policy(run_dir, policy)
-    policy, which = policy_params, meta["policy"]
-    if task is not None and not cfg.generalist and task != cfg.task:
+def evaluate_run(run_dir: Path, ecfg: EvalConfig = EvalConfig(), keep_paths: int = 0) -> dict:
+    """Safety and completion of a run's policy as ``ecfg`` says, deterministic, on its own layout and
+    dynamics or others. The runtime filter, unless ``ecfg.runtime_filter`` forces it: as trained on
+    the training layout and dynamics, and on for a D²SPO policy evaluated on another layout or
+    dynamics (π_Ω alone is far less safe on layouts it never saw: docs/cbf.md). ``keep_paths`` > 0
+    adds ``"paths"``: per layout, (Layout, poses [k, T + 1, 3], collided [k], completed [k]) of its
+    first ``keep_paths`` episodes, for ``plots.evaluation_figure`` (arrays: drop the key before
+    writing JSON)."""
+    cfg = load_run_config(run_dir)
+    overrides = given(ecfg.overrides)
+    if ecfg.task is not None and not cfg.generalist and ecfg.task != cfg.task:
         raise ConfigError("task", f"only a generalist (d2spo train --generalist) runs another task than it "
                           f"learnt; this run learnt {cfg.task!r}")
-    if cfg.generalist and layout is None:
+    if cfg.generalist and ecfg.layout is None:
         raise ConfigError("layout", "a generalist run has no layout of its own: give --layout NAME|FILE|random:SEED")
     has_filter = has_runtime_filter(cfg.algo)
-    asked = {"runtime_filter": runtime_filter, "filter_iters": filter_iters, "filter_alpha": filter_alpha}
-    for name, value in asked.items():
-        if value is not None and not has_filter:
+    for name in ("runtime_filter", "filter_iters", "filter_alpha"):
+        if getattr(ecfg, name) is not None and not has_filter:
             raise ConfigError(name, f"only D²SPO has a runtime filter; this run is {cfg.algo!r}")
-    runtime_filter = filter_choice(cfg, layout, preset, runtime_filter, dynamics)
+    runtime_filter = filter_choice(cfg, ecfg.layout, ecfg.dynamics, ecfg.runtime_filter, overrides)
     if runtime_filter is not None:
         cfg = dataclasses.replace(cfg, d2spo=dataclasses.replace(cfg.d2spo, runtime_filter=runtime_filter))
-    cbf_changes = {k: v for k, v in (("filter_iters", filter_iters), ("filter_alpha_coef", filter_alpha)) if v is not None}
+    cbf_changes = {k: v for k, v in (("filter_iters", ecfg.filter_iters), ("filter_alpha_coef", ecfg.filter_alpha))
+                   if v is not None}
     if cbf_changes:
         cfg = dataclasses.replace(cfg, cbf=dataclasses.replace(cfg.cbf, **cbf_changes))
-    layouts = [layout]
-    if layout is not None and layout.startswith("random") and layout_seeds > 1:
-        kind, _, base = layout.partition(":")  # random:SEED or random5:SEED
-        if base.isdigit() or not base:  # else load() names the bad seed
-            layouts = [f"{kind}:{int(base or 0) + i}" for i in range(layout_seeds)]
-    env_cfg = eval_env_config(cfg, layout, preset, dynamics)
+    layouts = ecfg.layouts()
+    env_cfg = eval_env_config(cfg, ecfg.layout, ecfg.dynamics, overrides)
     if cfg.generalist:
-        from d2spo.zero_shot import rollouts
-
-        results, limit = rollouts(cfg, policy, task or cfg.task, layouts, episodes, seed, env_cfg, keep_paths)
+        results, limit, which = _generalist_rollouts(run_dir, cfg, ecfg, env_cfg, layouts, keep_paths)
     else:
-        results, limit = _specialist_rollouts(cfg, learner, policy, layouts, episodes, seed, preset, dynamics,
-                                              keep_paths), None
+        _, learner, policy, meta = load_policy(run_dir, ecfg.policy)
+        results, limit, which = _specialist_rollouts(cfg, learner, policy, ecfg, overrides, keep_paths), None, meta["policy"]
     paths = [r.pop("paths") for r in results] if keep_paths else None
     out = {
-        "run": str(run_dir), "policy": which, "episodes": episodes * len(layouts), "layout": layout or cfg.layout,
-        "layouts": [lay or cfg.layout for lay in layouts], "dynamics": dynamics_label(preset, dynamics, cfg.env.preset),
-        "dynamics_values": {k: getattr(env_cfg.resolved(), k) for k in DYNAMICS_FIELDS}, "seed": seed,
-        "task": task or cfg.task, "task_given": task is not None and task != cfg.task,
+        "run": str(run_dir), "policy": which, "episodes": ecfg.episodes * len(layouts),
+        "layout": ecfg.layout or cfg.layout, "layouts": [lay or cfg.layout for lay in layouts],
+        "dynamics": dynamics_label(ecfg.dynamics, overrides, cfg.env.preset),
+        "dynamics_values": {k: getattr(env_cfg.resolved(), k) for k in dyn.DYNAMICS_FIELDS}, "seed": ecfg.seed,
+        "task": ecfg.task or cfg.task, "task_given": ecfg.task is not None and ecfg.task != cfg.task,
         "max_steps": limit,
         "runtime_filter": bool(cfg.d2spo.runtime_filter) if has_filter else None,
         "filter_iters": cfg.cbf.filter_iters if has_filter else None,
@@ -184,24 +200,25 @@ def evaluate_run(run_dir: Path, episodes: int = 100, layout: str | None = None, 
     return out
 
 
-def _specialist_rollouts(cfg: TrainConfig, learner, policy, layouts: list[str | None], episodes: int, seed: int,
-                         preset: str | None, dynamics: dict[str, float] | None, keep_paths: int = 0) -> list[dict]:
+def _specialist_rollouts(cfg: TrainConfig, learner, policy, ecfg: EvalConfig, overrides: dict[str, float],
+                         keep_paths: int = 0) -> list[dict]:
     """Rates per layout of a policy that reads its layout's coordinates (every learner but the
     generalist): the observation must keep its size (number of areas, automaton states). With
     ``keep_paths`` each also holds ``"paths"`` (``evaluate_run``)."""
     results = []
     compiled: dict = {}  # one compiled rollout per shape of the env params (random5 layouts share one)
-    for lay in layouts:
-        env, params, other = learner_on(cfg, lay, preset, dynamics)
-        if env.observation_size != learner_obs_size(learner):
-            raise ConfigError("layout", f"the policy was trained with observations of size {learner_obs_size(learner)}, "
+    size = learner.env.observation_size
+    for lay in ecfg.layouts():
+        env, params, other = learner_on(cfg, lay, ecfg.dynamics, overrides)
+        if env.observation_size != size:
+            raise ConfigError("layout", f"the policy was trained with observations of size {size}, "
                               f"layout {lay!r} gives {env.observation_size} (different number of areas or "
                               "automaton states)")
         leaves, tree = jax.tree_util.tree_flatten(params)  # the structure holds the static fields (n_rays, ...)
         shape = (tree, tuple((x.shape, x.dtype) for x in leaves))
         if shape not in compiled:
-            compiled[shape] = make_rollout(other, env, episodes, int(params.max_steps))
-        res = compiled[shape](params, policy, jax.random.PRNGKey(seed))
+            compiled[shape] = make_rollout(other, env, ecfg.episodes, int(params.max_steps))
+        res = compiled[shape](params, policy, jax.random.PRNGKey(ecfg.seed))
         results.append(rates(*res))
         if keep_paths:
             poses, collided, completed = (np.asarray(a[:keep_paths]) for a in (res[4], res[0], res[1]))
@@ -209,8 +226,17 @@ def _specialist_rollouts(cfg: TrainConfig, learner, policy, layouts: list[str | 
     return results
 
 
-def learner_obs_size(learner) -> int:
-    return learner.env.observation_size
+def _generalist_rollouts(run_dir: Path, cfg: TrainConfig, ecfg: EvalConfig, env_cfg: EnvConfig,
+                         layouts: list[str], keep_paths: int = 0) -> tuple[list[dict], int, str]:
+    """(rates per layout, episode limit, which policy) of a generalist run on ``ecfg.task`` (default:
+    its own) over ``layouts``, zero-shot: every layout is checked first, then the generalist is built
+    once and its policy loaded into it (``d2spo.zero_shot``)."""
+    task = ecfg.task or cfg.task
+    checked = [zero_shot.generalist_layout(env_cfg, name, task, cfg.cbf.d) for name in layouts]
+    env, params, learner, limit = zero_shot.generalist_on(cfg, env_cfg, task, checked)
+    _, _, policy, meta = load_policy(run_dir, ecfg.policy, learner)
+    results = zero_shot.rollouts(env, params, learner, policy, checked, ecfg.episodes, ecfg.seed, limit, keep_paths)
+    return results, limit, meta["policy"]
 
 
 def evaluation_path(run_dir: Path, res: dict) -> Path:
@@ -218,9 +244,7 @@ def evaluation_path(run_dir: Path, res: dict) -> Path:
     n = len(res["per_layout"])  # random:0 over 3 layouts is another evaluation than random:0 alone
     tag = f"{Path(res['layout']).stem.replace(':', '')}{f'x{n}' if n > 1 else ''}-{res['dynamics']}"
     if res.get("task_given"):
-        from d2spo.zero_shot import task_tag
-
-        tag += f"-{task_tag(res['task'])}"
+        tag += f"-{zero_shot.task_tag(res['task'])}"
     if str(res.get("policy", "")).startswith("best"):  # a validated generalist's kept policy
         tag += "-best"
     if res["runtime_filter"]:

@@ -8,7 +8,11 @@ ends in the same one-line ``ConfigError`` naming the field (``td3.gamma: must be
 
 from __future__ import annotations
 
+import ast
+import dataclasses
+import inspect
 import math
+import textwrap
 from typing import Any
 
 from d2spo.errors import ConfigError
@@ -75,3 +79,16 @@ def check_choice(obj: Any, name: str, choices, section: str = "") -> None:
     if value not in tuple(choices):
         raise ConfigError(f"{section}.{name}" if section else name,
                           f"must be one of {list(choices)}, got {value!r}")
+
+
+def field_docstring(cls: type, name: str) -> str:
+    """The docstring under the field ``name`` of the dataclass ``cls`` in its source, as tyro reads
+    it for --help (for a class that reuses another's fields, e.g. ``evaluate.DynamicsOverrides``)."""
+    if name not in {f.name for f in dataclasses.fields(cls)}:
+        raise KeyError(f"{cls.__name__} has no field {name!r}")
+    body = ast.parse(textwrap.dedent(inspect.getsource(cls))).body[0].body
+    for node, after in zip(body, body[1:]):
+        if (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name) and node.target.id == name
+                and isinstance(after, ast.Expr) and isinstance(after.value, ast.Constant)):
+            return inspect.cleandoc(after.value.value)
+    return ""

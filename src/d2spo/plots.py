@@ -23,10 +23,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.colors import ListedColormap
 from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
 from matplotlib.patches import Circle, Rectangle
 
+from d2spo.envs import geometry
 from d2spo.envs.render import OBSTACLE_COLOR, START_COLOR, add_legend, draw_layout, draw_trajectory
+from d2spo.rollout import make_rollout
+from d2spo.run import load_policy, load_snapshot
+from d2spo.runio import read_episodes
 
 OUTCOME_COLORS = {"completed": "tab:purple", "collided": "tab:red", "neither": "tab:orange"}
 """Trajectory colours: the task completed (true labelling), a collision, or the episode ran out."""
@@ -38,8 +44,6 @@ def policy_trajectories(learner, policy, env, params, episodes: int, seed: int, 
     """Poses [E, T+1, 3] (NaN after each episode's end) and per-episode (collided, completed).
     ``rollout``: a ``rollout.make_rollout`` of the same learner and size, to reuse its compilation
     (e.g. for several snapshots of one run)."""
-    from d2spo.rollout import make_rollout
-
     if rollout is None:
         rollout = make_rollout(learner, env, episodes, int(params.max_steps))
     collided, completed, _, _, poses = rollout(params, policy, jax.random.PRNGKey(seed))
@@ -52,8 +56,6 @@ def cbf_grid(learner, safety, heading: float = 0.0, resolution: int = 80):
     Returns (xs, ys, H [res, res], inside [res, res]) where ``inside`` marks positions whose
     robot disk overlaps an obstacle or a wall.
     """
-    from d2spo.envs import geometry
-
     params = learner.params
     lo, hi = np.asarray(params.geom.arena_lo), np.asarray(params.geom.arena_hi)
     xs = np.linspace(lo[0], hi[0], resolution)
@@ -98,8 +100,6 @@ def draw_policy_figure(learner, policy, env, params, episodes: int = 8, seed: in
                        suptitle: str = "") -> tuple[Figure, dict]:
     """Layout with the policy's trajectories (left) and, for D²SPO, the learned CBF (right), under
     ``suptitle`` (default: the layout's name); and the safety and completion rates of the episodes."""
-    from matplotlib.lines import Line2D
-
     poses, collided, completed = policy_trajectories(learner, policy, env, params, episodes, seed)
     has_cbf = hasattr(learner, "safety_nets")
     fig = Figure(figsize=(11 if has_cbf else 5.5, 6.2), layout="constrained")  # constrained: no title is clipped
@@ -130,8 +130,6 @@ def evaluation_figure(path: Path, paths: Sequence[tuple], per_layout: Sequence[d
     """``d2spo eval --plot``: for each of the first ``EVAL_PLOT_LAYOUTS`` layouts, the layout and the
     trajectories of its first episodes (``paths``: (Layout, poses, collided, completed) per layout,
     from ``evaluate_run(keep_paths=k)``), titled with that layout's rates over all its episodes."""
-    from matplotlib.lines import Line2D
-
     shown = list(zip(paths, per_layout, strict=True))[:EVAL_PLOT_LAYOUTS]
     ncols = min(3, len(shown))
     nrows = -(-len(shown) // ncols)
@@ -162,8 +160,6 @@ def reward_curves(runs: Mapping[str, Iterable[Path]], smooth: int = 200) -> dict
     of the moving-average return over ``smoothing_window`` episodes (seeds cut to the shortest);
     the index is the episode count at the end of each window. Runs without episodes are skipped,
     and so is a label without any."""
-    from d2spo.runio import read_episodes
-
     result = {}
     for label, dirs in runs.items():
         rs = []
@@ -209,8 +205,6 @@ def reward_figure(path: Path, panels: Sequence[tuple[str, Mapping[str, Iterable[
 def cbf_figure(path: Path, runs: Sequence[tuple[str, Path]], heading: float = 0.0) -> Path:
     """Fig. 4: per (name, run directory), the learned h at a fixed heading as a surface (top row)
     and as level sets with h = 0 in black (bottom row); a run without a checkpoint is 'not run'."""
-    from d2spo.evaluate import load_policy
-
     n = len(runs)
     fig = _figure(n, 2, size=4.0)
     for i, (name, d) in enumerate(runs):
@@ -240,10 +234,6 @@ def cbf_figure(path: Path, runs: Sequence[tuple[str, Path]], heading: float = 0.
 def snapshot_figure(path: Path, run_dir: Path, trajectories: int = 8) -> Path:
     """Fig. 5: the layout, then the executed policy's trajectories at each of the run's policy
     snapshots (``TrainConfig.snapshots``), ``trajectories`` episodes each (seed: the panel's index)."""
-    from d2spo.evaluate import load_policy
-    from d2spo.rollout import make_rollout
-    from d2spo.train import load_snapshot
-
     cfg, learner, _, _ = load_policy(run_dir)
     snapshots = tuple(cfg.snapshots)
     env, params = learner.env, learner.params
@@ -278,8 +268,6 @@ def certify_figure(layout, maps: list[np.ndarray], extent: tuple, summary: dict,
     where Proposition 1 (ℒ and contact) and Proposition 2 (the grid's explored part; then the whole
     free space, if checked) are certified (green), not certified (orange) or violated (red), worst
     over θ and states; the search's worst points as x."""
-    from matplotlib.colors import ListedColormap
-
     cmap = ListedColormap(["white", "tab:green", "orange", "tab:red"])
     rho = summary["residual"]["rho_h"]
     titles = (f"Prop. 1: h < 0 in the ring and contact (ε̄ = {eps_unsafe:g} m)",

@@ -6,7 +6,21 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+from rich.console import Console
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
+from rich.table import Column, Table
+from rich.text import Text
+
 from d2spo.config import TrainConfig
+from d2spo.run import load_run_config
+from d2spo.train import train, train_seeds
 
 
 def default_out(cfg: TrainConfig) -> Path:
@@ -18,8 +32,6 @@ def default_out(cfg: TrainConfig) -> Path:
 
 
 def summary_table(summary: dict, title: str):
-    from rich.table import Table
-
     t = Table(title=title)
     t.add_column("metric")
     t.add_column("value", justify="right")
@@ -41,9 +53,6 @@ def summary_table(summary: dict, title: str):
 
 
 def train_with_progress(cfg: TrainConfig, out: Path | None, resume: Path | None, show: bool) -> int:
-    from rich.console import Console
-
-    from d2spo.train import load_run_config, train
 
     console = Console(stderr=True)
     if resume is not None:
@@ -60,9 +69,6 @@ def train_with_progress(cfg: TrainConfig, out: Path | None, resume: Path | None,
 
 def train_seeds_with_progress(cfgs: list[TrainConfig], outs: list[Path], show: bool) -> list[dict]:
     """``d2spo.train.train_seeds`` (seeds vmapped together) with one progress row per seed."""
-    from rich.console import Console
-
-    from d2spo.train import train_seeds
 
     console = Console(stderr=True)
     cfgs = [c.check() for c in cfgs]
@@ -123,17 +129,6 @@ class _Bars:
     ETA: ``label [bar] 1200/20000 episodes 0:01:02 eta 0:10:00``, then the phase or the rates."""
 
     def __init__(self, console):
-        from rich.progress import (
-            BarColumn,
-            MofNCompleteColumn,
-            Progress,
-            TextColumn,
-            TimeElapsedColumn,
-            TimeRemainingColumn,
-        )
-        from rich.table import Column
-        from rich.text import Text
-
         class TwoLines(Progress):
             def get_renderables(self):
                 for task in self.tasks:

@@ -32,9 +32,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from d2spo.algos.common import replay
+from d2spo import replay
 from d2spo.certify import CBFRun, CertifyConfig, _compiled, certify_run, load_cbf_run, policy_of, write_outputs
+from d2spo.checkpoint import Checkpoints, run_fingerprint
 from d2spo.errors import RunDirError
+from d2spo.evaluate import EvalConfig, evaluate_run
+from d2spo.fields import check_fields
+from d2spo.runio import atomic_write_json, read_json
 from d2spo.safety import certify as cert
 from d2spo.safety import datasets as sd
 from d2spo.safety.joint_policy import update
@@ -129,9 +133,6 @@ def _row(r: int, s: dict, **extra) -> dict:
 
 
 def _save(run_dir: Path, out: Path, carry, meta: dict, note: dict) -> None:
-    from d2spo.checkpoint import Checkpoints, run_fingerprint
-    from d2spo.runio import atomic_write_json, read_json
-
     if out.exists():
         shutil.rmtree(out)
     shutil.copytree(run_dir, out, ignore=shutil.ignore_patterns("checkpoint*", "certify.*", "eval-*.json", ".*"))
@@ -143,21 +144,41 @@ def _save(run_dir: Path, out: Path, carry, meta: dict, note: dict) -> None:
 
 
 def _evaluate(path: Path, episodes: int) -> dict:
-    from d2spo.evaluate import evaluate_run
-
-    r = evaluate_run(path, episodes=episodes)
+    r = evaluate_run(path, EvalConfig(episodes=episodes))
     return {k: r[k] for k in ("safety_rate", "completion_rate", "mean_return", "mean_distance")}
 
 
-def repair_run(run_dir: Path, out: Path, ccfg: CertifyConfig | None = None, rounds: int = 6, calls: int = 50,
-               copies: int = 4, eval_episodes: int = 100, gamma_exp: float | None = None,
+@dataclasses.dataclass(frozen=True)
+class RepairConfig:
+    """How `d2spo certify --repair` repairs a run."""
+
+    rounds: int = 6
+    """With --repair: at most this many rounds of (certify, add counterexamples, train)."""
+    calls: int = 50
+    """With --repair: UPDATE(Ω, Θ) calls of Algorithm 1 per round (each `cbf.updates_per_iter` steps)."""
+    copies: int = 4
+    """With --repair: copies of each counterexample added to the datasets."""
+    gamma_exp: float | None = None
+    """With --repair: T_e's margin γ_exp while repairing (default: the margin certification asks of the
+    median point of D, ρ_h/Δt + L_e ε; 0: the run's own)."""
+    eval_episodes: int = 100
+    """With --repair: evaluate the original and the repaired policy on these episodes (as `d2spo eval`)
+    and keep the original state if the repaired one is less safe or completes less (0: skip)."""
+
+    def __post_init__(self):
+        check_fields(self, nullable=("gamma_exp",), count=("rounds", "calls", "copies"), natural=("eval_episodes",),
+                     non_negative=("gamma_exp",))
+
+
+def repair_run(run_dir: Path, out: Path, ccfg: CertifyConfig | None = None, rcfg: RepairConfig = RepairConfig(),
                progress: Callable[[dict], None] | None = None) -> dict[str, Any]:
-    """Repair a run into `out` (a new run directory). Returns {"rounds", "before", "after", "kept",
-    "eval_before", "eval_after", "gamma_exp"}; `kept` is the round whose state `out` holds (0: the
-    original). `gamma_exp`: T_e's margin while repairing; None: the margin certification asks of
-    the median point of D, ρ_h/Δt + L_e ε (the run's own γ_exp is usually far below it); 0: the
-    run's own."""
-    ccfg = (ccfg or CertifyConfig()).check()
+    """Repair a run into `out` (a new run directory) as ``rcfg`` says. Returns {"rounds", "before",
+    "after", "kept", "eval_before", "eval_after", "gamma_exp"}; `kept` is the round whose state `out`
+    holds (0: the original). T_e's margin while repairing, `rcfg.gamma_exp`: None: the margin
+    certification asks of the median point of D, ρ_h/Δt + L_e ε (the run's own γ_exp is usually far
+    below it); 0: the run's own."""
+    ccfg = ccfg or CertifyConfig()
+    rounds, calls, copies, eval_episodes, gamma_exp = rcfg.rounds, rcfg.calls, rcfg.copies, rcfg.eval_episodes, rcfg.gamma_exp
     run_dir, out = Path(run_dir), Path(out)
     if out.resolve() == run_dir.resolve():
         raise RunDirError(f"{out}: --repair writes a new run directory; choose another --out")

@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import json
+import os
 import platform
 from datetime import date
 from pathlib import Path
+
+import jax
 
 from d2spo.errors import RunDirError
 
@@ -42,9 +45,6 @@ def cpu_model(cpuinfo: str = "/proc/cpuinfo") -> str:
 
 
 def machine() -> str:
-    import os
-
-    import jax
 
     return (f"{platform.machine()}, {cpu_model()}, {os.cpu_count()} CPU cores, jax {jax.__version__} on "
             f"{jax.devices()[0].platform}, Python {platform.python_version()}")

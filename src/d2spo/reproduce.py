@@ -21,105 +21,24 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from datetime import date
 from pathlib import Path
 
-from d2spo.errors import RunInUseError, UserError
-from d2spo.runio import atomic_write_json
-
-TARGETS = ("table2", "table3", "fig2", "fig3", "fig4", "fig5")
-METHODS = ("cpo", "ppo-lag", "td3-lag", "sac-lag", "rcrl", "d2spo")
-"""The rows of Tables II and III, in the paper's order."""
-TABLE_SETTING = {"table2": ("phi1", "paper"), "table3": ("relaxed", "relaxed")}
-PHYSICAL = ("physical-1", "physical-2", "physical-3", "physical-4")
-FIG4_EPISODES = 2000
-"""Fig. 4 learns the CBF of a TurtleBot on each physical layout; the paper gives no episode count.
-The barrier is learnt from the first episodes on, so 2000 (a tenth of the protocol) by default."""
-
-
-@dataclass(frozen=True)
-class RunSpec:
-    """One training run of a target."""
-
-    algo: str
-    task: str
-    layout: str
-    seed: int
-    episodes: int
-    preset: str | None = None
-    snapshots: tuple[int, ...] = ()
-
-    @property
-    def name(self) -> str:
-        preset = f"-{self.preset}" if self.preset else ""
-        snaps = "-snapshots" if self.snapshots else ""  # not interchangeable with the same run without them
-        return f"{self.algo}-{self.task}-{self.layout}{preset}{snaps}-s{self.seed}"
-
-    def config(self):
-        from d2spo.config import TrainConfig
-        from d2spo.envs import EnvConfig
-
-        env = EnvConfig(layout=self.layout, preset=self.preset or "default")
-        return TrainConfig(algo=self.algo, task=self.task, episodes=self.episodes, seed=self.seed, env=env,
-                           snapshots=self.snapshots).check()
-
-
-def scaled(episodes: int, full: int, n: int) -> int:
-    """``n`` of the paper's ``full``-episode protocol, scaled to a run of ``episodes`` (at least 1)."""
-    return max(1, round(n * episodes / full))
-
-
-def fig5_snapshots(episodes: int) -> tuple[int, ...]:
-    """The paper shows the robot after 2000, 10000 and 20000 of 20000 episodes."""
-    return tuple(sorted({scaled(episodes, 20_000, n) for n in (2_000, 10_000, 20_000)}))
-
-
-def runs_for(target: str, seeds: int, episodes: int, methods: Iterable[str] = METHODS) -> list[RunSpec]:
-    """The runs a target needs (fig2 reuses the runs of table2 and table3)."""
-    seeds_ = range(seeds)
-    if target in TABLE_SETTING:
-        task, layout = TABLE_SETTING[target]
-        return [RunSpec(m, task, layout, s, episodes) for m in methods for s in seeds_]
-    if target == "fig2":
-        return runs_for("table2", seeds, episodes, methods) + runs_for("table3", seeds, episodes, methods)
-    if target == "fig3":
-        a = [RunSpec(m, t, "open", s, episodes) for m in ("td3", "tlgrl") for t in ("phi1", "phi2") for s in seeds_]
-        b = [RunSpec(m, t, "paper", s, episodes) for m in ("sl", "d2spo") for t in ("phi1", "phi2") for s in seeds_]
-        return a + b
-    if target == "fig4":
-        n = scaled(episodes, 20_000, FIG4_EPISODES)
-        return [RunSpec("d2spo", "phi1", lay, 0, n, preset="turtlebot") for lay in PHYSICAL]
-    if target == "fig5":
-        return [RunSpec("d2spo", "phi1", "paper", 0, episodes, snapshots=fig5_snapshots(episodes))]
-    raise UserError(f"unknown target {target!r}; choose one of {', '.join(TARGETS)} or all")
-
-
-def expand(targets: Iterable[str]) -> list[str]:
-    out: list[str] = []
-    for t in targets:
-        for x in (TARGETS if t == "all" else (t,)):
-            if x not in TARGETS:
-                raise UserError(f"unknown target {x!r}; choose one of {', '.join(TARGETS)} or all")
-            if x not in out:
-                out.append(x)
-    return out
+from d2spo import compile_cache, plots, tables
+from d2spo.config import config_differences, config_from_dict
+from d2spo.errors import ConfigError, RunInUseError, UserError
+from d2spo.progress import train_seeds_with_progress, train_with_progress
+from d2spo.run import GROUP_PREFIX, group_dir
+from d2spo.runio import atomic_write_json, read_json, run_holder
+from d2spo.targets import METHODS, TABLE_SETTING, TARGETS, RunSpec, expand, is_finished, run_dir, runs_for
+from d2spo.train import train_seeds
 
 
 # ------------------------------------------------------------------------------------ running
-def run_dir(out: Path, spec: RunSpec) -> Path:
-    return Path(out) / "runs" / spec.name
-
-
-def is_finished(out: Path, spec: RunSpec) -> bool:
-    return (run_dir(out, spec) / "summary.json").is_file()
-
-
 def train_one(spec: RunSpec, out: str, progress: bool = False) -> dict:
     """Train (or resume, or reuse) one run; returns its summary. Also the body of a Ray task."""
-    from d2spo.progress import train_with_progress
-    from d2spo.runio import read_json
-
     d = run_dir(Path(out), spec)
     if not (d / "summary.json").is_file():
         if (d / "config.json").is_file():
@@ -140,10 +59,6 @@ def stale_runs(out: Path, specs: Iterable[RunSpec]) -> dict[str, list[str]]:
     """Runs in OUT (finished or not) whose config.json differs from the config ``reproduce`` would
     train today, e.g. after a default changed: name -> ``'setting: theirs -> today's'``. Only
     settings that can change the run (``config.effective_config``)."""
-    from d2spo.config import config_differences, config_from_dict
-    from d2spo.errors import ConfigError
-    from d2spo.runio import read_json
-
     found: dict[str, list[str]] = {}
     for s in specs:
         path = run_dir(out, s) / "config.json"
@@ -164,8 +79,6 @@ def _rendered_history(out: Path, targets: list[str], seeds: int, episodes: int, 
                       stale: dict[str, list[str]] | None = None) -> dict:
     """How each table or figure in OUT was last rendered (seeds, episodes, runs finished, date), kept
     across invocations so `d2spo report` can say it per section; earlier entries survive."""
-    from datetime import date
-
     old: dict = {}
     path = out / "reproduce.json"
     if path.is_file():
@@ -187,9 +100,6 @@ def _discard_unstarted(*dirs: Path) -> None:
     one is kept: another ``reproduce`` on the same OUT may have finished it since this one listed
     what to train. If another process is training any of them (before its first checkpoint), none
     is touched: RunInUseError."""
-    import shutil
-
-    from d2spo.runio import run_holder
 
     unstarted = [Path(d) for d in dirs if Path(d).exists() and not (Path(d) / "summary.json").is_file()]
     for d in unstarted:
@@ -211,9 +121,6 @@ def started_groups(out: Path, specs: list[RunSpec]) -> list[list[RunSpec]]:
     members, so every seed continues the program it started in (a seed's own checkpoint, written
     by the group, would resume it alone, which rounds differently). A group whose members have all
     finished is a leftover of a stop just before its removal, and is removed."""
-    import shutil
-
-    from d2spo.train import GROUP_PREFIX, group_dir
 
     runs = Path(out) / "runs"
     mine = {s.name: s for s in specs}
@@ -242,9 +149,6 @@ def started_groups(out: Path, specs: list[RunSpec]) -> list[list[RunSpec]]:
 
 def train_group(specs: list[RunSpec], out: Path, progress: bool = False) -> list[dict]:
     """Seeds of one (algo, task, layout, …) trained together, ``jax.vmap`` over seeds."""
-    from d2spo.progress import train_seeds_with_progress
-    from d2spo.train import group_dir, train_seeds
-
     outs = [run_dir(out, s) for s in specs]
     group = group_dir(outs)
     if not (group / "checkpoint.json").is_file():
@@ -297,8 +201,6 @@ def run_local(specs: list[RunSpec], out: Path, progress: bool = True, log: Calla
 def _train_one_in_worker(spec: RunSpec, out: str, progress: bool = False) -> dict:
     """``train_one`` in a Ray worker process, with the commands' compilation cache (a worker is a
     fresh interpreter: d2spo/compile_cache.py)."""
-    from d2spo import compile_cache
-
     compile_cache.enable()
     return train_one(spec, out, progress)
 
@@ -349,8 +251,6 @@ def runs_by(out: Path, specs: Iterable[RunSpec], label: Callable[[RunSpec], str]
 def render(target: str, out: Path, seeds: int, episodes: int, methods: Iterable[str] = METHODS) -> Path:
     """Write OUT/TARGET.md and .csv (``d2spo.tables``) or OUT/TARGET.png (``d2spo.plots``) from the
     runs in OUT that the target needs (a missing or unfinished run is left out or shown as not run)."""
-    from d2spo import plots, tables
-
     out = Path(out)
     specs, path = runs_for(target, seeds, episodes, methods), out / f"{target}.png"
     if target in TABLE_SETTING:

@@ -60,14 +60,6 @@ def make_rollout(learner: Learner, env, episodes: int, max_steps: int):
     return run
 
 
-def rollout_episodes(learner: Learner, policy, env, params, episodes: int, key: jax.Array, max_steps: int):
-    """Run ``episodes`` envs in parallel for one episode each, deterministically.
-
-    Returns per-episode collided, completed, return, length, and the [E, T + 1, 3] poses.
-    """
-    return make_rollout(learner, env, episodes, max_steps)(params, policy, key)
-
-
 def rates(collided, completed, ret, length, poses=None) -> dict:
     """Safety and completion (true labelling) of finished evaluation episodes; with the [E, T + 1, 3]
     poses of ``make_rollout`` also the mean distance driven (m), which tells a safe policy that
@@ -84,11 +76,6 @@ def rates(collided, completed, ret, length, poses=None) -> dict:
         step = np.linalg.norm(np.diff(np.asarray(poses)[..., :2], axis=1), axis=-1)  # NaN after the end
         out["mean_distance"] = float(np.nansum(step, axis=1).mean())
     return out
-
-
-def evaluate_policy(learner: Learner, policy, env, params, episodes: int, key: jax.Array) -> dict:
-    """Safety and completion (true labelling) of the deterministic policy over ``episodes``."""
-    return rates(*rollout_episodes(learner, policy, env, params, episodes, key, int(params.max_steps)))
 
 
 def random_proposal_safety(learner, carry, env, params, shielded: bool, episodes: int = 64, seed: int = 3) -> float:

@@ -10,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
+from d2spo.runio import read_episodes, read_json
+
 METHOD_NAMES = {"cpo": "CPO", "ppo-lag": "LPPO", "td3-lag": "LTD3", "sac-lag": "LSAC", "rcrl": "RCRL",
                 "d2spo": "D²SPO", "tlgrl": "TLGRL", "td3": "RL (sparse)", "sl": "SL"}
 """How the paper names each learner in its tables and figures."""
@@ -27,8 +29,6 @@ def run_summaries(runs: Mapping[str, Iterable[Path]]) -> dict[str, list[dict]]:
     """Per key, the summaries of its finished runs (unfinished ones are skipped), each with
     ``collision_rate_all``: the fraction of *all* training episodes that collided (the paper's
     window only sees the last 2000)."""
-    from d2spo.runio import read_episodes, read_json
-
     by: dict[str, list[dict]] = {}
     for key, dirs in runs.items():
         for d in map(Path, dirs):

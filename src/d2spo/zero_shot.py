@@ -1,4 +1,4 @@
-"""Zero-shot evaluation of a generalist (``d2spo eval RUN --task FORMULA --layout L``; issue 16).
+"""The layouts of a zero-shot evaluation of a generalist (``d2spo eval RUN --task FORMULA --layout L``).
 
 A generalist (``d2spo train --generalist``) reads the subgoal in its own frame, never the layout's
 coordinates or the automaton's state index (``envs.generalist``), so its policy can run on any task
@@ -23,12 +23,20 @@ import hashlib
 import math
 
 import jax
+import jax.numpy as jnp
+import numpy as np
 
+from d2spo.algos.generalist import build_generalist
 from d2spo.config import TrainConfig
 from d2spo.envs import layout_bank
-from d2spo.envs.layouts import Layout
+from d2spo.envs.generalist import GENERALIST_MAX_STEPS, view
+from d2spo.envs.nav import make_env
+from d2spo.envs.preflight import preflight
+from d2spo.envs.workspace import Layout
 from d2spo.errors import ConfigError
+from d2spo.ltl.reward import PER_STATE
 from d2spo.ltl.tasks import TASKS
+from d2spo.rollout import make_rollout, rates
 
 MAX_SIDE = 10.0
 """Largest arena side (m) a generalist is evaluated on: the training distribution's largest
@@ -40,15 +48,12 @@ TOL = 1e-6
 def generalist_layout(env_cfg, name: str, task: str, margin: float = 0.0) -> tuple[Layout, int]:
     """The layout ``name`` checked for a generalist and for ``task`` (module docstring, step 1),
     its areas in the order A1..A4, and the episode limit a specialist would get there. ``margin``:
-    the generalist's barrier margin d: a warning when no route keeps it (``nav.check_barrier_margin``;
+    the generalist's barrier margin d: a warning when no route keeps it (``preflight.check_margin``;
     0: not checked)."""
-    from d2spo.envs.nav import check_barrier_margin, make_env
-    from d2spo.ltl.reward import PER_STATE
-
     cfg = dataclasses.replace(env_cfg, layout=name, max_steps=None,
                               reward=dataclasses.replace(env_cfg.reward, shaping_metric=PER_STATE))
     env, params = make_env(cfg, task)  # the layout's and the task's checks; the specialist's episode limit
-    check_barrier_margin(env, margin, repr(task))
+    preflight(env, params, repr(task), margin=margin, episode_time=False)
     lay = env.layout
     where = f"layout {lay.name!r}"
     w, h = lay.arena
@@ -80,46 +85,30 @@ def task_tag(task: str) -> str:
     return "f-" + hashlib.sha256(task.encode()).hexdigest()[:10]
 
 
-def rollouts(cfg: TrainConfig, policy, task: str, names: list[str], episodes: int, seed: int,
-             env_cfg, keep_paths: int = 0) -> tuple[list[dict], int]:
-    """(rates per layout, episode limit) of the generalist ``policy`` (trained with ``cfg``; its
-    runtime filter as ``cfg.d2spo`` says) on ``task`` over the layouts ``names``, under the dynamics
-    of ``env_cfg`` (module docstring). Every layout is checked before any is rolled out. With
-    ``keep_paths`` each layout's rates also hold ``"paths"``: (Layout, poses, collided, completed)
-    of its first episodes."""
-    checked = [generalist_layout(env_cfg, name, task, cfg.cbf.d) for name in names]
-    out, limit = run_layouts(cfg, policy, task, checked, episodes, seed, env_cfg, keep_paths)
-    if keep_paths:
-        for (r, p), (lay, _) in zip(out, checked, strict=True):
-            r["paths"] = (lay, *p)
-    return [r for r, _ in out], limit
-
-
-def run_layouts(cfg: TrainConfig, policy, task: str, checked: list[tuple[Layout, int]], episodes: int, seed: int,
-                env_cfg, keep_paths: int = 0) -> tuple[list[tuple[dict, tuple | None]], int]:
-    """``rollouts`` on layouts ``generalist_layout`` has checked: per layout its rates and, with
-    ``keep_paths`` > 0, the first episodes' (poses [k, T + 1, 3], collided [k], completed [k])."""
-    import jax.numpy as jnp
-    import numpy as np
-
-    from d2spo.algos.generalist import build_generalist
-    from d2spo.envs.generalist import view
-    from d2spo.rollout import make_rollout, rates
-    from d2spo.train import GENERALIST_MAX_STEPS
-
+def generalist_on(cfg: TrainConfig, env_cfg, task: str, checked: list[tuple[Layout, int]]):
+    """(env, params, learner, episode limit) of the generalist trained with ``cfg``, built once for
+    ``task`` alone under the dynamics of ``env_cfg``, on the first of the ``checked`` layouts; the
+    limit is the longest any of them needs (``generalist_layout``), and at least the training one."""
     limit = max([cfg.env.max_steps or GENERALIST_MAX_STEPS] + [n for _, n in checked])
-    cfg = dataclasses.replace(cfg, env=env_cfg, task=task, generalist_tasks=0)  # this task alone
-    out = []
+    cfg = dataclasses.replace(cfg, env=env_cfg, task=task, generalist_tasks=0)
+    env, params, learner = build_generalist(cfg, layout_bank.bank_of([checked[0][0]]), limit)
+    return env, params, learner, limit
+
+
+def rollouts(env, params, learner, policy, checked: list[tuple[Layout, int]], episodes: int, seed: int, limit: int,
+             keep_paths: int = 0) -> list[dict]:
+    """Rates per layout of the generalist ``policy`` on the ``checked`` layouts: one compiled
+    rollout; each layout swaps its one-layout bank into ``params``. With ``keep_paths`` each layout's
+    rates also hold ``"paths"``: (Layout, poses [k, T + 1, 3], collided [k], completed [k]) of its
+    first ``keep_paths`` episodes."""
+    run = make_rollout(learner, env, episodes, limit)
+    results = []
     for k, (lay, _) in enumerate(checked):
-        bank = layout_bank.bank_of([lay])
-        if k == 0:  # one env, learner and compilation; the other layouts only swap the bank in
-            env, params, learner = build_generalist(cfg, bank, limit)
-            run = make_rollout(learner, env, episodes, limit)
-        else:
-            params = view(params.replace(bank=bank), jnp.zeros((), jnp.int32))
-        collided, completed, ret, length, poses = run(params, policy, jax.random.PRNGKey(seed))
-        paths = None
+        if k > 0:
+            params = view(params.replace(bank=layout_bank.bank_of([lay])), jnp.zeros((), jnp.int32))
+        res = run(params, policy, jax.random.PRNGKey(seed))
+        results.append(rates(*res))
         if keep_paths:
-            paths = tuple(np.asarray(a[:keep_paths]) for a in (poses, collided, completed))
-        out.append((rates(collided, completed, ret, length, poses), paths))
-    return out, limit
+            poses, collided, completed = (np.asarray(a[:keep_paths]) for a in (res[4], res[0], res[1]))
+            results[-1]["paths"] = (lay, poses, collided, completed)
+    return results

@@ -4,9 +4,7 @@ Per learner: the class that builds it, the learner-specific TrainConfig sections
 others cannot change its run), its reward (Eq. (8)'s progress reward or the sparse task reward),
 whether it trains with the annealed subtask radius of Sec. IV-C (``TrainConfig.anneal``), and
 whether it executes D²SPO's π_Ω, whose runtime filter ``--runtime-filter`` switches.
-``make_learner(cfg, env, params)`` builds the one ``cfg.algo`` names. Each builder imports its
-learner's module when it runs, so that importing one module of ``d2spo.algos`` (a config, or
-``algos.common`` from ``d2spo.safety``) does not load every learner.
+``make_learner(cfg, env, params)`` builds the one ``cfg.algo`` names.
 """
 
 from __future__ import annotations
@@ -16,46 +14,40 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Literal
 
+from d2spo.algos.cpo import CPOLearner
+from d2spo.algos.d2spo import D2SPOLearner
+from d2spo.algos.ppo_lag import PPOLagLearner
+from d2spo.algos.rcrl import RCRLLearner
+from d2spo.algos.sac_lag import SACLagLearner
+from d2spo.algos.td3 import TD3Learner
+from d2spo.algos.td3_lag import TD3LagLearner
+
 
 def _td3(cfg, env, params, anneal):
-    from d2spo.algos.td3 import TD3Learner
-
     return TD3Learner(env, params, cfg.td3, anneal, cfg.num_envs, cfg.chunk_steps, cfg.episodes)
 
 
 def _d2spo(cfg, env, params, anneal):
-    from d2spo.algos.d2spo import D2SPOLearner
-
     return D2SPOLearner(env, params, cfg.td3, cfg.cbf, anneal, cfg.num_envs, cfg.chunk_steps, cfg.episodes, cfg.d2spo)
 
 
 def _td3_lag(cfg, env, params, anneal):
-    from d2spo.algos.td3_lag import TD3LagLearner
-
     return TD3LagLearner(env, params, cfg.td3_lag, anneal, cfg.num_envs, cfg.chunk_steps, cfg.episodes)
 
 
 def _sac_lag(cfg, env, params, anneal):
-    from d2spo.algos.sac_lag import SACLagLearner
-
     return SACLagLearner(env, params, cfg.sac_lag, anneal, cfg.num_envs, cfg.chunk_steps, cfg.episodes)
 
 
 def _rcrl(cfg, env, params, anneal):
-    from d2spo.algos.rcrl import RCRLLearner
-
     return RCRLLearner(env, params, cfg.rcrl, anneal, cfg.num_envs, cfg.chunk_steps, cfg.episodes)
 
 
 def _ppo_lag(cfg, env, params, anneal):
-    from d2spo.algos.ppo_lag import PPOLagLearner
-
     return PPOLagLearner(env, params, cfg.ppo_lag, anneal, cfg.num_envs, cfg.chunk_steps, cfg.episodes)
 
 
 def _cpo(cfg, env, params, anneal):
-    from d2spo.algos.cpo import CPOLearner
-
     return CPOLearner(env, params, cfg.cpo, anneal, cfg.num_envs, cfg.chunk_steps, cfg.episodes)
 
 

@@ -59,23 +59,21 @@ class CPOConfig:
     OmniSafe's CPO. Sources per field in docs/baselines.md."""
 
     hidden: tuple[int, ...] = (64, 64)
-    """Hidden widths of the policy and of each critic (tanh)."""
+    """Hidden widths of the policy and each critic (tanh)."""
     log_std_init: float = -0.5
     """Initial log std of the state-independent Gaussian."""
     rollout_steps: int = 250
-    """Vectorised steps per rollout; a rollout is num_envs * rollout_steps samples (16 * 250 = 4000,
-    safety-starter-agents' epoch). ``chunk_steps`` must be a multiple. For more parallel envs keep
-    the product near 4000 or larger (the paper used 50000)."""
+    """Vectorised steps per rollout; divides --chunk-steps."""
     target_kl: float = 0.01
-    """delta: trust region 1/2 x^T H x <= delta and the line search's bound on the mean KL."""
+    """delta: KL trust region and line-search bound."""
     cost_limit: float = 0.05
-    """Tolerated mean undiscounted episode cost, here a collision rate (0.05 = 95 % safety target)."""
+    """Tolerated collision rate; 0.05: a 95 % safety target."""
     cg_iters: int = 10
     """Conjugate gradient iterations for H^-1 g and H^-1 b."""
     cg_damping: float = 0.1
-    """Damping added to the Fisher-vector product (H + damping I)."""
+    """Damping of the Fisher-vector product (H + damping I)."""
     backtrack_iters: int = 10
-    """Line-search trials: step fractions coeff^0 ... coeff^(iters-1); none acceptable = no step."""
+    """Line-search trials, step fractions coeff^k."""
     backtrack_coeff: float = 0.8
     """Line-search shrink factor."""
     gamma: float = 0.99
@@ -87,15 +85,15 @@ class CPOConfig:
     cost_lam: float = 0.97
     """GAE lambda of the cost."""
     critic_lr: float = 1e-3
-    """Adam learning rate of the reward and cost critics (safety-starter-agents, OmniSafe)."""
+    """Adam learning rate of the reward and cost critics."""
     critic_epochs: int = 10
-    """Critic passes over each rollout (OmniSafe CPO: 10)."""
+    """Critic passes over each rollout."""
     critic_minibatches: int = 32
-    """Minibatches per critic pass (OmniSafe CPO: batches of 128; here 4000 / 32 = 125)."""
+    """Minibatches per critic pass."""
     max_grad_norm: float | None = 40.0
-    """Global gradient-norm clip of the critic updates (OmniSafe); None = off."""
+    """Gradient-norm clip of the critic updates; None = off."""
     normalize_obs: bool = False
-    """Normalise observations with running moments (off in safety-starter-agents and OmniSafe CPO)."""
+    """Normalise observations with running moments."""
 
     def __post_init__(self) -> None:
         check_fields(self, "cpo", nullable=("max_grad_norm",), widths=("hidden",), finite=("log_std_init",),

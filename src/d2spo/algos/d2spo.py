@@ -24,13 +24,13 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-from flax import struct
+from flax import serialization, struct
 
 from d2spo.algos.base import ChunkLog, episode_log, params_finite
-from d2spo.algos.common import replay
-from d2spo.algos.common.replay import ReplayBuffer, Transition
+from d2spo.algos.offpolicy import explore_and_store
 from d2spo.algos.td3 import (
     TD3Agent,
+    TD3Carry,
     TD3Config,
     TD3Learner,
     explore,
@@ -42,6 +42,7 @@ from d2spo.envs.sensors import Sensed
 from d2spo.errors import ConfigError
 from d2spo.fields import check_fields
 from d2spo.ltl.anneal import AnnealConfig
+from d2spo.replay import ReplayBuffer
 from d2spo.safety import datasets as sd
 from d2spo.safety.cbf import CBFConfig, check_geometry
 from d2spo.safety.filter import safety_filter
@@ -61,25 +62,19 @@ class D2SPOConfig:
     """How D²SPO schedules its safety learning (the networks and losses are in CBFConfig)."""
 
     update_every: int = 25
-    """Vectorised env steps between two UPDATE(Ω, Θ) calls (Algorithm 1, line 17)."""
+    """Vectorised steps between two UPDATE(Ω, Θ)."""
     pretrain: bool = True
-    """Cautious start: pre-train h, π_Ω and f_n on synthetic sensed data before the first step."""
+    """Cautious start: pre-train h, π_Ω and f_n."""
     kinematic_prior: bool = True
-    """Initialise f_n from the textbook unicycle with the nominal speed limits (then fit it to data)."""
+    """Start f_n from the kinematic unicycle."""
     runtime_filter: bool = False
-    """Correct π_Ω's action to the closest one satisfying the learned barrier condition (beyond the paper)."""
+    """Project π_Ω's action onto the barrier condition."""
     actor_through_safety: bool | None = None
-    """TD3's actor loss is -Q(z, π_Ω(x, π(z))) (+ proposal_weight ||π(z) - π_Ω(x, π(z))||²) instead of
-    -Q(z, π(z)). The buffer holds executed actions (Algorithm 1, line 9), so Q(z, π(z)) at a proposal
-    π_Ω overrides is an extrapolation; without this the actor drifted to saturated proposals (full
-    reverse into a wall) that π_Ω kept cancelling, and the robot stood still. Not in the paper.
-    None (the default): on, except for the generalist (``TrainConfig`` writes the choice into
-    config.json), whose completion fell from 0.78 to 0.30 with it and stayed near 0.9 without it
-    (bench/RESULTS.md, session 9)."""
+    """Actor loss via π_Ω; None: on, off for --generalist."""
     proposal_weight: float = 1.0
-    """Weight of ||π(z) - π_Ω(x, π(z))||² in the actor loss (with actor_through_safety)."""
+    """Weight of ||π(z) - π_Ω(x, π(z))||² in the actor loss."""
     synthetic_box_half: tuple[float, float] = (0.15, 0.45)
-    """Half-size range (m) of the random boxes of the synthetic pre-training data."""
+    """Half-sizes (m) of the cautious start's boxes."""
 
     def __post_init__(self) -> None:
         check_fields(self, "d2spo", nullable=("actor_through_safety",), count=("update_every",),
@@ -93,22 +88,110 @@ class D2SPOConfig:
 
 @struct.dataclass
 class D2SPOCarry:
-    key: jax.Array
-    env_state: Any
-    obs: jax.Array
-    agent: TD3Agent
-    buffer: ReplayBuffer
+    td3: TD3Carry
+    """TD3's part: key, env states, observations, the agent, its replay buffer and the counters."""
     safety: SafetyState
     data: sd.SafetyData
-    steps: jax.Array
-    episodes: jax.Array
+
+    @property
+    def agent(self) -> TD3Agent:
+        return self.td3.agent
+
+    @property
+    def env_state(self) -> Any:
+        return self.td3.env_state
+
+    @property
+    def obs(self) -> jax.Array:
+        return self.td3.obs
+
+    @property
+    def buffer(self) -> ReplayBuffer:
+        return self.td3.buffer
+
+    @property
+    def steps(self) -> jax.Array:
+        return self.td3.steps
+
+    @property
+    def episodes(self) -> jax.Array:
+        return self.td3.episodes
+
+
+# A checkpoint holds the carry as one flat dict (flax msgpack), in the order of the fields the carry
+# had before it held a TD3Carry, so that checkpoints stay byte for byte what they were and still load.
+_STATE_ORDER = ("key", "env_state", "obs", "agent", "buffer", "safety", "data", "steps", "episodes")
+
+
+def _carry_state_dict(c: D2SPOCarry) -> dict:
+    flat = {**serialization.to_state_dict(c.td3), "safety": serialization.to_state_dict(c.safety),
+            "data": serialization.to_state_dict(c.data)}
+    return {k: flat[k] for k in _STATE_ORDER}
+
+
+def _carry_from_state_dict(c: D2SPOCarry, state: dict) -> D2SPOCarry:
+    if set(state) != set(_STATE_ORDER):
+        raise ValueError(f"a D2SPOCarry state holds {sorted(_STATE_ORDER)}, not {sorted(state)}")
+    td3 = serialization.from_state_dict(c.td3, {k: v for k, v in state.items() if k not in ("safety", "data")})
+    return D2SPOCarry(td3, serialization.from_state_dict(c.safety, state["safety"], name="safety"),
+                      serialization.from_state_dict(c.data, state["data"], name="data"))
+
+
+serialization.register_serialization_state(D2SPOCarry, _carry_state_dict, _carry_from_state_dict, override=True)
+
+
+class OneLayout:
+    """Where D²SPO reads the layout when it trains on one (``--algo d2spo``, ``sl``): its env params.
+    ``algos.generalist.LayoutBank`` reads it per environment instead. Every method takes the
+    learner's params, so a learner acting on other params (``rollout.acting_on``) follows them."""
+
+    params_as_argument = False
+    """The run loop passes the env params to ``init`` and ``chunk`` as constants."""
+
+    def __init__(self, env, params, d2: D2SPOConfig):
+        self.lidar = env.observation_slices["lidar"]
+        self.pose_slice = env.observation_slices.get("pose")
+        self.H = float(env.config.sensing_radius)
+        self.box_half = d2.synthetic_box_half
+
+    def arena(self, params) -> tuple[jax.Array, jax.Array]:
+        return params.geom.arena_lo, params.geom.arena_hi
+
+    def x_of_obs(self, params, obs: jax.Array) -> jax.Array:
+        return sensors.cbf_input_from_obs(obs, params.geom, self.lidar, self.pose_slice, self.H)
+
+    def context(self, params, info: dict) -> Sensed:
+        return sensors.sensed_obstacles(params.geom, info["sensed"])
+
+    def filter_context(self, params, env_state) -> Sensed | None:
+        return None
+
+    def synthetic_sample(self, params, key: jax.Array):
+        """A hypothetical pose among random boxes in this arena (pre-training data, not the layout)."""
+        n = int(params.geom.box_lo.shape[0])
+        m = max(n, 1)
+        k1, k2, k3, k4 = jax.random.split(key, 4)
+        lo, hi = self.arena(params)
+        pose_xy = jax.random.uniform(k1, (2,), minval=lo, maxval=hi)
+        theta = jax.random.uniform(k2, (), minval=-jnp.pi, maxval=jnp.pi)
+        centre = jax.random.uniform(k3, (m, 2), minval=lo, maxval=hi)
+        a, b = self.box_half
+        half = jax.random.uniform(k4, (m, 1), minval=a, maxval=b)
+        box_lo, box_hi = centre - half, centre + half
+        mask = geometry.sensed_mask(pose_xy, Geometry(box_lo, box_hi, lo, hi), self.H)
+        if n == 0:
+            mask = jnp.zeros((0,), bool)
+            box_lo, box_hi = box_lo[:0], box_hi[:0]
+        return jnp.concatenate([pose_xy, theta[None]]), Sensed(box_lo, box_hi, mask)
 
 
 class D2SPOLearner(TD3Learner):
     """``--algo d2spo`` (and ``--algo sl``: the same without the progress reward)."""
 
     def __init__(self, env, params, cfg: TD3Config, cbf: CBFConfig, anneal: AnnealConfig, num_envs: int,
-                 chunk_steps: int, total_episodes: int, d2spo: D2SPOConfig | None = None):
+                 chunk_steps: int, total_episodes: int, d2spo: D2SPOConfig | None = None, layouts=OneLayout):
+        """``layouts(env, params, d2spo)`` builds where the learner reads its layout: ``OneLayout``, or
+        ``algos.generalist.LayoutBank`` for a bank of them."""
         super().__init__(env, params, cfg, anneal, num_envs, chunk_steps, total_episodes)
         self.cbf_cfg = cbf
         self.d2 = d2spo or D2SPOConfig()
@@ -117,19 +200,25 @@ class D2SPOLearner(TD3Learner):
         self.H = float(econf.sensing_radius)
         self.dt = float(econf.dt)
         self.safety_nets = make_nets(cbf, self.H)
-        self.lidar = env.observation_slices["lidar"]
         self.n_obstacles = int(params.geom.box_lo.shape[0])
-        self.pose_slice = env.observation_slices.get("pose")  # None: x is read off the obs otherwise (algos/generalist.py)
         self.n_features = env.n_rays + 1
+        self.layouts = layouts(env, params, self.d2)
         self._safety_metrics = None  # shapes of UPDATE(Ω, Θ)'s metrics, traced once (``_iteration``)
 
     @property
-    def arena_lo(self) -> jax.Array:  # from self.params, so a learner acting on other params follows them
-        return self.params.geom.arena_lo
+    def params_as_argument(self) -> bool:
+        """Whether the run loop passes the env params to ``init`` and ``chunk`` as an argument
+        (``train.learner_program``): the generalist's field bank is too large for constants."""
+        return self.layouts.params_as_argument
+
+    # -- the layout, read through ``self.layouts`` from self.params, so a learner acting on other params follows them
+    @property
+    def arena_lo(self) -> jax.Array:
+        return self.layouts.arena(self.params)[0]
 
     @property
     def arena_hi(self) -> jax.Array:
-        return self.params.geom.arena_hi
+        return self.layouts.arena(self.params)[1]
 
     # -- the sensor model x = b(z, O_s), envs/sensors.py, with this learner's arena, K and H ------
     def features(self, pose: jax.Array, ctx: Sensed) -> jax.Array:
@@ -141,34 +230,21 @@ class D2SPOLearner(TD3Learner):
         return sensors.sensed_obstacles(self.params.geom, mask)
 
     def context(self, info: dict) -> Sensed:
-        """O_s of a step, from the env's ``info``: this layout's obstacles, ``info["sensed"]`` of them."""
-        return self.sensed(info["sensed"])
+        """O_s of a step, from the env's ``info`` (the sensed obstacles)."""
+        return self.layouts.context(self.params, info)
 
     def filter_context(self, env_state) -> Sensed | None:
         """The obstacles the runtime filter keeps clear of in ``env_state`` (batched or not); None:
         all of this layout's (``execute``'s default)."""
-        return None
+        return self.layouts.filter_context(self.params, env_state)
 
     def synthetic_sample(self, key: jax.Array):
-        """A hypothetical pose among random boxes in this arena (pre-training data, not the layout)."""
-        m = max(self.n_obstacles, 1)
-        k1, k2, k3, k4 = jax.random.split(key, 4)
-        lo, hi = self.arena_lo, self.arena_hi
-        pose_xy = jax.random.uniform(k1, (2,), minval=lo, maxval=hi)
-        theta = jax.random.uniform(k2, (), minval=-jnp.pi, maxval=jnp.pi)
-        centre = jax.random.uniform(k3, (m, 2), minval=lo, maxval=hi)
-        a, b = self.d2.synthetic_box_half
-        half = jax.random.uniform(k4, (m, 1), minval=a, maxval=b)
-        box_lo, box_hi = centre - half, centre + half
-        mask = geometry.sensed_mask(pose_xy, Geometry(box_lo, box_hi, lo, hi), self.H)
-        if self.n_obstacles == 0:
-            mask = jnp.zeros((0,), bool)
-            box_lo, box_hi = box_lo[:0], box_hi[:0]
-        return jnp.concatenate([pose_xy, theta[None]]), Sensed(box_lo, box_hi, mask)
+        """A hypothetical pose among random boxes (the cautious start's data, not the layout)."""
+        return self.layouts.synthetic_sample(self.params, key)
 
     def x_of_obs(self, obs: jax.Array) -> jax.Array:
-        """x = ``sensors.cbf_input_from_obs(obs, ...)``: what π_Ω reads when acting."""
-        return sensors.cbf_input_from_obs(obs, self.params.geom, self.lidar, self.pose_slice, self.H)
+        """x of an observation: what π_Ω reads when acting."""
+        return self.layouts.x_of_obs(self.params, obs)
 
     # -- init ----------------------------------------------------------------------------
     def init(self, key: jax.Array) -> D2SPOCarry:
@@ -191,8 +267,7 @@ class D2SPOLearner(TD3Learner):
         data = sd.init_safety_data(self.cbf_cfg, example, self.n_features)
         if self.d2.pretrain:
             data = sd.seed_unsafe(data, pre)  # X_L has the synthetic ring samples from the first update
-        return D2SPOCarry(base.key, base.env_state, base.obs, base.agent, base.buffer, safety, data,
-                          base.steps, base.episodes)
+        return D2SPOCarry(base, safety, data)
 
     # -- the executed policy -------------------------------------------------------------
     def execute(self, safety: SafetyState, obs: jax.Array, u_rl: jax.Array, pose: jax.Array,
@@ -215,24 +290,23 @@ class D2SPOLearner(TD3Learner):
     def _iteration(self, c: D2SPOCarry, due: bool | None = None):
         """One vectorised step. ``due`` (a Python bool) says whether it ends with UPDATE(Ω, Θ)
         (``chunk``); None reads the schedule from the step count."""
-        key, k_act, k_env, k_upd, k_data, k_safe = jax.random.split(c.key, 6)
-        random_phase = c.steps * self.num_envs < self.cfg.learning_starts
-        u_rl = explore(self.nets, c.agent, c.obs, k_act, random_phase, self.cfg.exploration_noise)
-        ctx = self.filter_context(c.env_state) if self.d2.runtime_filter else None
-        action = self.execute(c.safety, c.obs, u_rl, c.env_state.pose, ctx)
-        params = self.anneal.env_params(self.params, c.episodes)
-        env_state, obs, reward, cost, done, info = self.env.step_batch(k_env, c.env_state, action, params)
-        buffer = replay.add_batch(c.buffer, Transition(c.obs, action, reward, cost, info["next_obs"],
-                                                       info["terminated"].astype(jnp.float32)))
+        def act(k, random_phase):
+            u_rl = explore(self.nets, c.agent, c.obs, k["act"], random_phase, self.cfg.exploration_noise)
+            ctx = self.filter_context(c.env_state) if self.d2.runtime_filter else None
+            return u_rl, self.execute(c.safety, c.obs, u_rl, c.env_state.pose, ctx)
+
+        step = explore_and_store(c.td3, ("act", "env", "update", "data", "safety"), act, self.env, self.params,
+                                 self.anneal, self.num_envs, self.cfg.learning_starts)
+        info, u_rl, action, k_safe = step.info, step.proposal, step.action, step.keys["safety"]
         tr = sd.Transition(pose=info["pose"], next_pose=info["next_pose"], context=self.context(info),
                            obs=c.obs, action=action, u_rl=u_rl)
-        data, data_stats = sd.update_datasets(c.data, k_data, tr, features_fn=self.features, cfg=self.cbf_cfg)
+        data, data_stats = sd.update_datasets(c.data, step.keys["data"], tr, features_fn=self.features, cfg=self.cbf_cfg)
         execute_fn = None
         if self.d2.actor_through_safety is not False:  # None: on (TrainConfig resolves it per learner)
             def execute_fn(o, u):  # π_Ω with this step's safety parameters, differentiable in u
                 return safe_action(self.safety_nets, c.safety, self.x_of_obs(o), u)
-        agent, metrics = learn_from_buffer(self.nets, c.agent, buffer, k_upd, c.steps + 1, self.num_envs, self.cfg,
-                                           execute_fn, self.d2.proposal_weight)
+        agent, metrics = learn_from_buffer(self.nets, c.agent, step.carry.buffer, step.keys["update"], step.carry.steps,
+                                           self.num_envs, self.cfg, execute_fn, self.d2.proposal_weight)
 
         def u_rl_fn(o):  # the current RL proposal, with exploration noise, as π_Ω will see it
             u = self.nets.actor.apply(agent.actor, o)
@@ -250,7 +324,7 @@ class D2SPOLearner(TD3Learner):
 
         enough = data.p_exp.size >= self.cbf_cfg.batch_size
         if due is None:  # the schedule from the step count: a branch
-            due_now = ((c.steps + 1) % self.d2.update_every == 0) & enough
+            due_now = (step.carry.steps % self.d2.update_every == 0) & enough
             safety, s_metrics = jax.lax.cond(due_now, safety_update, skip, c.safety)
         elif due:  # the last step of a block (``chunk``): UPDATE(Ω, Θ) once there is a batch of P_exp
             new, s_metrics = safety_update(c.safety)
@@ -261,10 +335,8 @@ class D2SPOLearner(TD3Learner):
             safety, s_metrics = skip(c.safety)
         metrics.update(s_metrics)
         metrics["safety/override"] = jnp.mean(jnp.linalg.norm(action - u_rl, axis=-1))
-        metrics["charts/label_radius"] = jnp.mean(params.label_radius)
-        c = D2SPOCarry(key, env_state, obs, agent, buffer, safety, data, c.steps + 1,
-                       c.episodes + jnp.sum(done).astype(jnp.int32))
-        return c, episode_log(done, info, metrics)
+        metrics["charts/label_radius"] = jnp.mean(step.params.label_radius)
+        return D2SPOCarry(step.carry.replace(agent=agent), safety, data), episode_log(step.done, info, metrics)
 
     def chunk(self, carry: D2SPOCarry) -> tuple[D2SPOCarry, ChunkLog]:
         every = self.d2.update_every

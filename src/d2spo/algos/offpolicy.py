@@ -1,7 +1,6 @@
-"""The fused off-policy loop shared by the safe baselines ``td3-lag``, ``sac-lag`` and ``rcrl``.
-
-It is the loop of ``algos/td3.py`` (which keeps its own copy) with two hooks. Per vectorised step,
-inside the chunk's ``lax.scan``:
+"""The fused off-policy loop shared by the safe baselines ``td3-lag``, ``sac-lag`` and ``rcrl``, and
+the opening of every off-policy learner's vectorised step (``explore_and_store``), which TD3 and D²SPO
+call too. Per vectorised step, inside the chunk's ``lax.scan``:
 
 1. act: uniform in [-1, 1]^m until ``learning_starts`` transitions are stored, then the
    algorithm's ``behaviour`` (exploration) policy;
@@ -18,18 +17,61 @@ Metrics are scalars per step; NaN means "no value this step" (warm-up, or a dela
 
 from __future__ import annotations
 
-from typing import Any, Protocol
+from collections.abc import Callable
+from typing import Any, NamedTuple, Protocol
 
 import jax
 import jax.numpy as jnp
 from flax import struct
 
+from d2spo import replay
 from d2spo.algos.base import AnnealSchedule, ChunkLog, episode_log, params_finite
-from d2spo.algos.common import replay
-from d2spo.algos.common.replay import ReplayBuffer, Transition
 from d2spo.ltl.anneal import AnnealConfig
+from d2spo.replay import ReplayBuffer, Transition
 
 Metrics = dict[str, jax.Array]
+
+
+class Stepped(NamedTuple):
+    """What the opening of a vectorised step (``explore_and_store``) hands the learner that goes on."""
+
+    carry: Any
+    """The carry with its key, env states, observations, buffer and counters advanced; agent unchanged."""
+    keys: dict[str, jax.Array]
+    """This step's keys, by the names the learner split its key into."""
+    params: Any
+    """The env params of this step (its annealed labelling radius)."""
+    proposal: jax.Array
+    """[N, m]: the learner's proposed action."""
+    action: jax.Array
+    """[N, m]: the executed (and stored) action: D²SPO's π_Ω of the proposal, else the proposal."""
+    done: jax.Array
+    info: dict[str, jax.Array]
+
+
+def explore_and_store(c, keys: tuple[str, ...], act: Callable, env, params, anneal: AnnealSchedule, num_envs: int,
+                      learning_starts: int) -> Stepped:
+    """The opening of every off-policy learner's vectorised step, written once. ``c`` has ``key``,
+    ``env_state``, ``obs``, ``buffer``, ``steps`` and ``episodes`` (``TD3Carry``, ``OffPolicyCarry``).
+
+    1. split ``c.key`` into the next key and one key per name in ``keys`` (each learner its own split;
+       one of them is ``"env"``);
+    2. act: ``act(keys, random_phase) -> (proposal, action)``; ``random_phase`` is true until
+       ``learning_starts`` transitions are stored;
+    3. step every env with the annealed labelling radius of Sec. IV-C;
+    4. store (s, a, r, c, s', terminated) in the replay buffer.
+    """
+    key, *split = jax.random.split(c.key, 1 + len(keys))
+    named = dict(zip(keys, split))
+    random_phase = c.steps * num_envs < learning_starts
+    proposal, action = act(named, random_phase)
+    params = anneal.env_params(params, c.episodes)
+    env_state, obs, reward, cost, done, info = env.step_batch(named["env"], c.env_state, action, params)
+    buffer = replay.add_batch(c.buffer, Transition(c.obs, action, reward, cost, info["next_obs"],
+                                                   info["terminated"].astype(jnp.float32)))
+    carry = c.replace(key=key, env_state=env_state, obs=obs, buffer=buffer, steps=c.steps + 1,
+                      episodes=c.episodes + jnp.sum(done).astype(jnp.int32))
+    return Stepped(carry, named, params, proposal, action, done, info)
 
 
 @struct.dataclass
@@ -118,24 +160,21 @@ class OffPolicyLoop:
         return carry, log._replace(nonfinite=jnp.any(log.nonfinite) | ~params_finite(carry.agent))
 
     def _iteration(self, c: OffPolicyCarry, algo: OffPolicyAlgo):
-        key, k_act, k_uni, k_env, k_upd = jax.random.split(c.key, 5)
-        warm_up = c.steps * self.num_envs < self.learning_starts
-        uniform = jax.random.uniform(k_uni, (self.num_envs, self.env.action_size), minval=-1.0, maxval=1.0)
-        action = jnp.where(warm_up, uniform, algo.behaviour(c.agent, c.obs, k_act))
-        params = self.anneal.env_params(self.params, c.episodes)
-        env_state, obs, reward, cost, done, info = self.env.step_batch(k_env, c.env_state, action, params)
-        buffer = replay.add_batch(c.buffer, Transition(c.obs, action, reward, cost, info["next_obs"],
-                                                       info["terminated"].astype(jnp.float32)))
-        costs = None if c.costs is None else record_episodes(c.costs, done, info["ep_cost"])
+        def act(k, warm_up):
+            uniform = jax.random.uniform(k["uniform"], (self.num_envs, self.env.action_size), minval=-1.0, maxval=1.0)
+            action = jnp.where(warm_up, uniform, algo.behaviour(c.agent, c.obs, k["act"]))
+            return action, action
+
+        s = explore_and_store(c, ("act", "uniform", "env", "update"), act, self.env, self.params, self.anneal,
+                              self.num_envs, self.learning_starts)
+        costs = None if c.costs is None else record_episodes(c.costs, s.done, s.info["ep_cost"])
         mean_cost = None if costs is None else mean_episode_cost(costs)
-        ready = (c.steps + 1) * self.num_envs >= self.learning_starts
-        agent, metrics = self._learn(algo, c.agent, buffer, k_upd, mean_cost, ready)
-        metrics["charts/label_radius"] = jnp.mean(params.label_radius)
+        ready = s.carry.steps * self.num_envs >= self.learning_starts
+        agent, metrics = self._learn(algo, c.agent, s.carry.buffer, s.keys["update"], mean_cost, ready)
+        metrics["charts/label_radius"] = jnp.mean(s.params.label_radius)
         if mean_cost is not None:
             metrics["charts/recent_ep_cost"] = mean_cost
-        c = OffPolicyCarry(key, env_state, obs, agent, buffer, c.steps + 1,
-                           c.episodes + jnp.sum(done).astype(jnp.int32), costs)
-        return c, episode_log(done, info, metrics)
+        return s.carry.replace(agent=agent, costs=costs), episode_log(s.done, s.info, metrics)
 
     def _learn(self, algo: OffPolicyAlgo, agent, buffer, key, mean_cost, ready):
         def one(agent, k):

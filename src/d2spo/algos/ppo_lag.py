@@ -48,21 +48,19 @@ from d2spo.ltl.anneal import AnnealConfig
 
 @dataclass(frozen=True)
 class PPOLagConfig:
-    """PPO-Lagrangian. Defaults: OmniSafe PPOLag and Schulman et al. (2017), except where noted;
-    sources per field in docs/baselines.md."""
+    """PPO-Lagrangian. Defaults: OmniSafe PPOLag and Schulman et al. (2017), except where
+    docs/baselines.md says otherwise; sources per field there."""
 
     hidden: tuple[int, ...] = (64, 64)
-    """Hidden widths of the policy and of each critic (tanh)."""
+    """Hidden widths of the policy and each critic (tanh)."""
     log_std_init: float = -0.5
-    """Initial log std of the state-independent Gaussian (safety-starter-agents)."""
+    """Initial log std of the state-independent Gaussian."""
     rollout_steps: int = 250
-    """Vectorised steps per rollout; a rollout is num_envs * rollout_steps samples (16 * 250 = 4000,
-    safety-starter-agents' epoch). ``chunk_steps`` must be a multiple. For more parallel envs keep
-    the product near 4000 (e.g. --num-envs 32 --ppo-lag.rollout-steps 125 --chunk-steps 250)."""
+    """Vectorised steps per rollout; divides --chunk-steps."""
     epochs: int = 10
-    """Passes over each rollout (PPO paper's MuJoCo setting; cut short by ``target_kl``)."""
+    """Passes over each rollout (cut short by target_kl)."""
     n_minibatches: int = 32
-    """Minibatches per pass (num_envs * rollout_steps must be divisible)."""
+    """Minibatches per pass (must divide the rollout)."""
     lr: float = 3e-4
     """Adam learning rate of the policy."""
     critic_lr: float = 3e-4
@@ -78,16 +76,15 @@ class PPOLagConfig:
     clip: float = 0.2
     """PPO ratio clip epsilon."""
     target_kl: float = 0.02
-    """Stop the epochs once the mean KL(pi_old || pi) over the rollout exceeds this."""
+    """Stop the epochs once the mean KL(pi_old || pi) > this."""
     entropy_coef: float = 0.0
-    """Weight of the entropy bonus (OmniSafe: 0)."""
+    """Weight of the entropy bonus."""
     max_grad_norm: float | None = 40.0
-    """Global gradient-norm clip of policy and critic updates; None = off."""
+    """Gradient-norm clip of policy and critics; None = off."""
     normalize_obs: bool = True
     """Normalise observations with running moments."""
     lagrange: LagrangeConfig = field(default_factory=lambda: LagrangeConfig(cost_limit=0.05))
-    """Multiplier (OmniSafe: Adam, lr 0.035, init 0.001). cost_limit: tolerated mean episode cost,
-    here a collision rate; 0.05 = a 95 % safety target."""
+    """Multiplier; cost_limit: a tolerated collision rate (0.05: 95 % safe)."""
 
     def __post_init__(self) -> None:
         check_fields(self, "ppo_lag", nullable=("max_grad_norm",), widths=("hidden",), finite=("log_std_init",),

@@ -51,22 +51,23 @@ from d2spo.ltl.anneal import AnnealConfig
 
 @dataclass(frozen=True)
 class RCRLConfig:
-    """RCRL: the SAC core, the safety critic Q_h and the state-dependent multiplier lambda(s)."""
+    """RCRL: the SAC core, the safety critic Q_h and the state-dependent multiplier lambda(s).
+    Sources of the defaults: docs/baselines.md."""
 
     sac: SACConfig = field(default_factory=SACConfig)
-    """The SAC core (same defaults as sac-lag)."""
+    """The SAC core (sac-lag's defaults)."""
     margin: float = 0.05
-    """Safety margin (m) in h(s) = r + margin - lidar distance; must be > 0 (a collision gives h >= margin)."""
+    """Safety margin (m) in h(s) = r + margin - lidar range."""
     safety_critics: int = 1
-    """Q_h networks (the authors: one); with more, the target and the penalty take their max."""
+    """Q_h networks; with more, their max is used."""
     multiplier_hidden: tuple[int, ...] = (64, 64)
-    """Hidden layer widths of the multiplier network lambda(s)."""
+    """Hidden widths of the multiplier network lambda(s)."""
     multiplier_lr: float = 5e-5
-    """Adam learning rate of lambda(s) (the authors' multiplier/actor lr ratio 1:6, times our actor lr)."""
+    """Adam learning rate of lambda(s)."""
     multiplier_delay: int = 12
-    """lambda(s) takes one ascent step every this many updates (the authors' dual_ascent_interval)."""
+    """lambda(s) takes one ascent step every this many updates."""
     multiplier_bias: float = 0.0
-    """Constant added before the softplus: lambda(s) = softplus(bias) = 0.69 at the start (authors' mu_bias 0)."""
+    """lambda(s) starts at softplus(bias)."""
 
     def __post_init__(self) -> None:
         check_fields(self, "rcrl", positive=("margin",), count=("safety_critics", "multiplier_delay"),

@@ -35,35 +35,34 @@ from d2spo.fields import check_fields
 
 @dataclass(frozen=True)
 class SACConfig:
-    """SAC hyper-parameters (Haarnoja et al., 2018, Table 1, except where noted)."""
+    """SAC hyper-parameters (Haarnoja et al., 2018, Table 1; ours and their sources: docs/baselines.md)."""
 
     hidden: tuple[int, ...] = (128, 128)
-    """Hidden layer widths of the actor and of every critic (paper: 256, 256; halved to fit 2 CPU cores)."""
+    """Hidden widths of the actor and every critic."""
     actor_lr: float = 3e-4
     """Adam learning rate of the actor."""
     critic_lr: float = 3e-4
-    """Adam learning rate of every critic (reward, cost or safety)."""
+    """Adam learning rate of every critic."""
     alpha_lr: float = 3e-4
-    """Adam learning rate of log alpha (automatic entropy tuning)."""
+    """Adam learning rate of log alpha."""
     init_alpha: float = 0.05
-    """Initial temperature alpha (auto-tuned from there). Ours, for this env's O(0.01) per-step rewards: from
-    1.0 (SB3, Brax) the policy stays entropy-driven for over 1M env steps at 1 update per 16 env steps."""
+    """Initial temperature alpha (auto-tuned from there)."""
     target_entropy: float | None = None
-    """Entropy target of the temperature; None = -|A| (= -2 here)."""
+    """Entropy target; None = -|A| (= -2 here)."""
     gamma: float = 0.99
     """Discount factor (reward and cost)."""
     tau: float = 0.005
-    """Polyak averaging rate of the target critics (every critic update)."""
+    """Polyak averaging rate of the target critics."""
     policy_delay: int = 2
-    """Actor and temperature update every this many critic updates (OmniSafe SACLag: 2)."""
+    """Actor and alpha update every this many critic updates."""
     batch_size: int = 128
-    """Minibatch size of each update (paper: 256; halved to fit 2 CPU cores)."""
+    """Minibatch size of each update."""
     buffer_size: int = 300_000
     """Replay capacity (transitions), kept on the device."""
     learning_starts: int = 5_000
-    """Transitions collected with uniform random actions before learning starts."""
+    """Random-action transitions before learning starts."""
     updates_per_step: int = 1
-    """Gradient updates per vectorised env step (num_envs transitions)."""
+    """Gradient updates per vectorised env step."""
 
     def __post_init__(self) -> None:
         check_fields(self, "sac", nullable=("target_entropy",), widths=("hidden",),

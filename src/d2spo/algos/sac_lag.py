@@ -45,11 +45,11 @@ class SACLagConfig:
     cost_critics: int = 2
     """Cost critics in the ensemble (twin by default)."""
     cost_reduce: str = "max"
-    """How the cost ensemble is combined in the target and the actor penalty: max (pessimistic), min, mean."""
+    """Cost ensemble reduction: max (pessimistic), min, mean."""
     cost_window: int = 10
-    """J_c for the multiplier = mean cost of this many last finished episodes (OmniSafe: window_lens 10)."""
+    """J_c = mean cost of this many last finished episodes."""
     lagrange: LagrangeConfig = field(default_factory=default_lagrange)
-    """Multiplier: cost limit d on the per-episode cost (collisions), its lr, initial value, optimizer."""
+    """Lagrange multiplier on the per-episode cost (collisions)."""
 
     def __post_init__(self) -> None:
         check_cost_options(self, "sac_lag")

@@ -5,7 +5,8 @@ LTL progress reward of Eq. (8) and the annealed subtask radius of Sec. IV-C). DÂ
 same pieces (``TD3Agent``, ``explore``, ``td3_update``) in ``algos/d2spo.py``.
 
 Per vectorised step: act (uniform random before ``learning_starts``, then pi(s) + N(0, sigma)),
-step every env, store (s, a, r, c, s', terminated) in the device replay buffer, then
+step every env, store (s, a, r, c, s', terminated) in the device replay buffer (the opening every
+off-policy learner shares, ``offpolicy.explore_and_store``), then
 ``updates_per_step`` TD3 updates (critics every update; actor and targets every
 ``policy_delay``-th).
 """
@@ -20,13 +21,14 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
+from d2spo import replay
 from d2spo.algos.base import AnnealSchedule, ChunkLog, episode_log, params_finite
-from d2spo.algos.common import replay
 from d2spo.algos.common.networks import DeterministicActor, TwinQ, init_params
-from d2spo.algos.common.replay import ReplayBuffer, Transition
 from d2spo.algos.common.td3_losses import soft_update, td3_actor_loss, td3_critic_loss
+from d2spo.algos.offpolicy import explore_and_store
 from d2spo.fields import check_fields
 from d2spo.ltl.anneal import AnnealConfig
+from d2spo.replay import ReplayBuffer, Transition
 
 DEFAULT_WIDTHS = (128, 128)
 """TD3's hidden widths when ``TD3Config.hidden`` is None (and ``--fast`` does not choose)."""
@@ -34,11 +36,10 @@ DEFAULT_WIDTHS = (128, 128)
 
 @dataclass(frozen=True)
 class TD3Config:
-    """TD3 hyper-parameters (defaults: Fujimoto et al., 2018, except where noted)."""
+    """TD3 hyper-parameters (Fujimoto et al., 2018; where our defaults differ: docs/config.md)."""
 
     hidden: tuple[int, ...] | None = None
-    """Hidden layer widths of actor and critics (Fujimoto et al.: 256; the paper gives no sizes).
-    None: 128-128, or 64-64 for DÂ²SPO and SL with ``--fast`` (``config.FAST_SETTINGS``)."""
+    """Hidden widths; None: 128 128, or 64 64 with --fast."""
     actor_lr: float = 3e-4
     """Adam learning rate of the actor."""
     critic_lr: float = 3e-4
@@ -48,23 +49,21 @@ class TD3Config:
     tau: float = 0.005
     """Polyak averaging rate of the target networks."""
     policy_noise: float = 0.2
-    """Std of the target-policy smoothing noise (action units)."""
+    """Target-policy smoothing noise std (action units)."""
     noise_clip: float = 0.5
     """Clip of the target-policy smoothing noise."""
     policy_delay: int = 2
-    """Actor and target updates happen every this many critic updates."""
+    """Actor and targets update every this many critic updates."""
     exploration_noise: float = 0.2
-    """Std of the Gaussian exploration noise added to the actor's action (action units).
-    Fujimoto et al.: 0.1; 0.2 is ours (more exploration for the sparse LTL progress)."""
+    """Gaussian exploration noise std (action units)."""
     batch_size: int = 128
-    """Minibatch size of each update (Fujimoto et al.: 256; 128 for every off-policy learner here)."""
+    """Minibatch size of each update."""
     buffer_size: int = 300_000
-    """Replay capacity (transitions), kept on the device (Fujimoto et al.: 1e6; 3e5 is ours, memory)."""
+    """Replay capacity (transitions), kept on the device."""
     learning_starts: int = 5_000
-    """Transitions collected with uniform random actions before learning starts (Fujimoto et al.:
-    1e4 to 2.5e4; 5000 is ours: 16 envs fill it in ~300 vectorised steps)."""
+    """Random-action transitions before learning starts."""
     updates_per_step: int = 1
-    """Gradient updates per vectorised env step (num_envs transitions)."""
+    """Gradient updates per vectorised env step."""
 
     @property
     def widths(self) -> tuple[int, ...]:
@@ -224,17 +223,16 @@ class TD3Learner:
         return carry, log
 
     def _iteration(self, c: TD3Carry):
-        key, k_act, k_env, k_upd = jax.random.split(c.key, 4)
-        random_phase = c.steps * self.num_envs < self.cfg.learning_starts
-        action = explore(self.nets, c.agent, c.obs, k_act, random_phase, self.cfg.exploration_noise)
-        params = self.anneal.env_params(self.params, c.episodes)
-        env_state, obs, reward, cost, done, info = self.env.step_batch(k_env, c.env_state, action, params)
-        buffer = replay.add_batch(c.buffer, Transition(c.obs, action, reward, cost, info["next_obs"],
-                                                       info["terminated"].astype(jnp.float32)))
-        agent, metrics = learn_from_buffer(self.nets, c.agent, buffer, k_upd, c.steps + 1, self.num_envs, self.cfg)
-        c = TD3Carry(key, env_state, obs, agent, buffer, c.steps + 1, c.episodes + jnp.sum(done).astype(jnp.int32))
-        metrics["charts/label_radius"] = jnp.mean(params.label_radius)
-        return c, episode_log(done, info, metrics)
+        def act(k, random_phase):
+            action = explore(self.nets, c.agent, c.obs, k["act"], random_phase, self.cfg.exploration_noise)
+            return action, action
+
+        s = explore_and_store(c, ("act", "env", "update"), act, self.env, self.params, self.anneal, self.num_envs,
+                              self.cfg.learning_starts)
+        agent, metrics = learn_from_buffer(self.nets, c.agent, s.carry.buffer, s.keys["update"], s.carry.steps,
+                                           self.num_envs, self.cfg)
+        metrics["charts/label_radius"] = jnp.mean(s.params.label_radius)
+        return s.carry.replace(agent=agent), episode_log(s.done, s.info, metrics)
 
     # -- evaluation ---------------------------------------------------------------------
     def policy(self, carry: TD3Carry):

@@ -37,15 +37,15 @@ class TD3LagConfig:
     """TD3-Lagrangian: the TD3 core, a cost critic ensemble and the Lagrange multiplier."""
 
     td3: TD3Config = field(default_factory=lambda: TD3Config(hidden=(128, 128), batch_size=128))
-    """The TD3 core (TD3Config's defaults, except 128x128 networks and minibatches of 128 to fit 2 CPU cores)."""
+    """The TD3 core (TD3Config's defaults)."""
     cost_critics: int = 2
     """Cost critics in the ensemble (twin by default)."""
     cost_reduce: str = "max"
-    """How the cost ensemble is combined in the target and the actor penalty: max (pessimistic), min, mean."""
+    """Cost ensemble reduction: max (pessimistic), min, mean."""
     cost_window: int = 10
-    """J_c for the multiplier = mean cost of this many last finished episodes (OmniSafe: window_lens 10)."""
+    """J_c = mean cost of this many last finished episodes."""
     lagrange: LagrangeConfig = field(default_factory=default_lagrange)
-    """Multiplier: cost limit d on the per-episode cost (collisions), its lr, initial value, optimizer."""
+    """Lagrange multiplier on the per-episode cost (collisions)."""
 
     def __post_init__(self) -> None:
         check_cost_options(self, "td3_lag")

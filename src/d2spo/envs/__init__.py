@@ -8,8 +8,9 @@ and only the Gymnasium classes below raise an ImportError that says what to inst
 
 from d2spo.envs import layouts
 from d2spo.envs.env_config import EnvConfig
-from d2spo.envs.layouts import Layout
-from d2spo.envs.nav import Env, EnvParams, EnvState, make_env
+from d2spo.envs.nav import Env, EnvState, make_env
+from d2spo.envs.params import EnvParams
+from d2spo.envs.workspace import Layout
 
 _GYMNASIUM_NAMES = ("CostTuple", "NavEnv", "NavVectorEnv", "VectorCostTuple")
 

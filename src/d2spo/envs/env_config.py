@@ -16,60 +16,51 @@ class EnvConfig:
     """Configuration of the navigation environment. Fields left at None take the preset's value."""
 
     layout: str = "paper"
-    """Workspace: paper, relaxed, open, physical-1..physical-4, random[:SEED], random5[:SEED], or a .json path."""
+    """Workspace: paper, relaxed, open, physical-1..4, random[:SEED], random5[:SEED] or a .json path."""
     preset: str = "default"
-    """Robot and dynamics preset filling every field left unset: ideal, default or turtlebot."""
+    """Preset of unset fields: ideal, default, turtlebot."""
     max_steps: int | None = None
-    """Episode length limit (steps); reaching it truncates the episode. None: ``base_max_steps``, or
-    twice the task's shortest route at full speed (rounded up to 50) when that route needs over 60%
-    of them (``envs.state_fields.default_max_steps``)."""
+    """Episode step limit (truncation). None: base_max_steps, or more for a long route (docs/ltl.md)."""
     base_max_steps: int = 300
-    """The step limit an unset ``max_steps`` gives a task whose shortest route fits in 60% of it
-    (every task on ``paper``). It was 200 before issue 15: ``paper``'s 0.75 m passages slow the
-    robot, and avoid-until and next-chain, at 46% of 200 steps, timed out in them (docs/ltl.md, "Time")."""
+    """Step limit of an unset max_steps when the task's shortest route needs at most 60% of it."""
     n_rays: int = 16
-    """Number K of lidar rays, evenly spaced over 360 degrees, ray 0 straight ahead."""
+    """Lidar rays K, evenly spaced, ray 0 straight ahead."""
     label_mode: str = "event"
-    """Labelling: 'event' (read a letter when the set of areas changes to a non-empty one) or 'step'."""
+    """Labelling: 'event' (a letter when the set of areas changes to a non-empty one) or 'step'."""
     observe_path: bool | None = None
-    """Append to the observation the direction in which the shaping path leaves the robot's
-    position (unit vector of steepest descent of the current automaton state's field, in the robot's
-    frame: forward, left; 0 where the field is flat), as the generalist's observation has. The
-    field is the layout's map, never the dynamics. None (the default): on with
-    ``reward.shaping_metric="geodesic-per-state"`` (the default metric), off with the others; True
-    requires that metric. Off until 2026-11-25 (docs/env.md, "Observation")."""
+    """Observe the shaping path's direction. None: on with the geodesic-per-state metric."""
     label_radius: float | None = None
-    """Initial relaxed labelling radius (m) of every area for the reward; None = the true radius."""
+    """Initial labelling radius (m); None: each area's own."""
     collision_terminates: bool = True
-    """End the episode on collision; if False the robot is stopped at its last free position."""
+    """A collision ends the episode (False: the robot stops)."""
     start_jitter_xy: float = 0.05
-    """Start position noise: uniform in [-j, j] on x and on y (m, after layout scaling)."""
+    """Start position noise (m), uniform in [-j, j] on x, y."""
     start_jitter_theta: float = 0.1
-    """Start heading noise: uniform in [-j, j] (rad)."""
+    """Start heading noise (rad), uniform in [-j, j]."""
     dt: float | None = None
-    """Control period (s). Preset: 0.1 (ideal, default), 0.2 (turtlebot)."""
+    """Control period (s). Preset: 0.1, turtlebot 0.2."""
     v_max: float | None = None
-    """Largest linear speed (m/s); action[0] = 1 commands v_max. Preset: 1.0, turtlebot 0.22."""
+    """Top linear speed (m/s). Preset: 1.0, turtlebot 0.22."""
     omega_max: float | None = None
-    """Largest angular speed (rad/s); action[1] = 1 commands omega_max. Preset: 2.5, turtlebot 2.84."""
+    """Top turn rate (rad/s). Preset: 2.5, turtlebot 2.84."""
     robot_radius: float | None = None
-    """Radius of the robot disk (m). Preset: 0.15, turtlebot 0.105."""
+    """Robot disk radius (m). Preset: 0.15, turtlebot 0.105."""
     sensing_radius: float | None = None
-    """Sensing radius H (m): lidar range and the radius defining O_s. Preset: 1.2, turtlebot 3.5."""
+    """Sensing radius H (m). Preset: 1.2, turtlebot 3.5."""
     layout_scale: float | None = None
-    """Factor applied to every length of the layout. Preset: 1.0, turtlebot 0.5."""
+    """Layout length factor. Preset: 1.0, turtlebot 0.5."""
     actuator_tau: float | None = None
-    """Time constant of the first-order actuator lag (s); 0 = none. Preset: 0, 0.08, 0.15."""
+    """Actuator lag (s); 0 = none. Preset: 0, 0.08, 0.15."""
     v_gain: float | None = None
-    """Realised / commanded linear speed (gain mismatch). Preset: 1.0, 0.95, 0.9."""
+    """Realised / commanded v. Preset: 1.0, 0.95, 0.9."""
     omega_gain: float | None = None
-    """Realised / commanded angular speed (gain mismatch). Preset: 1.0, 0.95, 0.9."""
+    """Realised / commanded omega. Preset: 1.0, 0.95, 0.9."""
     slip: float | None = None
-    """Largest fraction of speed lost to wheel slip per step, drawn in [0, slip]. Preset: 0, 0.05, 0.1."""
+    """Max slip (fraction of speed). Preset: 0, 0.05, 0.1."""
     noise_xy: float | None = None
-    """Std of the Gaussian process noise on x and on y per step (m). Preset: 0, 0.005, 0.003."""
+    """x, y noise std per step (m). Preset: 0, 0.005, 0.003."""
     noise_theta: float | None = None
-    """Std of the Gaussian process noise on theta per step (rad). Preset: 0, 0.01, 0.02."""
+    """theta noise std per step (rad). Preset: 0, 0.01, 0.02."""
     reward: RewardConfig = field(default_factory=RewardConfig)
     """Constants of the TLGRL reward, Eq. (8)."""
 

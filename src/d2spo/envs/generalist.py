@@ -1,5 +1,5 @@
-"""The generalist's environment (issue 16): a new layout from a bank at every reset, and an
-observation that names the subgoal instead of the layout or the automaton state.
+"""The generalist's environment: a new layout from a bank at every reset, and an observation that
+names the subgoal instead of the layout or the automaton state.
 
 ``envs.nav.Env`` trains on one layout: its observation holds the robot's position in that arena,
 the areas' positions and the automaton state's one-hot, so what a policy learns there is tied to
@@ -31,7 +31,10 @@ and changes two things:
   distances: one network serves every formula over A1..A4 and every layout of the distribution.
 
 The reward is nav's (Eq. (8) plus the shaping); its shaping distance is the same path length as the
-observation's target distance, and its scale the drawn layout's diagonal.
+observation's target distance, and its scale the drawn layout's diagonal. ``GeneralistEnv``
+overrides nav's public hooks (``observation_parts``, ``observe``, ``reset_state``,
+``shaping_distance``) and ``step``; ``make_generalist_env`` builds it from its ``EnvConfig`` (the
+dynamics, the robot, the reward), the task(s) and the bank.
 """
 
 from __future__ import annotations
@@ -44,16 +47,20 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from d2spo.envs import layout_bank, sensors, state_fields
+from d2spo.envs import generator, layout_bank, sensors, state_fields
 from d2spo.envs.env_config import EnvConfig
 from d2spo.envs.geometry import Geometry
 from d2spo.envs.layout_bank import LayoutBank
-from d2spo.envs.nav import Env, EnvParams, EnvState, make_env
+from d2spo.envs.nav import Env, EnvState
+from d2spo.envs.params import EnvParams, robot_fields
 from d2spo.errors import ConfigError
-from d2spo.ltl.automaton import UNREACHABLE, Automaton
+from d2spo.ltl import task_formula, translate
+from d2spo.ltl.automaton import UNREACHABLE, Automaton, AutomatonArrays, union
 
 N_AREAS = layout_bank.N_AREAS
 """Areas per layout (A1 .. A4)."""
+GENERALIST_MAX_STEPS = 400
+"""The generalist's episode limit when ``max_steps`` is unset: routes in 10 m arenas are long."""
 SCALE = 10.0
 """Metres per unit of the observation's distances (the largest arena's side)."""
 FAR = -1.0e3
@@ -111,7 +118,11 @@ def view(params: GeneralParams, b: jnp.ndarray) -> GeneralParams:
     are the layout's (unused slots far away) and its four walls (``wall_boxes``), so a set of sensed
     boxes (``info["box_lo"]``, ``info["box_hi"]``, ``info["sensed"]``) describes everything the
     robot senses without the arena: the learner's CBF input needs no per-layout arena."""
-    bank = params.bank
+    return params.replace(**_layout_fields(params.bank, b))
+
+
+def _layout_fields(bank: LayoutBank, b: jnp.ndarray) -> dict:
+    """The fields of ``GeneralParams`` that hold layout b of ``bank`` (``view``)."""
     mask = bank.box_mask[b][:, None]
     arena = bank.arena[b]
     w_lo, w_hi = wall_boxes(arena)
@@ -119,8 +130,8 @@ def view(params: GeneralParams, b: jnp.ndarray) -> GeneralParams:
     hi = jnp.concatenate([jnp.where(mask, bank.box_hi[b], FAR + 0.01), w_hi])
     geom = Geometry(lo, hi, jnp.zeros_like(arena), arena)
     radius = bank.area_radius[b]
-    return params.replace(geom=geom, area_center=bank.area_center[b], area_radius=radius, label_radius=radius,
-                          start=bank.start[b], layout=jnp.asarray(b, jnp.int32))
+    return dict(geom=geom, area_center=bank.area_center[b], area_radius=radius, label_radius=radius,
+                start=bank.start[b], layout=jnp.asarray(b, jnp.int32))
 
 
 def subgoal(params: GeneralParams, q: jnp.ndarray, xy: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:
@@ -135,27 +146,14 @@ def subgoal(params: GeneralParams, q: jnp.ndarray, xy: jnp.ndarray) -> tuple[jnp
 class GeneralistEnv(Env):
     """nav's environment over a bank of layouts, with the subgoal observation (module docstring)."""
 
-    def __init__(self, aps: tuple[str, ...], n_states: int, config: EnvConfig, bank_size: int):
-        self.layout = None
-        """No single layout: the bank's (``GeneralParams.bank``)."""
-        self.aps = aps
-        self.config = config
-        self.automaton = None
-        self.n_states = n_states
-        self.n_obstacles = N_BOXES
-        self.n_areas = N_AREAS
-        self.n_rays = config.n_rays
+    def __init__(self, config: EnvConfig, automaton: Automaton, bank_size: int):
+        super().__init__(config, automaton, automaton.n_states, N_BOXES, N_AREAS)  # no task: the layout is the bank's
         self.bank_size = bank_size
-        k = self.n_rays
-        self.observation_slices = {
-            "lidar": slice(0, k),
-            "clearance": slice(k, k + 1),
-            "target": slice(k + 1, k + 5),
-            "forbidden": slice(k + 5, k + 9),
-            "progress": slice(k + 9, k + 10),
-        }
-        """Where each part of the observation lies (module docstring)."""
-        self.observation_size = k + 10
+        """Layouts in the bank (``GeneralParams.bank``)."""
+
+    def observation_parts(self) -> list[tuple[str, int]]:
+        """The subgoal observation's parts, in order, with their sizes (module docstring)."""
+        return [("lidar", self.n_rays), ("clearance", 1), ("target", 4), ("forbidden", 4), ("progress", 1)]
 
     # -- the layout of the state ------------------------------------------------------------
     def step(self, key: jax.Array, state: GeneralState, action: jnp.ndarray, params: GeneralParams):
@@ -166,7 +164,7 @@ class GeneralistEnv(Env):
         out[-1].update(box_lo=v.geom.box_lo, box_hi=v.geom.box_hi)
         return out
 
-    def _reset_state(self, u: jnp.ndarray, params: GeneralParams) -> GeneralState:
+    def reset_state(self, u: jnp.ndarray, params: GeneralParams) -> GeneralState:
         """A fresh episode (``reset``, and nav's step when one ends) from three uniforms in [-1, 1]:
         u[0] draws the layout uniformly from the bank, u[1] the heading, u[2] the task of the mixture."""
 
@@ -177,11 +175,11 @@ class GeneralistEnv(Env):
         v = view(params, b)
         start = jnp.stack([v.start[0], v.start[1], jnp.pi * u[1]])
         aut = v.aut._replace(initial=params.initials[pick(u[2], params.initials.shape[0])])
-        base = super()._reset_state(jnp.zeros(3), v.replace(start=start, start_jitter=jnp.zeros(3), aut=aut))
+        base = super().reset_state(jnp.zeros(3), v.replace(start=start, start_jitter=jnp.zeros(3), aut=aut))
         return GeneralState(**{f.name: getattr(base, f.name) for f in dataclasses.fields(EnvState)}, layout=b)
 
     # -- reward shaping and observation ------------------------------------------------------
-    def _distance_to_progress(self, xy: jnp.ndarray, q: jnp.ndarray, params: GeneralParams) -> jnp.ndarray:
+    def shaping_distance(self, xy: jnp.ndarray, q: jnp.ndarray, params: GeneralParams) -> jnp.ndarray:
         """The shaping's distance: the path length to q's nearest target (``subgoal``)."""
         return subgoal(params, q, xy)[0]
 
@@ -219,33 +217,30 @@ class GeneralistEnv(Env):
         return jnp.concatenate([obs[..., sl["lidar"]], obs[..., sl["clearance"]]], axis=-1) * params.sensing_radius
 
 
-def area_roles(automaton, aps: tuple[str, ...], event: bool, feasible_letters: list[int]) -> tuple[np.ndarray, np.ndarray]:
+def area_roles(automaton: Automaton, roles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(target [Q, 4], forbidden [Q, 4]): the role of entering area A(i+1) alone in each state, from
-    ``state_fields.letter_roles`` (areas whose name is no proposition are neutral)."""
-    roles = state_fields.letter_roles(automaton, automaton.distances(feasible_letters), event)
+    the letters' ``roles`` (``state_fields.letter_roles``; areas whose name is no proposition are neutral)."""
     target = np.zeros((automaton.n_states, N_AREAS), bool)
     forbidden = np.zeros_like(target)
     for i in range(N_AREAS):
         name = f"A{i + 1}"
-        if name in aps:
+        if name in automaton.aps:
             letter = automaton.letter([name])
             target[:, i] = roles[:, letter] == state_fields.TARGET
             forbidden[:, i] = roles[:, letter] == state_fields.FORBIDDEN
     return target, forbidden
 
 
-def make_generalist_env(cfg: EnvConfig, task: Any, bank: LayoutBank, max_steps: int = 400
+def make_generalist_env(cfg: EnvConfig, task: Any, bank: LayoutBank, max_steps: int = GENERALIST_MAX_STEPS
                         ) -> tuple[GeneralistEnv, GeneralParams]:
     """The generalist's env for a task (a name, a formula or an automaton over A1..A4), or a
     mixture of tasks (a list of them: each episode draws one, ``ltl.automaton.union``), and a bank.
 
-    nav's ``make_env`` on the first layout of the bank's kind with the first task builds the
-    dynamics and reward; ``max_steps`` is one limit for every layout (the longest routes of 10 m
-    arenas need it).
+    The dynamics, the robot and the reward are ``cfg``'s (``params.robot_fields``); ``max_steps``
+    is one limit for every layout (the longest routes of 10 m arenas need it). The bank's areas
+    never overlap, so a task must be doable entering one area at a time, and its layouts admit a
+    robot of ``generator.RANDOM_RADIUS`` at most. Raises ConfigError.
     """
-    from d2spo.ltl import task_formula, translate
-    from d2spo.ltl.automaton import AutomatonArrays, union
-
     n = int(bank.arena.shape[0])
     if n == 0 or bank.fields.ndim != 5:
         raise ConfigError("bank", "a layout bank with its fields is needed (layout_bank.build_bank)")
@@ -261,25 +256,31 @@ def make_generalist_env(cfg: EnvConfig, task: Any, bank: LayoutBank, max_steps: 
         if unknown:
             raise ConfigError("task", f"the generalist's layouts have areas A1..A4; the task names {unknown}")
         automata.append(a)
-    base_env, base = make_env(dataclasses.replace(cfg, layout="random:0", max_steps=max_steps), automata[0])
+    cfg = dataclasses.replace(cfg, max_steps=max_steps).resolved()
+    if cfg.robot_radius > generator.RANDOM_RADIUS:
+        raise ConfigError("robot_radius", f"the generalist's layouts admit a robot of radius at most "
+                          f"{generator.RANDOM_RADIUS:g} m, got {cfg.robot_radius:g}")
     aut, initials = union(automata) if len(automata) > 1 else (automata[0], [automata[0].initial])
     singles = [0] + [aut.letter([a]) for a in aut.aps]  # bank layouts' areas never overlap
-    target, forbidden = area_roles(aut, aut.aps, base.event, singles)
-    distance = np.array([UNREACHABLE if d is None else d for d in aut.distances(singles)])
+    distance = aut.distances(singles)
+    for t, q0 in zip(tasks, initials, strict=True):
+        if distance[q0] is None:
+            what = t if isinstance(t, str) else "a task"
+            raise ConfigError("task", f"{what} cannot be completed entering one area at a time, as the generalist's "
+                              "layouts (areas that never overlap) need")
+    target, forbidden = area_roles(aut, state_fields.letter_roles(aut, distance, cfg.label_mode == "event"))
+    finite = np.array([UNREACHABLE if d is None else d for d in distance])
     scale = np.ones(aut.n_states, np.float32)  # per state, its own task's largest finite distance
     bounds = np.cumsum([0] + [a.n_states for a in automata])
     for lo, hi in zip(bounds[:-1], bounds[1:]):
-        finite = distance[lo:hi][distance[lo:hi] < UNREACHABLE]
-        scale[lo:hi] = max(int(finite.max()) if finite.size else 1, 1)
+        own = finite[lo:hi][finite[lo:hi] < UNREACHABLE]
+        scale[lo:hi] = max(int(own.max()) if own.size else 1, 1)
     bits = np.array([aut.letter([f"A{i + 1}"]) if f"A{i + 1}" in aut.aps else 0 for i in range(N_AREAS)], np.int32)
-    fields = {f.name: getattr(base, f.name) for f in dataclasses.fields(EnvParams)}
-    fields.update(aut=AutomatonArrays(*(jnp.asarray(x) for x in aut.arrays(singles))), area_bits=jnp.asarray(bits),
-                  advance=jnp.asarray(target), relax_mask=jnp.ones_like(jnp.asarray(target)),
-                  geodesic=jnp.zeros((N_AREAS, 1, 1), jnp.float32), state_field=jnp.zeros((aut.n_states, 1, 1), jnp.float32))
-    params = GeneralParams(**fields, bank=bank, target_areas=jnp.asarray(target), forbidden_areas=jnp.asarray(forbidden),
-                           layout=jnp.zeros((), jnp.int32), initials=jnp.asarray(initials, jnp.int32),
-                           progress_scale=jnp.asarray(scale))
-    params = view(params, jnp.zeros((), jnp.int32))
-    env = GeneralistEnv(aut.aps, aut.n_states, base_env.config, n)
-    env.automaton = aut
-    return env, params
+    params = GeneralParams(
+        **robot_fields(cfg, max_steps), **_layout_fields(bank, jnp.zeros((), jnp.int32)),
+        aut=AutomatonArrays(*(jnp.asarray(x) for x in aut.arrays(singles, distance))), area_bits=jnp.asarray(bits),
+        advance=jnp.asarray(target), relax_mask=jnp.ones_like(jnp.asarray(target)),
+        geodesic=jnp.zeros((N_AREAS, 1, 1), jnp.float32), state_field=jnp.zeros((aut.n_states, 1, 1), jnp.float32),
+        bank=bank, target_areas=jnp.asarray(target), forbidden_areas=jnp.asarray(forbidden),
+        initials=jnp.asarray(initials, jnp.int32), progress_scale=jnp.asarray(scale))
+    return GeneralistEnv(cfg, aut, n), params

@@ -1,9 +1,9 @@
-"""Random layouts of varied size and kind: what ``random:SEED`` draws (docs/layouts.md, "random").
+"""Random layouts: ``random:SEED``, of varied size and kind (docs/layouts.md, "random"), and ``random5:SEED``.
 
 ``generate(seed)`` is a deterministic function of ``seed`` (``numpy.random.default_rng(seed)``).
 The seed picks a style and a square arena of side uniform in ``SIDE``; then obstacles, four
-areas ``A1 .. A4`` and a start are drawn until the layout passes ``layouts.validate`` and
-``layouts.check_robot_fits(layout, layouts.RANDOM_RADIUS)`` (at most ``MAX_TRIES`` draws, all from
+areas ``A1 .. A4`` and a start are drawn until the layout passes ``workspace.validate`` and
+``workspace.check_robot_fits(layout, RANDOM_RADIUS)`` (at most ``MAX_TRIES`` draws, all from
 the same generator, so the result depends on the seed only). The styles:
 
 * ``boxes``: scattered boxes of varied sizes and aspect ratios, their count growing with the area
@@ -14,8 +14,8 @@ the same generator, so the result depends on the seed only). The styles:
   beyond it from the start, and a few small boxes away from the opening.
 
 Every layout has at most ``MAX_BOXES`` obstacles, so a bank of layouts pads to one shape
-(``envs.layout_bank``). The 5 m generator of earlier sessions stays ``layouts.random_layout``
-(``random5:SEED``).
+(``envs.layout_bank``). ``random_layout(seed)`` draws the 5 m layouts ``random5:SEED``. A layout
+is accepted when ``feasible``: valid, and a robot of ``RANDOM_RADIUS`` fits and reaches every area.
 """
 
 from __future__ import annotations
@@ -25,8 +25,12 @@ from dataclasses import replace
 
 import numpy as np
 
-from d2spo.envs.layouts import Area, Layout, Obstacle, feasible
+from d2spo.envs.workspace import Area, Layout, Obstacle, check_robot_fits, validate
+from d2spo.errors import ConfigError
 
+RANDOM_RADIUS = 0.25
+"""Robot radius (m, unscaled) for which every random layout is checked to be feasible. It covers
+the default robot (0.15 m) and the TurtleBot (0.105 m on a layout scaled by 0.5, i.e. 0.21 m)."""
 STYLES = ("boxes", "corridors", "gap")
 """The kinds of layout, drawn with equal probability."""
 SIDE = (5.0, 10.0)
@@ -51,7 +55,7 @@ OPENING = (0.8, 1.4)
 """Range of the width (m) of a corridor wall's openings."""
 GAP_WIDTH = (0.6, 0.8)
 """Range of the width (m) of the ``gap`` style's single opening. Not narrower than 0.6 m: every
-layout must admit a robot of ``layouts.RANDOM_RADIUS`` = 0.25 m (on the reachability grid that needs
+layout must admit a robot of ``RANDOM_RADIUS`` = 0.25 m (on the reachability grid that needs
 more than 0.55 m), and D²SPO's learned barrier has no safe point in a gap narrower than twice its
 0.3 m safety distance (docs/layouts.md, ``paper``)."""
 MAX_BOXES = 24
@@ -77,6 +81,53 @@ def generate(seed: int) -> Layout:
         if layout is not None and feasible(layout):
             return layout
     raise RuntimeError(f"no feasible random layout found for seed {seed} in {MAX_TRIES} draws")  # pragma: no cover
+
+
+def random_layout(seed: int, n_obstacles: int = 6, n_areas: int = 4) -> Layout:
+    """A procedural 5 m x 5 m layout, a deterministic function of ``seed``: ``random5:SEED``.
+
+    Obstacles are rectangles with half-extents in [0.2, 0.5] m, areas have radius 0.35 m and are
+    named A1 .. An. Candidates are drawn until one is feasible: the start has 0.4 m clearance, the
+    areas keep 0.3 m from obstacles and walls and 1 m from each other and from the start, and every
+    area is reachable by a robot of radius ``RANDOM_RADIUS``.
+    """
+    rng = np.random.default_rng(seed)
+    size, radius = 5.0, 0.35
+    for _ in range(10_000):
+        obstacles = tuple(
+            Obstacle(_rounded(rng.uniform(0.6, size - 0.6, 2)), _rounded(rng.uniform(0.2, 0.5, 2)))
+            for _ in range(n_obstacles)
+        )
+        start = (*_rounded(rng.uniform(0.5, size - 0.5, 2)), *_rounded(rng.uniform(-math.pi, math.pi, 1)))
+        layout = Layout(f"random5:{seed}", (size, size), start, obstacles, ())
+        if layout.clearance(np.array(start[:2])) < 0.4:
+            continue
+        areas: list[Area] = []
+        for _ in range(200):
+            c = np.array(_rounded(rng.uniform(radius + 0.3, size - radius - 0.3, 2)))
+            if layout.clearance(c) < radius + 0.3 or np.linalg.norm(c - np.asarray(start[:2])) < 1.0:
+                continue
+            if any(np.linalg.norm(c - np.asarray(a.center)) < 2 * radius + 1.0 for a in areas):
+                continue
+            areas.append(Area(f"A{len(areas) + 1}", _rounded(c), radius))
+            if len(areas) == n_areas:
+                break
+        if len(areas) < n_areas:
+            continue
+        layout = replace(layout, areas=tuple(areas))
+        if feasible(layout):
+            return layout
+    raise RuntimeError(f"no feasible random layout found for seed {seed}")  # pragma: no cover
+
+
+def feasible(layout: Layout, robot_radius: float = RANDOM_RADIUS) -> bool:
+    """Whether ``validate`` and ``check_robot_fits`` pass (the random generators' acceptance test)."""
+    try:
+        validate(layout)
+        check_robot_fits(layout, robot_radius)
+    except ConfigError:
+        return False
+    return True
 
 
 # ------------------------------------------------------------------------------------- obstacles

@@ -51,7 +51,8 @@ except ImportError as missing:  # gymnasium is an optional dependency (d2spo[gym
 
 from d2spo.envs.env_config import EnvConfig
 from d2spo.envs.front_end import ENV_ID, env_config
-from d2spo.envs.nav import Env, EnvParams, make_env
+from d2spo.envs.nav import Env, make_env
+from d2spo.envs.params import EnvParams
 from d2spo.envs.render import FrameRenderer
 from d2spo.envs.spaces import observation_bounds
 from d2spo.errors import ConfigError
@@ -202,7 +203,7 @@ class NavEnv(gymnasium.Env):
 
     def close(self):
         if self._window is not None:
-            import matplotlib.pyplot as plt
+            import matplotlib.pyplot as plt  # only for a window on a display
 
             plt.close(self._window.figure)
             self._window = None

@@ -27,7 +27,8 @@ import numpy as np
 
 from d2spo.envs.env_config import EnvConfig
 from d2spo.envs.front_end import ENV_ID, env_config
-from d2spo.envs.nav import Env, EnvParams, EnvState, make_env
+from d2spo.envs.nav import Env, EnvState, make_env
+from d2spo.envs.params import EnvParams
 from d2spo.envs.spaces import observation_bounds
 
 

@@ -54,7 +54,7 @@ from scipy import sparse
 from scipy.sparse import csgraph
 
 from d2spo.envs import generator, geodesic
-from d2spo.envs.layouts import Layout
+from d2spo.envs.workspace import Layout
 from d2spo.errors import ConfigError
 
 G = 64

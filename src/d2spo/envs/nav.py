@@ -17,6 +17,9 @@ letter of the new position twice, once with the relaxed labelling radius (state 
 drives the reward and termination) and once with the true area radius (``q_true``, which drives
 ``completed``). The reward is ``ltl.reward.step_reward`` (Eq. (8) plus shaping); the env only
 measures the shaping's distances on the layout.
+
+``make_env`` compiles the task onto the layout once (``envs.compiled_task``; the env keeps it as
+``env.task``), checks it (``envs.preflight``) and fills the params from it (``envs.params``).
 """
 
 from __future__ import annotations
@@ -29,65 +32,15 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from d2spo.envs import dynamics, geodesic, geometry, layouts, sensors, state_fields
-from d2spo.envs.dynamics import DynamicsParams
+from d2spo.envs import dynamics, geodesic, geometry, layouts, preflight, sensors, workspace
+from d2spo.envs.compiled_task import CompiledTask, compile_task
 from d2spo.envs.env_config import EnvConfig
-from d2spo.envs.geometry import Geometry
-from d2spo.envs.layouts import Layout
-from d2spo.errors import ConfigError
-from d2spo.ltl.automaton import UNREACHABLE, Automaton, AutomatonArrays
+from d2spo.envs.params import EnvParams, env_params
+from d2spo.envs.workspace import Layout
+from d2spo.ltl import task_formula, translate
+from d2spo.ltl.automaton import Automaton
 from d2spo.ltl.labelling import next_state
-from d2spo.ltl.reward import PER_STATE, RewardConfig, distance_to_progress, progress_areas, step_reward
-
-
-@struct.dataclass
-class EnvParams:
-    """Everything ``reset``/``step`` need besides the state: a pytree, so it can change under jit."""
-
-    geom: Geometry
-    """Arena and obstacle boxes (M of them)."""
-    area_center: jnp.ndarray
-    """float32 [N, 2]: area centres."""
-    area_radius: jnp.ndarray
-    """float32 [N]: true area radii; drive ``q_true`` and ``completed``."""
-    label_radius: jnp.ndarray
-    """float32 [N]: relaxed labelling radii; drive ``q``, the reward and termination (annealed)."""
-    relax_mask: jnp.ndarray
-    """bool [Q, N]: in automaton state q, area i is labelled with its relaxed radius (else the true
-    one). All true, unless ``AnnealConfig.relax == "targets"`` (``ltl.anneal.annealed_params``)."""
-    area_bits: jnp.ndarray
-    """int32 [N]: the letter bits each area sets (bit i <=> automaton proposition aps[i])."""
-    advance: jnp.ndarray
-    """bool [Q, N]: entering area i from automaton state q makes progress (for reward shaping)."""
-    aut: AutomatonArrays
-    """The task automaton."""
-    start: jnp.ndarray
-    """float32 [3]: start pose before jitter."""
-    start_jitter: jnp.ndarray
-    """float32 [3]: half-widths of the uniform start noise on x, y, theta."""
-    dyn: DynamicsParams
-    """True dynamics."""
-    robot_radius: jnp.ndarray
-    """float32 []: robot disk radius."""
-    sensing_radius: jnp.ndarray
-    """float32 []: sensing radius H."""
-    max_steps: jnp.ndarray
-    """int32 []: episode length limit."""
-    geodesic: jnp.ndarray
-    """float32 [N, ny, nx]: path length through free space from each grid node to each area's centre
-    (``envs.geodesic``; the shaping potential's distance; [N, 1, 1] zeros unless the metric is 'geodesic')."""
-    state_field: jnp.ndarray
-    """float32 [Q, ny, nx]: per automaton state, path length to the areas that make progress round
-    those that reject the task (``envs.state_fields``; [Q, 1, 1] zeros unless the metric is
-    'geodesic-per-state')."""
-    n_rays: int = struct.field(pytree_node=False, default=16)
-    """Number of lidar rays K (static: it sets the observation size)."""
-    event: bool = struct.field(pytree_node=False, default=True)
-    """Event labelling (True) or step labelling (False)."""
-    collision_terminates: bool = struct.field(pytree_node=False, default=True)
-    """Collision ends the episode."""
-    reward: RewardConfig = struct.field(pytree_node=False, default=RewardConfig())
-    """Reward constants of Eq. (8)."""
+from d2spo.ltl.reward import PER_STATE, distance_to_progress, step_reward
 
 
 @struct.dataclass
@@ -151,35 +104,41 @@ class Env:
     * ``automaton`` [Q]: one-hot of the relaxed automaton state q;
     * ``path`` [2], with ``EnvConfig.observe_path`` only: the direction of steepest descent of state
       q's shaping field at the robot (``geodesic.descent``) in the robot frame (forward, left).
+
+    An environment over other layouts or with another observation (``envs.generalist``) overrides
+    the public hooks: ``observation_parts`` and ``observe`` (the observation), ``reset_state`` (a
+    fresh episode) and ``shaping_distance`` (what the reward's shaping measures).
     """
 
     action_size = 2
 
-    def __init__(self, layout: Layout, aps: tuple[str, ...], n_states: int, config: EnvConfig):
-        self.layout = layout
-        """The (scaled) layout."""
-        self.aps = aps
-        """Automaton propositions; bit i of a letter is aps[i]."""
+    def __init__(self, config: EnvConfig, automaton: Any, n_states: int, n_obstacles: int, n_areas: int,
+                 task: CompiledTask | None = None):
         self.config = config
         """The resolved configuration."""
-        self.automaton: Automaton | None = None
-        """The task's automaton (``make_env`` sets it; None for an object with ``arrays()`` only)."""
+        self.task = task
+        """The task compiled on the layout (``envs.compiled_task``); None over a bank of layouts."""
+        self.layout: Layout | None = None if task is None else task.layout
+        """The (scaled) layout; None over a bank of layouts."""
+        self.automaton: Automaton | None = automaton if isinstance(automaton, Automaton) else None
+        """The task's automaton (None for an object with ``aps`` and ``arrays()`` only)."""
+        self.aps: tuple[str, ...] = tuple(automaton.aps)
+        """Automaton propositions; bit i of a letter is aps[i]."""
         self.n_states = n_states
-        self.n_obstacles = len(layout.obstacles)
-        self.n_areas = len(layout.areas)
+        self.n_obstacles = n_obstacles
+        self.n_areas = n_areas
         self.n_rays = config.n_rays
-        k, n = self.n_rays, self.n_areas
-        self.observation_slices = {
-            "lidar": slice(0, k),
-            "pose": slice(k, k + 4),
-            "areas": slice(k + 4, k + 4 + 2 * n),
-            "automaton": slice(k + 4 + 2 * n, k + 4 + 2 * n + n_states),
-        }
-        """Where each part of the observation lies."""
-        self.observation_size = k + 4 + 2 * n + n_states
-        if config.observe_path:
-            self.observation_slices["path"] = slice(self.observation_size, self.observation_size + 2)
-            self.observation_size += 2
+        self.observation_slices: dict[str, slice] = {}
+        """Where each part of the observation lies (``observation_parts``)."""
+        self.observation_size = 0
+        for part, size in self.observation_parts():
+            self.observation_slices[part] = slice(self.observation_size, self.observation_size + size)
+            self.observation_size += size
+
+    def observation_parts(self) -> list[tuple[str, int]]:
+        """The observation's parts, in order, with their sizes (the class docstring)."""
+        parts = [("lidar", self.n_rays), ("pose", 4), ("areas", 2 * self.n_areas), ("automaton", self.n_states)]
+        return parts + [("path", 2)] if self.config.observe_path else parts
 
     # ------------------------------------------------------------------------- observation
 
@@ -191,7 +150,7 @@ class Env:
         rel = params.area_center - xy
         return jnp.sqrt(rel[:, 0] * rel[:, 0] + rel[:, 1] * rel[:, 1])
 
-    def _distance_to_progress(self, xy: jnp.ndarray, q: jnp.ndarray, params: EnvParams) -> jnp.ndarray:
+    def shaping_distance(self, xy: jnp.ndarray, q: jnp.ndarray, params: EnvParams) -> jnp.ndarray:
         """The reward shaping's distance from xy to what makes progress from automaton state q, by
         its metric: the field of state q, or the nearest progress area (along free space or straight)."""
         if params.reward.shaping_metric == PER_STATE:
@@ -235,7 +194,7 @@ class Env:
 
     # ---------------------------------------------------------------------------------- reset
 
-    def _reset_state(self, u: jnp.ndarray, params: EnvParams) -> EnvState:
+    def reset_state(self, u: jnp.ndarray, params: EnvParams) -> EnvState:
         """A fresh episode's state from three uniforms in [-1, 1] (the start jitter)."""
         pose = params.start + params.start_jitter * u
         pose = jnp.stack([pose[0], pose[1], dynamics.wrap_angle(pose[2])])
@@ -258,7 +217,7 @@ class Env:
 
     def reset(self, key: jax.Array, params: EnvParams) -> tuple[EnvState, jnp.ndarray]:
         """A new episode: the layout's start pose plus uniform jitter; the automaton reads L(z_0)."""
-        state = self._reset_state(_uniform(key, 3), params)
+        state = self.reset_state(_uniform(key, 3), params)
         return state, self.observe(state, params)
 
     # ----------------------------------------------------------------------------------- step
@@ -289,8 +248,8 @@ class Env:
         q_true_next = next_state(aut, state.q_true, letter_true, state.letter_true, params.event)
         def shaping_distances():  # what the reward's shaping measures, read only when it is on
             diag = jnp.linalg.norm(params.geom.arena_hi - params.geom.arena_lo)
-            return (self._distance_to_progress(state.pose[:2], state.q, params),
-                    self._distance_to_progress(pose[:2], q_next, params), diag)
+            return (self.shaping_distance(state.pose[:2], state.q, params),
+                    self.shaping_distance(pose[:2], q_next, params), diag)
 
         reward = step_reward(aut, state.q, q_next, collided, params.reward, shaping_distances)
 
@@ -316,7 +275,7 @@ class Env:
             ep_collided=state.ep_collided | collided,
         )
         next_obs = self.observe(stepped, params)
-        fresh = self._reset_state(u[5:8], params)
+        fresh = self.reset_state(u[5:8], params)
         new_state = jax.tree.map(lambda a, b: jnp.where(done, a, b), fresh, stepped)
         obs = self.observe(new_state, params)  # one ray cast, not a select between two
         info = {
@@ -358,21 +317,13 @@ class Env:
 # ------------------------------------------------------------------------------------ make_env
 
 
-def _area_bits(layout: Layout, aps: tuple[str, ...]) -> np.ndarray:
-    bits = np.zeros(len(layout.areas), np.int32)
-    for i, area in enumerate(layout.areas):
-        if area.name in aps:
-            bits[i] = 1 << aps.index(area.name)
-    return bits
-
-
 def checked_layout(cfg: EnvConfig) -> tuple[EnvConfig, Layout]:
     """The resolved config and its layout, scaled and checked for this robot (no task needed):
     what ``make_env`` checks before it reads the task. Raises ConfigError."""
     cfg = cfg.resolved()
     layout = layouts.load(cfg.layout).scaled(cfg.layout_scale)
-    layouts.validate(layout)
-    layouts.check_robot_fits(layout, cfg.robot_radius, cfg.start_jitter_xy)
+    workspace.validate(layout)
+    workspace.check_robot_fits(layout, cfg.robot_radius, cfg.start_jitter_xy)
     return cfg, layout
 
 
@@ -381,114 +332,25 @@ def make_env(cfg: EnvConfig, task: Any = "phi1") -> tuple[Env, EnvParams]:
 
     ``task`` is a task name (``phi1``, ``phi2``, ``relaxed``, ...), an LTL formula string, or an
     automaton object with ``aps`` and ``arrays(feasible_letters)`` (as ``d2spo.ltl.translate``
-    returns). The automaton's distances use only the letters this layout can produce
-    (``layouts.feasible_letters``). Raises ConfigError on a bad config, layout or an impossible task.
+    returns). The task is compiled onto the layout once (``compiled_task.compile_task``; the env
+    keeps it as ``env.task``): the automaton's distances use only the letters this layout can
+    produce. Raises ConfigError on a bad config or layout, or a task the layout's letters cannot
+    complete; with the per-state shaping also a task the robot cannot complete
+    (``preflight.check_feasible``). An unset ``max_steps`` follows the task
+    (``preflight.default_max_steps``).
     """
     cfg, layout = checked_layout(cfg)
-    if isinstance(task, str):
-        from d2spo.ltl import task_formula, translate
-
-        automaton = translate(task_formula(task))
-    else:
-        automaton = task
-    aps = tuple(automaton.aps)
-    arrays = automaton.arrays(layouts.feasible_letters(layout, aps, cfg.label_mode))
-    arrays = AutomatonArrays(*(jnp.asarray(a) for a in arrays))
-    if int(arrays.distance[int(arrays.initial)]) >= UNREACHABLE:
-        missing = sorted(set(aps) - set(layout.area_names))
-        hint = f" (propositions with no area, always false: {missing})" if missing else ""
-        raise ConfigError("task", f"{task if isinstance(task, str) else 'the task'} cannot be completed in "
-                          f"layout {layout.name!r}{hint}: no sequence of the letters it can produce (areas "
-                          "entered alone, or together where they overlap) does it")
-
-    n_states = int(arrays.delta.shape[0])
-    clearance = cfg.reward.clearance(cfg.robot_radius)
-    speed = cfg.v_max * cfg.v_gain
+    automaton = translate(task_formula(task)) if isinstance(task, str) else task
+    name = task if isinstance(task, str) else "the task"
+    per_state = cfg.reward.shaping_metric == PER_STATE
+    compiled = compile_task(automaton, layout, cfg.label_mode, cfg.robot_radius,
+                            cfg.reward.field_costs(cfg.robot_radius) if per_state else None)
+    preflight.check_letters(compiled, name)
     max_steps = cfg.max_steps
-    if max_steps is None and not isinstance(automaton, Automaton):  # an object with arrays() only: no routes
-        max_steps = cfg.base_max_steps
     if max_steps is None:
-        max_steps = state_fields.default_max_steps(automaton, layout, cfg.label_mode, cfg.robot_radius, cfg.dt, speed,
-                                                   cfg.base_max_steps)
-    if cfg.reward.shaping_metric == PER_STATE:
-        name = task if isinstance(task, str) else "the task"
-        state_fields.check_task(automaton, layout, cfg.label_mode, cfg.robot_radius, repr(name))
-        field = state_fields.state_fields(automaton, layout, cfg.label_mode,
-                                          **cfg.reward.field_costs(cfg.robot_radius)).field
-    else:
-        field = np.zeros((n_states, 1, 1), np.float32)
-    n_areas = len(layout.areas)
-    f32 = lambda v: jnp.asarray(v, jnp.float32)
-    area_radius = np.array([a.radius for a in layout.areas], np.float32).reshape(n_areas)
-    label_radius = area_radius if cfg.label_radius is None else np.full(n_areas, cfg.label_radius, np.float32)
-    params = EnvParams(
-        geom=Geometry(
-            box_lo=f32(np.array([o.lo for o in layout.obstacles]).reshape(-1, 2)),
-            box_hi=f32(np.array([o.hi for o in layout.obstacles]).reshape(-1, 2)),
-            arena_lo=f32([0.0, 0.0]),
-            arena_hi=f32(layout.arena),
-        ),
-        area_center=f32(np.array([a.center for a in layout.areas]).reshape(n_areas, 2)),
-        area_radius=f32(area_radius),
-        label_radius=f32(label_radius),
-        relax_mask=jnp.ones((n_states, n_areas), bool),
-        area_bits=jnp.asarray(_area_bits(layout, aps)),
-        advance=progress_areas(arrays, _area_bits(layout, aps)),
-        aut=arrays,
-        start=f32(layout.start),
-        start_jitter=f32([cfg.start_jitter_xy, cfg.start_jitter_xy, cfg.start_jitter_theta]),
-        dyn=DynamicsParams.create(
-            dt=cfg.dt, v_max=cfg.v_max, omega_max=cfg.omega_max, actuator_tau=cfg.actuator_tau, v_gain=cfg.v_gain,
-            omega_gain=cfg.omega_gain, slip=cfg.slip, noise_xy=cfg.noise_xy, noise_theta=cfg.noise_theta,
-        ),
-        robot_radius=f32(cfg.robot_radius),
-        sensing_radius=f32(cfg.sensing_radius),
-        max_steps=jnp.asarray(max_steps, jnp.int32),
-        geodesic=f32(geodesic.distance_fields(
-            layout.arena, [o.lo for o in layout.obstacles], [o.hi for o in layout.obstacles],
-            [a.center for a in layout.areas], area_radius, clearance)
-            if cfg.reward.shaping_metric == "geodesic" else np.zeros((n_areas, 1, 1), np.float32)),
-        state_field=f32(field),
-        n_rays=cfg.n_rays,
-        event=cfg.label_mode == "event",
-        collision_terminates=cfg.collision_terminates,
-        reward=cfg.reward,
-    )
-    env = Env(layout, aps, n_states, cfg)
-    env.automaton = automaton if isinstance(automaton, Automaton) else None
-    return env, params
-
-
-def check_barrier_margin(env: Env, margin: float, name: str) -> None:
-    """A ``TaskWarning`` when every route that completes the task passes closer than ``margin`` (a
-    learned barrier's d: D²SPO's barrier keeps the robot's centre about d from every sensed obstacle
-    and wall) to an obstacle or wall, although a robot of the env's radius gets through: e.g. a gap
-    of 0.35 m between an obstacle and an area the task forbids. A warning, not an error: the learned
-    h lets the robot a little closer than d (a generalist completes routes that need 0.29 m), and
-    routes that need 0.27 m were not learnt (bench/RESULTS.md, session 11). Checked before a barrier
-    learner trains (``train.train``) and when a generalist runs zero-shot (``zero_shot``)."""
-    import warnings
-
-    from d2spo.errors import ConfigError, TaskWarning
-
-    cfg = env.config
-    if env.automaton is None or env.layout is None or margin <= cfg.robot_radius:  # a bank: per layout elsewhere
-        return
-    try:
-        state_fields.check_task(env.automaton, env.layout, cfg.label_mode, margin, name, robot="the robot")
-    except ConfigError as e:
-        why = str(e).removeprefix("task: ").replace(" cannot be completed on ", " on ", 1)
-        warnings.warn(f"{why} while keeping {margin:g} m from every obstacle and wall (the barrier's margin d, "
-                      "--cbf.d): every route passes closer, where the barrier may hold the robot back", TaskWarning,
-                      stacklevel=2)
-
-
-def check_episode_time(env: Env, params: EnvParams, name: str) -> None:
-    """``state_fields.check_time`` for an env from ``make_env``: a ``TaskWarning`` when the task's
-    shortest route cannot fit in (or needs most of) the episode. Training calls it once; evaluating
-    a run does not (nothing can be done about its episodes then)."""
-    if env.automaton is None or env.layout is None:  # arrays() only, or a bank of layouts: no one route
-        return
-    cfg = env.config
-    state_fields.check_time(env.automaton, env.layout, cfg.label_mode, cfg.robot_radius, int(params.max_steps),
-                            cfg.dt, cfg.v_max * cfg.v_gain, name)
+        max_steps = cfg.base_max_steps if compiled.distance is None else preflight.default_max_steps(
+            compiled, cfg.dt, cfg.v_max * cfg.v_gain, cfg.base_max_steps)  # an automaton given by arrays(): no routes
+    if per_state:
+        preflight.check_feasible(compiled, repr(name))
+    env = Env(cfg, automaton, compiled.n_states, len(layout.obstacles), len(layout.areas), compiled)
+    return env, env_params(cfg, compiled, max_steps)

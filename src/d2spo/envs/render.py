@@ -13,7 +13,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle, Rectangle
 
-from d2spo.envs.layouts import Layout
+from d2spo.envs.workspace import Layout
 
 OBSTACLE_COLOR = "black"
 AREA_COLOR = "tab:green"

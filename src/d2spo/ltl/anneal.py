@@ -26,27 +26,20 @@ class AnnealConfig:
     """Annealed subtask radius of Sec. IV-C: an area counts as reached when k1 d_s e^(k2 I_ep) <= d_bar."""
 
     enabled: bool = True
-    """Relax the labelling early in training (tlgrl, d2spo). Completion rates always use the true radius."""
+    """Relax the labelling early in training."""
     k1: float = 0.1
-    """k1 of the paper; the initial relaxed radius is d_bar / k1."""
+    """k1 of the paper: the initial radius is d_bar / k1."""
     k2: float | None = None
-    """k2 of the paper (per episode). None: chosen so the relaxation is gone after `until` of the run."""
+    """k2 of the paper (per episode); None: set by until."""
     until: float = 0.5
-    """With k2 = None: fraction of the training episodes after which the true radius applies."""
+    """With k2 None: fraction of the run that is relaxed."""
     d_bar: float | None = None
     """Threshold d_bar (m); None = each area's own radius."""
     separate: bool = True
-    """Cap each relaxed disk at half the distance to the nearest other area's centre (never below the
-    true radius), so relaxed areas never overlap. Not in the paper: with k1 = 0.1 the paper layout's
-    initial disks (3.5 m) overlap, every area is 'reached' at once and ordered tasks such as phi1 are
-    rejected on the first step. False: the paper's rule as written."""
+    """Cap relaxed disks so none overlap (not in the paper)."""
 
     relax: str = "targets"
-    """Which areas are relaxed: "targets" (the default): in each automaton state only the areas whose
-    entry makes progress; an area whose entry would reject the task (or regress) keeps its true
-    radius. "all": the paper's rule (the default until 2026-11-23). Not in the paper: with "all", a
-    relaxed forbidden area blocks the way, e.g. phi2's A4 (at the centre of `paper`, relaxed to
-    1.26 m) closes the passage the robot must take from A1 to A3."""
+    """Areas relaxed: "targets" (those whose entry makes progress) or "all" (the paper's)."""
 
     def __post_init__(self) -> None:
         check_fields(self, "anneal", nullable=("k2", "d_bar"), positive=("k1", "d_bar"), non_negative=("k2",),

@@ -166,9 +166,13 @@ class Automaton:
         keys = ("aps", "initial", "accepting", "rejecting", "delta")
         return cls(*(data[k] for k in keys))
 
-    def arrays(self, feasible_letters: Collection[int] | None = None) -> AutomatonArrays:
-        """The automaton as jnp arrays; distance uses ``UNREACHABLE`` for None."""
-        dist = [UNREACHABLE if d is None else d for d in self.distances(feasible_letters)]
+    def arrays(self, feasible_letters: Collection[int] | None = None,
+               distance: list[int | None] | None = None) -> AutomatonArrays:
+        """The automaton as jnp arrays; distance uses ``UNREACHABLE`` for None. ``distance``: what
+        ``distances(feasible_letters)`` returns, when the caller has it already."""
+        if distance is None:
+            distance = self.distances(feasible_letters)
+        dist = [UNREACHABLE if d is None else d for d in distance]
         return AutomatonArrays(
             delta=jnp.asarray(self.delta, dtype=jnp.int32).reshape(self.n_states, self.n_letters),
             accepting=jnp.asarray([q in self.accepting for q in range(self.n_states)], dtype=jnp.bool_),

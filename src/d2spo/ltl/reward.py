@@ -50,8 +50,8 @@ class RewardConfig:
     entry makes progress that also goes round the areas whose entry would reject the task or undo
     progress (``envs.state_fields``); it also checks, before training, that the task can be done on
     the layout. 'geodesic': the shortest obstacle-free path to the nearest area that makes progress,
-    straight through the others (``envs.geodesic``; the default until 2026-11-23, which never learnt
-    phi2); 'euclidean': straight line, which leads into obstacles lying on the line."""
+    straight through the others (``envs.geodesic``; it may lead through an area whose entry rejects
+    the task); 'euclidean': straight line, which leads into obstacles lying on the line."""
     shaping_clearance: float | None = 0.3
     """With a geodesic metric: path nodes closer than this to an obstacle or a wall cost more per
     metre (``envs.geodesic.BLOCKED_COST`` with 'geodesic', ``shaping_clearance_cost`` with
@@ -62,14 +62,13 @@ class RewardConfig:
     shaping_clearance_cost: float = 2.0
     """With 'geodesic-per-state': a path step costs its length times this where a node is closer
     than the clearance to an obstacle or a wall (coming closer than the clearance to a forbidden area
-    costs ``envs.geodesic.BLOCKED_COST`` times the approach, as before). 2, as in the generalist's
+    costs ``envs.geodesic.BLOCKED_COST`` times the approach). 2, as in the generalist's
     field bank (``envs.layout_bank``):
-    a 0.75-0.8 m opening lies almost wholly in the clearance band, and at 10 (the default until
-    2026-11-25) the field jumped by a metre for 0.1 m sideways at the opening's mouth; D²SPO's
-    policy then dithered forward and back there and never learnt phi2 or never-a4 (docs/ltl.md)."""
+    a 0.75-0.8 m opening lies almost wholly in the clearance band, and a steep cost there makes the
+    field jump sideways at the opening's mouth, where the policy dithers (docs/ltl.md)."""
     shaping_collide_cost: float = 100.0
     """With 'geodesic-per-state': the multiplier where a node is closer than the robot's radius to an
-    obstacle or a wall (the robot would collide there), so no path cuts a wall (10 until 2026-11-25)."""
+    obstacle or a wall (the robot would collide there), so no path cuts a wall."""
     shaping_gamma: float = 1.0
     """Discount in the shaping term gamma * Phi(s') - Phi(s). 1 (not the learner's 0.99): with
     gamma < 1 standing still far from the goal earns (1 - gamma) |Phi| > c_n per step."""

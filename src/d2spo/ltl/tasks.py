@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import numpy as np
+
 TASKS: dict[str, str] = {
     # Visit A1, then A2, then A3, and enter no area early. The paper's text says so, but its printed
     # formula (below) lacks the conjunct "F A3"; this is the intended task.
@@ -56,8 +58,6 @@ def reach_avoid_tasks(n: int, seed: int = 0, areas: int = 4, longest: int = 4) -
     1/3; never the leg's target or the area the robot has just reached). Written with U and F, e.g.
     ``((!A3) U (A1 & F A2))``. The generalist trains on such a mixture (``--generalist-tasks``), so
     that the named tasks above are formulas it never saw."""
-    import numpy as np
-
     rng = np.random.default_rng(seed)
     out: list[str] = []
     for _ in range(100 * n):

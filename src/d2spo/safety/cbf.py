@@ -43,40 +43,39 @@ class CBFConfig:
     """
 
     hidden: tuple[int, ...] = (64, 64)
-    """Hidden layer widths of the CBF network h_Θ (tanh activations)."""
+    """Hidden widths of the CBF network h_Θ (tanh)."""
     policy_hidden: tuple[int, ...] = (64, 64)
-    """Hidden layer widths of the executed policy π_Ω's correction network."""
+    """Hidden widths of π_Ω's correction network."""
     nominal_hidden: tuple[int, ...] = (64, 64)
-    """Hidden layer widths of the nominal model f_n."""
+    """Hidden widths of the nominal model f_n."""
     gamma_s: float = 0.1
     """γ_s: margin of T_s, h(x) ≥ γ_s on safe samples X_s."""
     gamma_u: float = 0.1
     """γ_u: margin of T_u, h(x) ≤ -γ_u on unsafe samples X_L."""
     gamma_exp: float = 0.1
-    """γ_exp: margin of T_e, (h(x') - h(x))/Δt + α(h(x)) ≥ γ_exp on P_exp (units of h per second)."""
+    """γ_exp: margin of T_e, Δh/Δt + α(h(x)) ≥ γ_exp."""
     alpha: str = "linear"
-    """Extended class-K function α: 'linear' (a·h) or 'cubic' (a·h³)."""
+    """Class-K α: 'linear' (a·h) or 'cubic' (a·h³)."""
     alpha_coef: float = 3.0
-    """Coefficient a of α, per second. Keep a·Δt < 1: h may shrink by a fraction a·Δt per step."""
+    """Coefficient a of α (1/s); keep a·Δt < 1."""
     lambda_s: float = 10.0
-    """λ_s: weight of T_s in Eq. (9). T_e's gradient on h carries a 1/Δt, so λ_s, λ_u ≈ λ_e/Δt."""
+    """λ_s: weight of T_s in Eq. (9)."""
     lambda_u: float = 10.0
-    """λ_u: weight of T_u in Eq. (9) (see λ_s)."""
+    """λ_u: weight of T_u in Eq. (9)."""
     lambda_e: float = 1.0
     """λ_e: weight of T_e in Eq. (9)."""
     lambda_g: float = 0.1
-    """λ_g: weight of T_g in Eq. (9), pulling π_Ω toward π_rl. Keep it below λ_e so safety wins."""
+    """λ_g: weight of T_g in Eq. (9) (π_Ω toward π_rl), < λ_e."""
     weight_decay: float = 1e-4
-    """Coefficient of ||Θ||² in Eq. (9) (the paper writes 1 with sums; we use means)."""
+    """Weight of ||Θ||² in Eq. (9) (sums are means)."""
     d: float = 0.3
-    """Safety threshold d: x with min(x) ≥ d form X_s (T_s); with te_in_band=False also P_exp's (the paper's)."""
+    """Safety threshold d (m): X_s = {x : min(x) ≥ d}."""
     te_in_band: bool = True
-    """P_exp (where T_e, T_g apply) = transitions with min range ≥ unsafe_max, so π_Ω also learns
-    to back off where h < 0 between the ring and d. False: min range ≥ d, as in the paper."""
+    """P_exp: min range ≥ unsafe_max; False: ≥ d (paper)."""
     unsafe_max: float = 0.2
-    """Upper edge of the unsafe ring: X_L samples have min range in [unsafe_max - σ, unsafe_max]. At least r_robot."""
+    """Outer edge (m) of the unsafe ring X_L (≥ robot radius)."""
     sigma: float = 0.1
-    """Ring width σ of X_L (metres of min range)."""
+    """Width σ (m) of the unsafe ring X_L."""
     cbf_lr: float = 1e-3
     """Adam learning rate for Θ."""
     policy_lr: float = 1e-3
@@ -84,35 +83,33 @@ class CBFConfig:
     nominal_lr: float = 1e-3
     """Adam learning rate for the nominal model f_n."""
     transitions_capacity: int = 100_000
-    """Capacity of the transition set T (all real transitions; fits f_n)."""
+    """Capacity of the transition set T (fits f_n)."""
     p_exp_capacity: int = 100_000
-    """Capacity of P_exp (transitions past the P_exp threshold; X_s is the x of those with min(x) ≥ d)."""
+    """Capacity of P_exp (and so of X_s)."""
     unsafe_capacity: int = 100_000
-    """Capacity of X_L (synthesised unsafe feature vectors)."""
+    """Capacity of X_L (synthesised unsafe samples)."""
     batch_size: int = 256
-    """Minibatch size for each of P_exp, X_L and T in one gradient step."""
+    """Minibatch size from each of P_exp, X_L and T."""
     updates_per_iter: int = 10
-    """Gradient steps on Eq. (9) per UPDATE(Ω, Θ) (Algorithm 1, line 17)."""
+    """Gradient steps on Eq. (9) per UPDATE(Ω, Θ)."""
     nominal_updates_per_iter: int = 10
     """Gradient steps on the nominal model per UPDATE."""
     pretrain_samples: int = 16_384
-    """Synthetic poses drawn for the cautious start (before the first environment step)."""
+    """Synthetic poses drawn for the cautious start."""
     pretrain_steps: int = 2_000
-    """Gradient steps on Eq. (9) with synthetic data in the cautious start."""
+    """Gradient steps on Eq. (9) in the cautious start."""
     prior_steps: int = 1_000
-    """Gradient steps fitting f_n to the kinematic prior in the cautious start."""
+    """Steps fitting f_n to the kinematic prior at the start."""
     ring_newton_iters: int = 3
-    """Newton iterations that move a recorded pose into the unsafe ring when synthesising X_L."""
+    """Newton iterations that put a pose in the unsafe ring."""
     synthetic_replay: float = 0.0
-    """Weight of Eq. (9) on a replayed synthetic batch in each online update (0 = off)."""
+    """Weight of a replayed synthetic batch (0 = off)."""
     replay_correction: bool = True
-    """Evaluate T_e at π_Ω's current action: s_g = s_n(u) + g(s' − s_n(u_taken)) (Eq. (6) when
-    u = u_taken). False: Eq. (6) as printed, whose value is the stale outcome of the stored action."""
+    """T_e at π_Ω's current action on replayed data; False: Eq. (6) as printed."""
     filter_iters: int = 3
-    """Linearise-and-project iterations of the optional runtime safety filter."""
+    """Iterations of the runtime safety filter."""
     filter_alpha_coef: float | None = None
-    """Coefficient a of α in the runtime filter's condition (None: alpha_coef). A smaller a lets h
-    shrink by less per step, so the filter brakes earlier than the condition π_Ω was trained on."""
+    """a of α in the runtime filter; None: alpha_coef."""
 
     @property
     def filter_alpha(self) -> float:

@@ -35,6 +35,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from d2spo.safety import bounds
 from d2spo.safety.cbf import class_k, network_input
@@ -155,8 +156,6 @@ def prop2(layers, x: jnp.ndarray, x_next: jnp.ndarray, rho, eps: float, scale: f
 
 def fractions(status: jnp.ndarray, mask: jnp.ndarray | None = None) -> dict[str, float | int]:
     """Counts and fractions of each status among the rows where `mask` holds."""
-    import numpy as np
-
     status = np.asarray(status)
     keep = np.ones(status.shape, bool) if mask is None else np.asarray(mask, bool)
     n = int(keep.sum())

@@ -1,5 +1,5 @@
 """The datasets T, P_exp, X_s and X_L of Sec. IV-A/IV-B, as device-resident ring buffers
-(``algos.common.replay.ReplayBuffer``, the one ring buffer of the code).
+(``d2spo.replay.ReplayBuffer``, the one ring buffer of the code).
 
 Everything is generic in the sensor: `features_fn(pose, context) -> x [K]` maps one pose
 (x, y, θ) and one sensed-obstacle context O_s (any pytree) to the feature vector b(z, O_s); it
@@ -22,8 +22,8 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from d2spo.algos.common import replay
-from d2spo.algos.common.replay import ReplayBuffer
+from d2spo import replay
+from d2spo.replay import ReplayBuffer
 from d2spo.safety.cbf import CBFConfig, TeBatch, p_exp_threshold
 
 

@@ -1,4 +1,4 @@
-"""Building blocks shared by every algorithm: networks, the ring buffer, GAE, losses, the Lagrange
+"""Building blocks shared by every algorithm: networks, GAE, losses, the Lagrange
 multiplier and the Lagrangian cost-critic shell.
 
 Import the modules themselves; those with colliding function names (``lagrange.update``,

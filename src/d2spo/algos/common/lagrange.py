@@ -34,15 +34,15 @@ class LagrangeConfig:
     """Settings of the Lagrange multiplier update."""
 
     cost_limit: float = 25.0
-    """Budget d on the expected episode cost J_c; lambda grows while J_c > d."""
+    """Cost limit d: lambda grows while J_c > d."""
     lr: float = 0.035
     """Learning rate of the multiplier's own optimizer."""
     init: float = 0.001
     """Initial value of lambda (>= 0)."""
     optimizer: str = "adam"
-    """'adam' (OmniSafe's default: steps of about lr whatever |J_c - d|) or 'sgd' (step lr * (J_c - d))."""
+    """'adam' (OmniSafe's) or 'sgd' (step lr * (J_c - d))."""
     upper_bound: float | None = None
-    """Optional cap on lambda; None leaves it unbounded above."""
+    """Cap on lambda; None: unbounded."""
 
     def __post_init__(self) -> None:
         # bare field names: this section sits under ppo_lag, td3_lag and sac_lag alike

@@ -1,0 +1,104 @@
+"""A task compiled onto a layout, once: the value the environment, its reward and observation, and
+the pre-flight checks read.
+
+``compile_task(automaton, layout, label_mode, robot_radius, field_costs)`` computes the letters the
+layout can produce, the automaton's distances to acceptance over them (Prog(q), Sec. IV-C), its
+arrays, which area each automaton proposition is and the role of each letter in each state
+(target, forbidden, neutral). The grid computations run on first use, at most once: with
+``field_costs`` the per-state shaping fields (``fields``, ``envs.state_fields``), the shortest
+route (``route_length``) and the automaton states the robot can reach (``reached``, ``envs.routes``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+from typing import Any
+
+import jax.numpy as jnp
+import numpy as np
+
+from d2spo.envs import layouts, routes
+from d2spo.envs.env_config import EnvConfig
+from d2spo.envs.state_fields import StateFields, letter_roles, state_fields
+from d2spo.envs.workspace import Layout
+from d2spo.ltl.automaton import Automaton, AutomatonArrays
+
+
+@dataclass(frozen=True, eq=False)
+class CompiledTask:
+    """A task on a layout, for a robot: everything computed from the pair that does not change while training."""
+
+    automaton: Any
+    """The ``Automaton``, or an object with ``aps`` and ``arrays(feasible_letters)`` only (then
+    ``distance``, the roles and ``fields`` are None and there are no routes)."""
+    layout: Layout
+    """The (scaled) layout."""
+    label_mode: str
+    """'event' or 'step' labelling."""
+    robot_radius: float
+    """The robot's radius (m): what ``route_length`` and ``reached`` drive."""
+    feasible_letters: tuple[int, ...]
+    """The letters labelling can produce on the layout (``layouts.feasible_letters``)."""
+    distance: tuple[int | None, ...] | None
+    """Per automaton state, the fewest feasible letters to acceptance (None: unreachable)."""
+    arrays: AutomatonArrays
+    """The automaton as arrays, its ``distance`` over the feasible letters."""
+    area_bits: np.ndarray
+    """int32 [N]: the letter bit each area sets (0 for an area that is no proposition)."""
+    roles: np.ndarray | None
+    """int8 [Q, 2**n_aps]: the role (``state_fields.NEUTRAL``, ``TARGET``, ``FORBIDDEN``) of reading each
+    letter in each state (``state_fields.letter_roles``; the areas: ``state_fields.named_areas``)."""
+    field_costs: dict[str, float] | None
+    """``state_fields``'s clearance, robot radius and step costs (``RewardConfig.field_costs``), or
+    None: no per-state shaping fields."""
+
+    @property
+    def n_states(self) -> int:
+        """Q, the automaton's states."""
+        return int(self.arrays.delta.shape[0])
+
+    @cached_property
+    def fields(self) -> StateFields | None:
+        """The per-state shaping fields (``state_fields.state_fields``), or None without ``field_costs``."""
+        if self.field_costs is None:
+            return None
+        return state_fields(self.automaton, self.layout, self.roles, self.label_mode, **self.field_costs)
+
+    @cached_property
+    def route_length(self) -> float:
+        """Length (m) of the shortest route that completes the task (``routes.route_length``; inf: none)."""
+        return routes.route_length(self.automaton, self.layout, self.label_mode, self.robot_radius)
+
+    @cached_property
+    def reached(self) -> tuple[bool, ...]:
+        """Per automaton state, whether the robot can drive into it (``routes.reachable_states``)."""
+        return tuple(routes.reachable_states(self.automaton, self.layout, self.label_mode, self.robot_radius))
+
+
+def compile_task(automaton: Any, layout: Layout, label_mode: str, robot_radius: float,
+                 field_costs: dict[str, float] | None = None) -> CompiledTask:
+    """``automaton`` on ``layout`` for a robot of ``robot_radius`` (module docstring); with
+    ``field_costs`` (``RewardConfig.field_costs``: clearance, robot radius and step costs) the
+    per-state shaping fields too. Raises nothing about the task's feasibility: that is
+    ``preflight.check_feasible``'s."""
+    aps = tuple(automaton.aps)
+    feasible = tuple(layouts.feasible_letters(layout, aps, label_mode))
+    bits = np.array([1 << aps.index(a.name) if a.name in aps else 0 for a in layout.areas], np.int32)
+    if not isinstance(automaton, Automaton):  # arrays() only
+        arrays = AutomatonArrays(*(jnp.asarray(a) for a in automaton.arrays(list(feasible))))
+        return CompiledTask(automaton, layout, label_mode, robot_radius, feasible, None, arrays, bits, None, None)
+    distance = automaton.distances(feasible)
+    arrays = automaton.arrays(feasible, distance)
+    roles = letter_roles(automaton, distance, label_mode == "event")
+    return CompiledTask(automaton, layout, label_mode, robot_radius, feasible, tuple(distance), arrays, bits, roles,
+                        field_costs)
+
+
+def default_task(automaton: Automaton, layout_name: str, label_mode: str) -> CompiledTask:
+    """``automaton`` compiled on a layout as the default environment config compiles it (robot
+    radius, layout scale, shaping clearance and costs), its fields included: what ``d2spo ltl
+    --plot`` draws (``plots.state_fields_figure``) before it checks the task."""
+    cfg = EnvConfig(layout=layout_name, label_mode=label_mode).resolved()
+    layout = layouts.load(layout_name).scaled(cfg.layout_scale)
+    return compile_task(automaton, layout, label_mode, cfg.robot_radius, cfg.reward.field_costs(cfg.robot_radius))

@@ -1,0 +1,140 @@
+"""The checks before a run, on a compiled task (``envs.compiled_task``): can the robot complete the
+task on the layout (``check_feasible``, an error), within an episode (``check_time``, a warning),
+and while keeping a learned barrier's margin (``check_margin``, a warning)? ``preflight`` runs them
+on an env; training and evaluation call it. ``default_max_steps`` is the step limit that follows
+the task's shortest route.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+from d2spo.envs import routes
+from d2spo.envs.compiled_task import CompiledTask
+from d2spo.envs.state_fields import FORBIDDEN, TARGET, named_areas
+from d2spo.errors import ConfigError, TaskWarning
+from d2spo.ltl.automaton import UNREACHABLE
+
+TIGHT_FRACTION = 0.6
+"""``check_time`` warns when the shortest route needs more than this fraction of the episode's steps
+at full speed. A trained policy drives more than the shortest route: on `paper` D²SPO's phi1
+episodes take a median of 123 steps for a 10.1 m route (1.22x)."""
+ROOM = 2.0
+"""``default_max_steps`` gives a longer task this many times its shortest route at full speed."""
+
+
+def check_letters(task: CompiledTask, what: str) -> None:
+    """ConfigError unless a sequence of the letters the layout can produce completes the task
+    (``what`` names the task in the message): what ``make_env`` checks for every task."""
+    arrays = task.arrays
+    if int(arrays.distance[int(arrays.initial)]) >= UNREACHABLE:
+        layout = task.layout
+        missing = sorted(set(task.automaton.aps) - set(layout.area_names))
+        hint = f" (propositions with no area, always false: {missing})" if missing else ""
+        raise ConfigError("task", f"{what} cannot be completed in layout {layout.name!r}{hint}: no sequence of the "
+                          "letters it can produce (areas entered alone, or together where they overlap) does it")
+
+
+def check_feasible(task: CompiledTask, name: str, radius: float | None = None, robot: str | None = None) -> None:
+    """ConfigError unless a robot of ``radius`` (default: the task's robot) can drive from the start
+    to an accepting state. ``robot`` names that robot in the error (default: "a robot of radius R m").
+
+    Propositions must name areas of the layout, the letters the layout can produce must complete
+    the task, and a search over (automaton state, grid cell) (``routes.reachable_states``) must
+    reach acceptance. The error names the farthest state reached and its target and forbidden areas.
+    """
+    aut, layout = task.automaton, task.layout
+    missing = [p for p in aut.aps if p not in layout.area_names]
+    if missing:
+        raise ConfigError("task", f"{name}: proposition {missing[0]!r} names no area of layout {layout.name!r} "
+                          f"(its areas: {', '.join(layout.area_names)})")
+    distance = task.distance
+    if distance[aut.initial] is None:
+        raise ConfigError("task", f"{name} cannot be completed on layout {layout.name!r}: no sequence of the "
+                          "letters it can produce (areas entered alone, or together where they overlap) does it")
+    if radius is None:
+        radius, reached = task.robot_radius, task.reached
+    else:
+        reached = routes.reachable_states(aut, layout, task.label_mode, radius)
+    if any(reached[q] for q in aut.accepting):
+        return
+    ends = aut.accepting | aut.rejecting
+    live = [q for q in range(aut.n_states) if reached[q] and q not in ends and distance[q] is not None]
+    if not live:
+        raise ConfigError("task", f"{name} cannot be completed on layout {layout.name!r}: the first area the robot "
+                          "can enter from the start rejects it")
+    q = min(live, key=lambda s: (distance[s], s))
+    targets, forbidden = (named_areas(aut, layout, task.roles, role)[q] for role in (TARGET, FORBIDDEN))
+    goal = " or ".join(targets) or "an area that makes progress"
+    why = f" without entering {', '.join(forbidden)} (forbidden there)" if forbidden else ""
+    raise ConfigError("task", f"{name} cannot be completed on layout {layout.name!r}: in automaton state {q} "
+                      f"({aut.state_formulas[q]}) {robot or f'a robot of radius {radius:g} m'} cannot "
+                      f"reach {goal}{why}")
+
+
+def check_margin(task: CompiledTask, margin: float, name: str) -> None:
+    """A ``TaskWarning`` when every route that completes the task passes closer than ``margin`` (a
+    learned barrier's d: D²SPO's barrier keeps the robot's centre about d from every sensed obstacle
+    and wall) to an obstacle or wall, although the robot gets through: e.g. a gap of 0.35 m between
+    an obstacle and an area the task forbids. A warning, not an error: the learned h lets the robot
+    a little closer than d (a generalist completes routes that need 0.29 m), and routes that need
+    0.27 m were not learnt (bench/barrier_margin.py, bench/RESULTS.md)."""
+    try:
+        check_feasible(task, name, radius=margin, robot="the robot")
+    except ConfigError as e:
+        why = str(e).removeprefix("task: ").replace(" cannot be completed on ", " on ", 1)
+        warnings.warn(f"{why} while keeping {margin:g} m from every obstacle and wall (the barrier's margin d, "
+                      "--cbf.d): every route passes closer, where the barrier may hold the robot back", TaskWarning,
+                      stacklevel=3)
+
+
+def default_max_steps(task: CompiledTask, dt: float, v_max: float, base: int) -> int:
+    """The step limit of ``EnvConfig.max_steps=None``: ``base`` (``EnvConfig.base_max_steps``), or,
+    when the task's shortest route at ``v_max`` needs more than ``TIGHT_FRACTION`` of those steps,
+    ``ROOM`` times the route's steps rounded up to a multiple of 50 (then over ``base``). ``base``
+    too when no route exists (``check_time`` then says so)."""
+    need = task.route_length / (v_max * dt)
+    if not math.isfinite(need) or need <= TIGHT_FRACTION * base:
+        return int(base)
+    return int(50 * math.ceil(ROOM * need / 50))
+
+
+def check_time(task: CompiledTask, max_steps: int, dt: float, v_max: float, name: str) -> None:
+    """A ``TaskWarning`` when no route completes the task within ``max_steps`` steps at ``v_max``
+    (every episode will time out), or when the shortest route needs more than ``TIGHT_FRACTION`` of
+    them. A warning, not an error: short episodes are how smoke runs and tests exercise the machinery."""
+    length = task.route_length
+    need = length / (v_max * dt)
+    budget = f"{max_steps} steps of {dt:g} s at {v_max:g} m/s"
+    layout = task.layout
+    if need / routes.OCTILE_EXCESS > max_steps:  # only what no continuous route could do
+        warnings.warn(TaskWarning(
+            f"{name} cannot be completed on layout {layout.name!r} within {budget}: its shortest route is "
+            f"{length:.1f} m ({math.ceil(need)} steps at full speed), so every episode will time out "
+            "(--max-steps raises the limit; unset, it follows the task)"), stacklevel=3)
+    elif need > TIGHT_FRACTION * max_steps:
+        warnings.warn(TaskWarning(
+            f"{name}: the shortest route on layout {layout.name!r} is {length:.1f} m, {math.ceil(need)} of the "
+            f"{max_steps} steps at full speed ({need / max_steps:.0%}); a policy that drives about 1.2x the shortest "
+            "route may run out of time (--max-steps raises the limit; unset, it follows the task)"), stacklevel=3)
+
+
+def preflight(env, params, name: str, margin: float = 0.0, episode_time: bool = True) -> None:
+    """The checks of a run before it starts, on ``env.task`` (``name`` names the task in messages):
+    with per-state shaping fields, the robot can complete the task (``check_feasible``; ``make_env``
+    has checked it, so this reads its result); with ``margin`` over the robot's radius, a route keeps
+    it (``check_margin``: D²SPO's and SL's barrier d); with ``episode_time``, the task fits in
+    ``params.max_steps`` (``check_time``; evaluating a trained run skips it: nothing can be done about
+    its episodes then). Nothing to check without one task on one layout (the generalist's bank) or
+    with an automaton given by its arrays only."""
+    task = env.task
+    if task is None or task.distance is None:
+        return
+    cfg = env.config
+    if task.fields is not None:
+        check_feasible(task, name)
+    if margin > cfg.robot_radius:
+        check_margin(task, margin, name)
+    if episode_time:
+        check_time(task, int(params.max_steps), cfg.dt, cfg.v_max * cfg.v_gain, name)

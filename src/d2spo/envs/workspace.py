@@ -1,0 +1,194 @@
+"""A workspace: a rectangular arena, axis-aligned box obstacles, circular areas of interest, a start.
+
+``Layout`` is the value; ``validate`` checks its geometry and ``check_robot_fits`` that a robot of
+a given radius fits at the start and reaches every area (on ``free_grid``, a conservative grid of
+the positions it can occupy). Layouts are plain Python (numpy at most); the environment turns them
+into arrays once. Where layouts come from (built-in names, ``random:SEED``, JSON files):
+``envs.layouts``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy import ndimage
+
+from d2spo.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class Obstacle:
+    """An axis-aligned box."""
+
+    center: tuple[float, float]
+    """Centre (x, y) in metres."""
+    half_extents: tuple[float, float]
+    """Half width and half height in metres."""
+
+    @property
+    def lo(self) -> np.ndarray:
+        return np.asarray(self.center) - np.asarray(self.half_extents)
+
+    @property
+    def hi(self) -> np.ndarray:
+        return np.asarray(self.center) + np.asarray(self.half_extents)
+
+
+@dataclass(frozen=True)
+class Area:
+    """A circular area of interest; an atomic proposition of the same name holds inside it."""
+
+    name: str
+    """Name, e.g. ``A1``; the LTL proposition ``A1`` is true when the robot centre is inside."""
+    center: tuple[float, float]
+    """Centre (x, y) in metres."""
+    radius: float
+    """Radius in metres (the true radius; the relaxed labelling radius is a parameter of the env)."""
+
+
+@dataclass(frozen=True)
+class Layout:
+    """A workspace. The arena is [0, width] x [0, height]."""
+
+    name: str
+    """Name (built-in name, ``random:SEED``, ``random5:SEED`` or the JSON file's ``name``)."""
+    arena: tuple[float, float]
+    """(width, height) in metres; the lower-left corner is the origin."""
+    start: tuple[float, float, float]
+    """Start pose (x, y, theta) before jitter; theta in radians."""
+    obstacles: tuple[Obstacle, ...]
+    """Box obstacles."""
+    areas: tuple[Area, ...]
+    """Areas of interest (A1 .. An)."""
+
+    @property
+    def area_names(self) -> tuple[str, ...]:
+        return tuple(a.name for a in self.areas)
+
+    def scaled(self, s: float) -> Layout:
+        """The same layout with every length multiplied by ``s`` (angles unchanged)."""
+        if s == 1.0:
+            return self
+        return replace(
+            self,
+            arena=(self.arena[0] * s, self.arena[1] * s),
+            start=(self.start[0] * s, self.start[1] * s, self.start[2]),
+            obstacles=tuple(
+                Obstacle((o.center[0] * s, o.center[1] * s), (o.half_extents[0] * s, o.half_extents[1] * s))
+                for o in self.obstacles
+            ),
+            areas=tuple(Area(a.name, (a.center[0] * s, a.center[1] * s), a.radius * s) for a in self.areas),
+        )
+
+    def to_json(self) -> dict:
+        """The layout as a JSON-ready dict (the schema read by :func:`from_json`)."""
+        return {
+            "name": self.name,
+            "arena": list(self.arena),
+            "start": list(self.start),
+            "obstacles": [{"center": list(o.center), "half_extents": list(o.half_extents)} for o in self.obstacles],
+            "areas": [{"name": a.name, "center": list(a.center), "radius": a.radius} for a in self.areas],
+        }
+
+    # --- numpy geometry, used for validation and planning (the jitted versions are in geometry.py)
+
+    def clearance(self, xy: np.ndarray) -> np.ndarray:
+        """Signed distance [...] from points xy [..., 2] to the nearest obstacle or wall."""
+        xy = np.asarray(xy, dtype=np.float64)
+        d = np.minimum.reduce([xy[..., 0], xy[..., 1], self.arena[0] - xy[..., 0], self.arena[1] - xy[..., 1]])
+        for o in self.obstacles:
+            d = np.minimum(d, _box_sd(xy, o))
+        return d
+
+
+def _box_sd(xy: np.ndarray, o: Obstacle) -> np.ndarray:
+    q = np.abs(xy - np.asarray(o.center)) - np.asarray(o.half_extents)
+    return np.linalg.norm(np.maximum(q, 0.0), axis=-1) + np.minimum(q.max(axis=-1), 0.0)
+
+
+def validate(layout: Layout) -> None:
+    """Geometric checks that do not depend on the robot. Raises ConfigError naming the field.
+
+    The start must lie inside the arena and outside every obstacle; every area disk must lie inside
+    the arena and must not overlap an obstacle; area names must be unique. The checks that need the
+    robot's size (start clearance, reachability) are in :func:`check_robot_fits`.
+    """
+    w, h = layout.arena
+    if not (w > 0 and h > 0):
+        raise ConfigError("layout.arena", f"sizes must be positive, got {layout.arena}")
+    for i, o in enumerate(layout.obstacles):
+        if min(o.half_extents) <= 0:
+            raise ConfigError(f"layout.obstacles[{i}].half_extents", f"must be positive, got {o.half_extents}")
+        if not (0 <= o.center[0] <= w and 0 <= o.center[1] <= h):
+            raise ConfigError(f"layout.obstacles[{i}].center", f"{o.center} is outside the arena {layout.arena}")
+    sx, sy, _ = layout.start
+    if not (0 < sx < w and 0 < sy < h):
+        raise ConfigError("layout.start", f"{layout.start[:2]} is outside the arena {layout.arena}")
+    for i, o in enumerate(layout.obstacles):
+        if _box_sd(np.array([sx, sy]), o) <= 0:
+            raise ConfigError("layout.start", f"{layout.start[:2]} is inside obstacle {i}")
+    seen: set[str] = set()
+    for i, a in enumerate(layout.areas):
+        if a.radius <= 0:
+            raise ConfigError(f"layout.areas[{i}].radius", f"must be positive, got {a.radius}")
+        if a.name in seen:
+            raise ConfigError(f"layout.areas[{i}].name", f"duplicate area name {a.name!r}")
+        seen.add(a.name)
+        cx, cy = a.center
+        if min(cx, cy, w - cx, h - cy) < a.radius:
+            raise ConfigError(f"layout.areas[{i}]", f"area {a.name} (centre {a.center}, radius {a.radius}) "
+                              f"is not inside the workspace {layout.arena}")
+        for j, o in enumerate(layout.obstacles):
+            if _box_sd(np.array(a.center), o) <= a.radius:
+                raise ConfigError(f"layout.areas[{i}]", f"area {a.name} overlaps obstacle {j}")
+
+
+# ------------------------------------------------------------------------- robot-dependent checks
+
+
+def free_grid(layout: Layout, robot_radius: float, resolution: float) -> tuple[np.ndarray, np.ndarray]:
+    """Cells whose centre the robot can occupy: (free bool [ny, nx], centres [ny, nx, 2]).
+
+    A cell is free when its centre has clearance > robot_radius + resolution / 2. Every point of
+    the segment joining two 4-neighbours lies within resolution / 2 of one of them, so moving
+    between neighbouring free cells is collision-free (a conservative discretisation).
+    """
+    w, h = layout.arena
+    xs = (np.arange(math.ceil(w / resolution)) + 0.5) * resolution
+    ys = (np.arange(math.ceil(h / resolution)) + 0.5) * resolution
+    centres = np.stack(np.meshgrid(xs, ys), axis=-1)
+    return layout.clearance(centres) > robot_radius + 0.5 * resolution, centres
+
+
+def reachable_grid(layout: Layout, robot_radius: float, resolution: float) -> tuple[np.ndarray, np.ndarray]:
+    """Free cells 4-connected to the start cell: (reachable bool [ny, nx], centres [ny, nx, 2])."""
+    free, centres = free_grid(layout, robot_radius, resolution)
+    labels, _ = ndimage.label(free)
+    iy = min(int(layout.start[1] / resolution), free.shape[0] - 1)
+    ix = min(int(layout.start[0] / resolution), free.shape[1] - 1)
+    start_label = labels[iy, ix]
+    if start_label == 0:
+        return np.zeros_like(free), centres
+    return labels == start_label, centres
+
+
+def check_robot_fits(layout: Layout, robot_radius: float, start_jitter_xy: float = 0.0) -> None:
+    """The robot fits at the start (with jitter) and can reach every area; ConfigError otherwise.
+
+    Reachability is a breadth-first search on a grid (resolution ~1/100 of the arena, at most
+    0.05 m, but at most 1000 cells a side) over the free space inflated by the robot radius.
+    """
+    worst = robot_radius + start_jitter_xy * math.sqrt(2.0)
+    if layout.clearance(np.array(layout.start[:2])) <= worst:
+        raise ConfigError("layout.start", f"the robot (radius {robot_radius}, start jitter {start_jitter_xy}) "
+                          f"at {layout.start[:2]} would touch an obstacle or wall")
+    resolution = max(min(0.05, max(layout.arena) / 100.0), max(layout.arena) / 1000.0)  # <= 1000 cells a side
+    reach, centres = reachable_grid(layout, robot_radius, resolution)
+    for i, a in enumerate(layout.areas):
+        inside = np.linalg.norm(centres - np.asarray(a.center), axis=-1) <= a.radius
+        if not np.any(reach & inside):
+            raise ConfigError(f"layout.areas[{i}]", f"area {a.name} cannot be reached from the start by a robot "
+                              f"of radius {robot_radius}")
+

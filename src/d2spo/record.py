@@ -1,0 +1,243 @@
+"""The record of a run as it trains: episodes.csv, TensorBoard, the counters, the NaN guard, policy
+snapshots, checkpoints, a generalist's validation, and summary.json with the final evaluation.
+
+``d2spo.train``'s loops hand every chunk's ``ChunkLog`` to a ``RunRecord`` (one per run directory;
+``train_seeds`` has one per seed); the run directory's files are ``d2spo.run``'s and ``runio``'s.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import serialization
+from tensorboardX import SummaryWriter
+
+from d2spo.algos.base import ChunkLog
+from d2spo.checkpoint import Checkpoints
+from d2spo.config import VALIDATION_SEED, TrainConfig
+from d2spo.envs import layout_bank
+from d2spo.envs.generalist import view
+from d2spo.errors import NaNError
+from d2spo.rollout import make_rollout, rates
+from d2spo.run import best_policy_path, load_best_policy, save_snapshot, snapshot_path
+from d2spo.runio import EpisodeWriter, atomic_write_bytes, atomic_write_json, window_rates
+
+ProgressFn = Callable[[dict], None]
+"""What a run reports its progress to: one dict per event (``d2spo.progress`` draws them)."""
+
+
+def rows_from_log(log: ChunkLog, first_episode: int, limit: int) -> list[tuple]:
+    """Finished episodes of a chunk, in (step, env) order, at most ``limit`` of them."""
+    done = np.asarray(log.done)
+    steps, envs = np.nonzero(done)
+    if len(steps) == 0 or limit <= 0:
+        return []
+    steps, envs = steps[:limit], envs[:limit]
+    cols = [np.asarray(a)[steps, envs] for a in (
+        log.ep_return, log.ep_cost, log.ep_collided, log.ep_completed, log.ep_completed_relaxed, log.ep_length)]
+    end = np.asarray(log.ep_end_xy)[steps, envs]
+    rows = []
+    for i in range(len(steps)):
+        rows.append((
+            first_episode + i, round(float(cols[0][i]), 5), float(cols[1][i]), int(cols[2][i]),
+            int(cols[3][i]), int(cols[4][i]), int(cols[5][i]), round(float(end[i, 0]), 3), round(float(end[i, 1]), 3),
+        ))
+    return rows
+
+
+class NaNGuard:
+    """Stops a run at the first non-finite value it produces, before that chunk's rows are written.
+
+    Parameters (the learner's ``nonfinite`` flag), episode returns and costs, and every metric must
+    stay finite. NaN is also how a metric says "no value this step" (no update ran), so a ``losses/``
+    metric counts as diverged only once it has had values at some rhythm and then none for twice its
+    longest gap seen so far (and at least two chunks)."""
+
+    def __init__(self, chunk_steps: int):
+        self.chunk_steps = chunk_steps
+        self.last: dict[str, int] = {}  # metric -> vectorised step of its last finite value
+        self.gap: dict[str, int] = {}  # metric -> longest run of NaN steps between two values
+
+    def problem(self, log: ChunkLog, rows: list[tuple], first_step: int) -> str | None:
+        if bool(log.nonfinite):
+            return "non-finite parameters"
+        bad = [r[0] for r in rows if not (math.isfinite(r[1]) and math.isfinite(r[2]))]
+        if bad:
+            return f"a non-finite return or cost in episode {bad[0]}"
+        inf = sorted(k for k, v in log.metrics.items() if np.any(np.isinf(np.asarray(v))))
+        if inf:
+            return f"infinite metrics {inf}"
+        end = first_step + self.chunk_steps
+        for k, v in log.metrics.items():
+            if not k.startswith("losses/"):
+                continue
+            for i in np.flatnonzero(np.isfinite(np.asarray(v))):
+                step = first_step + int(i)
+                if k in self.last:
+                    self.gap[k] = max(self.gap.get(k, 0), step - self.last[k] - 1)
+                self.last[k] = step
+            if k in self.gap and end - self.last[k] - 1 > max(2 * self.gap[k], 2 * self.chunk_steps):
+                return f"{k} has been NaN for {end - self.last[k] - 1} steps since its last value"
+        return None
+
+
+class RunRecord:
+    """The host-side bookkeeping of one run directory: episodes.csv, TensorBoard, counters,
+    snapshots, checkpoints and the summary. ``train`` has one; ``train_seeds`` one per seed."""
+
+    def __init__(self, cfg: TrainConfig, out: Path, meta: dict | None, checkpoints: Checkpoints,
+                 overhead: dict | None = None, validation: Validation | None = None):
+        self.cfg, self.out, self.checkpoints, self.validation = cfg, Path(out), checkpoints, validation
+        self.meta = dict(meta or {"episodes": 0, "env_steps": 0, "chunks": 0, "wall_seconds": 0.0})
+        # Time outside the training loop, summed over the sessions of a resumed run (0 in checkpoints
+        # written before these were counted): compiling the learner, and the rest (building the env).
+        for k, v in (overhead or {}).items():
+            self.meta[k] = self.meta.get(k, 0.0) + v
+        self.writer = EpisodeWriter(self.out / "episodes.csv", keep_rows=self.meta["episodes"])
+        self.tb = _tensorboard(self.out / "tb")
+        every = cfg.checkpoint_every
+        self.next_ckpt = (self.meta["episodes"] // every + 1) * every
+        if validation is not None:
+            self.next_validation = (self.meta["episodes"] // cfg.validate_every + 1) * cfg.validate_every
+        self.t_start = time.perf_counter() - self.meta["wall_seconds"]
+        self.guard = NaNGuard(cfg.chunk_steps)
+
+    @property
+    def done(self) -> bool:
+        return len(self.writer) >= self.cfg.episodes
+
+    def record(self, log: ChunkLog, progress: ProgressFn | None) -> None:
+        """Take in one chunk's log (NaN check, episodes, counters, TensorBoard, progress)."""
+        cfg, writer, meta = self.cfg, self.writer, self.meta
+        rows = rows_from_log(log, len(writer), cfg.episodes - len(writer))
+        problem = self.guard.problem(log, rows, meta["chunks"] * cfg.chunk_steps)
+        if problem is not None:
+            last = self.checkpoints.latest
+            where = (f"the last checkpoint, after episode {last['episodes']}, is {self.out / 'checkpoint.json'}"
+                     if last is not None else f"no checkpoint was written in {self.out} before it")
+            raise NaNError(f"training stopped at episode {len(writer)}: {problem}; episodes.csv holds the "
+                           f"episodes before it and {where}")
+        writer.append(rows)
+        meta["chunks"] += 1
+        meta["env_steps"] += cfg.chunk_steps * cfg.num_envs
+        meta["episodes"] = len(writer)
+        meta["wall_seconds"] = time.perf_counter() - self.t_start
+        for k, v in log.metrics.items():
+            v = np.asarray(v, dtype=np.float64)
+            if np.any(np.isfinite(v)):
+                self.tb.add_scalar(k, float(np.nanmean(v)), meta["env_steps"])
+        if rows:
+            rates = window_rates(writer.rows, 100)
+            self.tb.add_scalar("charts/safety_rate_100", rates["safety_rate"], meta["env_steps"])
+            self.tb.add_scalar("charts/completion_rate_100", rates["completion_rate"], meta["env_steps"])
+            self.tb.add_scalar("charts/completion_rate_relaxed_100", rates["completion_rate_relaxed"],
+                               meta["env_steps"])
+        if progress is not None:
+            progress({"episodes": len(writer), "total": cfg.episodes, "env_steps": meta["env_steps"],
+                      "wall_seconds": meta["wall_seconds"], **window_rates(writer.rows, 200)})
+
+    def save(self, learner, carry, force: bool = False) -> bool:
+        """Snapshots that are due, and the checkpoint every ``checkpoint_every`` episodes (or now).
+        Returns whether a checkpoint was written."""
+        n_done = len(self.writer)
+        for n in self.cfg.snapshots:
+            if n_done >= n and not snapshot_path(self.out, n).exists():
+                save_snapshot(self.out, n, learner.policy(carry))
+        if self.validation is not None and (n_done >= self.next_validation or self.done):
+            self.validate(learner.policy(carry))
+        if force or n_done >= self.next_ckpt or self.done:
+            self.writer.sync()
+            self.checkpoints.save(carry, self.meta)
+            every = self.cfg.checkpoint_every
+            self.next_ckpt = (n_done // every + 1) * every
+            return True
+        return False
+
+    def validate(self, policy) -> None:
+        """Run the validation (``Validation``) on ``policy`` and keep it as DIR/policy-best.msgpack if
+        it fails fewer validation episodes than every earlier one; the scores go into the counters."""
+        n_done = len(self.writer)
+        history = self.meta.setdefault("validation", [])
+        if history and history[-1]["episodes"] == n_done:
+            return
+        t = time.perf_counter()
+        entry = {"episodes": n_done, **self.validation(policy)}
+        best = self.meta.get("best")
+        if best is None or entry["success_rate"] > best["success_rate"]:
+            atomic_write_bytes(best_policy_path(self.out), serialization.to_bytes(jax.device_get(policy)))
+            self.meta["best"] = entry
+        history.append(entry)
+        self.meta["validation_seconds"] = self.meta.get("validation_seconds", 0.0) + time.perf_counter() - t
+        every = self.cfg.validate_every
+        self.next_validation = (n_done // every + 1) * every
+        self.tb.add_scalar("charts/validation_success", entry["success_rate"], self.meta["env_steps"])
+
+    def finish(self, learner, carry, env, params, progress: ProgressFn | None = None, untrained=None) -> dict:
+        """summary.json. Wall times: ``wall_seconds`` is the training loop alone (no compilation; the
+        steps per second use it), ``compile_seconds`` the compilation of the learner, and
+        ``wall_seconds_total`` everything ``train`` spent: building the env, compiling, training and
+        the final evaluation, over every session of a resumed run."""
+        cfg = self.cfg
+        wall = time.perf_counter() - self.t_start
+        self.tb.close()
+        summary = {
+            "algo": cfg.algo, "task": cfg.task, "seed": cfg.seed,
+            "layout": f"random:0..{cfg.generalist_layouts - 1}" if cfg.generalist else cfg.layout,
+            "episodes": len(self.writer), "env_steps": self.meta["env_steps"], "wall_seconds": round(wall, 2),
+            "compile_seconds": round(self.meta.get("compile_seconds", 0.0), 2),
+            "env_steps_per_second": round(self.meta["env_steps"] / max(wall, 1e-9), 1),
+            "window": cfg.window, **window_rates(self.writer.rows, cfg.window),
+            "device": jax.devices()[0].platform,
+        }
+        t_eval = time.perf_counter()
+        if cfg.eval_episodes > 0:
+            if progress is not None:
+                progress({"phase": "evaluating", "episodes": cfg.eval_episodes})
+            rollout = make_rollout(learner, env, cfg.eval_episodes, int(params.max_steps))
+            key = jax.random.PRNGKey(cfg.seed + 10_000)
+            summary["eval"] = rates(*rollout(params, learner.policy(carry), key))
+            if untrained is not None:  # ``cfg.eval_untrained``: the same episodes, the same compilation
+                summary["eval_untrained"] = rates(*rollout(params, untrained, key))
+            if self.meta.get("best") is not None:  # the validated policy, on the same episodes
+                summary["eval_best"] = rates(*rollout(params, load_best_policy(self.out, learner), key))
+        if self.validation is not None:
+            summary["validation"] = {"layouts": self.validation.layouts, "episodes": cfg.validation_episodes,
+                                     "seconds": round(self.meta.get("validation_seconds", 0.0), 2),
+                                     "best": self.meta.get("best"), "history": self.meta.get("validation", [])}
+        total = (wall + self.meta.get("compile_seconds", 0.0) + self.meta.get("setup_seconds", 0.0)
+                 + time.perf_counter() - t_eval)
+        summary["wall_seconds_total"] = round(total, 2)
+        atomic_write_json(self.out / "summary.json", summary)
+        return summary
+
+
+class Validation:
+    """The generalist's model selection (``TrainConfig.validation_layouts``): ``policy -> rates`` of
+    ``validation_episodes`` deterministic episodes on the held-out layouts random:VALIDATION_SEED ..,
+    the training task(s), the same episodes (key) every time. ``success_rate`` is the fraction of
+    episodes that complete the task without a collision: what the best policy is chosen by."""
+
+    def __init__(self, cfg: TrainConfig, env, params, learner):
+        n = cfg.validation_layouts
+        self.layouts = f"random:{VALIDATION_SEED}..{VALIDATION_SEED + n - 1}"
+        bank = layout_bank.build_bank(range(VALIDATION_SEED, VALIDATION_SEED + n))
+        self.params = view(params.replace(bank=bank), jnp.zeros((), jnp.int32))
+        self.rollout = make_rollout(learner, env, cfg.validation_episodes, int(params.max_steps))
+        self.key = jax.random.PRNGKey(cfg.seed + 20_000)
+
+    def __call__(self, policy) -> dict:
+        collided, completed, *rest = self.rollout(self.params, policy, self.key)
+        out = rates(collided, completed, *rest)
+        ok = np.asarray(completed) & ~np.asarray(collided)
+        return {"success_rate": float(np.mean(ok)), "completion_rate": out["completion_rate"],
+                "safety_rate": out["safety_rate"]}
+
+
+def _tensorboard(path: Path) -> SummaryWriter:
+    return SummaryWriter(str(path), flush_secs=30)

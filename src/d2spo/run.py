@@ -1,0 +1,145 @@
+"""A run directory, for everyone who reads or writes one: the learner its config names, its config,
+its policies (the last checkpoint's, a generalist's validated best, the snapshots), the preparation
+of a new or resumed directory, and the directory of a group of seeds trained together.
+
+``d2spo.train`` writes runs; ``d2spo.evaluate``, ``d2spo.certify``, ``d2spo.plots``,
+``d2spo.reproduce`` and the demo read them through this module. The files themselves (config.json,
+checkpoints, the lock) are described in docs/runs.md.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import jax
+from flax import serialization
+
+from d2spo.algos import make_learner
+from d2spo.algos.generalist import build_generalist
+from d2spo.checkpoint import has_checkpoint, load_checkpoint, run_fingerprint
+from d2spo.config import TrainConfig, config_differences, config_from_dict, config_to_dict
+from d2spo.envs import layout_bank, make_env
+from d2spo.envs.generalist import GENERALIST_MAX_STEPS
+from d2spo.errors import ConfigError, RunDirError
+from d2spo.runio import atomic_write_bytes, atomic_write_json, read_json, remove_file, remove_tmp_files
+
+
+def build(cfg: TrainConfig):
+    """(env, env_params, learner) for a config. Raises ConfigError on bad input."""
+    if cfg.generalist:
+        return _build_generalist(cfg)
+    env, params = make_env(cfg.env_config(), task=cfg.task)
+    learner = make_learner(cfg, env, params)
+    return env, params, learner
+
+
+
+def _build_generalist(cfg: TrainConfig):
+    """(env, params, learner) of ``--generalist``: the bank random:0 .. random:N-1, ``algos.generalist.build_generalist``."""
+    bank = layout_bank.build_bank(range(cfg.generalist_layouts))
+    return build_generalist(cfg, bank, cfg.env.max_steps or GENERALIST_MAX_STEPS)
+
+
+
+def prepare_dir(out: Path, cfg: TrainConfig, resume: bool) -> None:
+    """With the directory's lock held: temporary files a kill left are removed; a resume checks
+    ``cfg`` against config.json; a new run writes config.json (over a run killed before its first
+    checkpoint, whose policy snapshots go too)."""
+    remove_tmp_files(out)
+    cfg_path = out / "config.json"
+    if resume:
+        theirs = load_run_config(out)
+        if theirs != cfg:
+            diffs = config_differences(theirs, cfg) or ["settings this learner does not read"]
+            raise RunDirError(f"{out}: resuming takes the run's own config.json, and this config differs "
+                              f"({'; '.join(diffs)})")
+        return
+    if (out / "summary.json").exists() or has_checkpoint(out):
+        raise RunDirError(f"{out}: already holds a run; use --resume {out} or another --out")
+    for p in out.glob("policy-*.msgpack"):
+        remove_file(p)
+    atomic_write_json(cfg_path, config_to_dict(cfg))
+
+
+
+def load_run_config(run_dir: Path) -> TrainConfig:
+    """The config a run was trained with (its config.json)."""
+    if not Path(run_dir).is_dir():
+        raise RunDirError(f"{run_dir}: no such run directory")
+    return config_from_dict(read_json(Path(run_dir) / "config.json", "the run's config"))
+
+
+
+GROUP_PREFIX = ".group-"
+
+
+def group_dir(outs: list[Path]) -> Path:
+    """Where ``train_seeds`` checkpoints the group of runs ``outs``: ``OUT[0]/../.group-<names>``."""
+    return Path(outs[0]).parent / (GROUP_PREFIX + "+".join(Path(o).name for o in outs))
+
+
+
+BEST_POLICY = "policy-best.msgpack"
+"""A validated generalist's best policy (``_Run.validate``), in the run directory."""
+
+
+def best_policy_path(run_dir: Path) -> Path:
+    return Path(run_dir) / BEST_POLICY
+
+
+def load_best_policy(run_dir: Path, learner, key: jax.Array | None = None):
+    """The policy ``_Run.validate`` kept; shapes come from the learner (nothing is trained)."""
+    path = best_policy_path(run_dir)
+    if not path.is_file():
+        raise RunDirError(f"{run_dir}: no validated policy ({path.name})")
+    key = jax.random.PRNGKey(0) if key is None else key
+    template = jax.eval_shape(lambda k: learner.policy(learner.init(k)), key)
+    return serialization.from_bytes(template, path.read_bytes())
+
+
+def snapshot_path(run_dir: Path, episodes: int) -> Path:
+    return Path(run_dir) / f"policy-{episodes}.msgpack"
+
+
+def save_snapshot(run_dir: Path, episodes: int, policy) -> None:
+    """The policy's parameters after ``episodes`` training episodes (``TrainConfig.snapshots``)."""
+    atomic_write_bytes(snapshot_path(run_dir, episodes), serialization.to_bytes(jax.device_get(policy)))
+
+
+def load_snapshot(run_dir: Path, episodes: int, learner, key: jax.Array | None = None):
+    """The policy saved by ``save_snapshot``; shapes come from the learner (nothing is trained)."""
+    path = snapshot_path(run_dir, episodes)
+    if not path.is_file():
+        raise RunDirError(f"{run_dir}: no policy snapshot after {episodes} episodes ({path.name})")
+    key = jax.random.PRNGKey(0) if key is None else key
+    template = jax.eval_shape(lambda k: learner.policy(learner.init(k)), key)
+    return serialization.from_bytes(template, path.read_bytes())
+
+
+
+POLICY_CHOICES = ("best", "last")
+"""Which policy of a run ``load_policy`` returns (``d2spo eval --policy``)."""
+
+
+def load_policy(run_dir: Path, which: str = "best", learner=None):
+    """(cfg, learner, policy, meta) of a finished or checkpointed run. ``which``: "best" is a
+    validated generalist's kept policy (``TrainConfig.validation_layouts``) where there is one, else
+    the last; "last" is the newest checkpoint's. ``meta["policy"]`` says which was taken.
+    ``learner``: one already built with this run's array shapes (an evaluation's, elsewhere); by
+    default one is built from config.json."""
+    if which not in POLICY_CHOICES:
+        raise ConfigError("policy", f"expected one of {', '.join(POLICY_CHOICES)}, got {which!r}")
+    cfg = load_run_config(run_dir)
+    if learner is None:
+        # a generalist's checkpoint holds no layout: a one-layout bank gives the same shapes, fast
+        _, _, learner = build(dataclasses.replace(cfg, generalist_layouts=1, generalist_tasks=0) if cfg.generalist else cfg)
+    template = jax.eval_shape(learner.init, jax.random.PRNGKey(0))  # shapes only: no pre-training
+    carry, meta = load_checkpoint(run_dir, template, run_fingerprint(run_dir))
+    meta = dict(meta)
+    best = meta.get("best")
+    if which == "best" and best is not None and best_policy_path(run_dir).is_file():
+        meta["policy"] = f"best on validation (after {best['episodes']} episodes)"
+        return cfg, learner, load_best_policy(run_dir, learner), meta
+    meta["policy"] = f"last (after {meta.get('episodes')} episodes)"
+    return cfg, learner, learner.policy(carry), meta
