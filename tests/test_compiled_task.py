@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
+from d2spo.algos.d2spo import D2SPOConfig
 from d2spo.algos.td3 import TD3Config
 from d2spo.config import TrainConfig
 from d2spo.envs import EnvConfig, compiled_task, routes
@@ -28,7 +29,8 @@ def test_a_training_run_computes_the_tasks_distances_routes_and_fields_once(tmp_
     cfg = TrainConfig(algo="d2spo", task="relaxed", episodes=4, num_envs=2, chunk_steps=25, checkpoint_every=4,
                       eval_episodes=2, env=EnvConfig(layout="relaxed"),
                       td3=dataclasses.replace(TD3Config(), hidden=(16, 16), batch_size=16, learning_starts=16,
-                                              buffer_size=256)).check()
+                                              buffer_size=256),
+                      d2spo=D2SPOConfig(pretrain=False)).check()  # no cautious start: a smaller program to compile
     train(cfg, tmp_path / "run")
     # one distance computation, one route, one set of fields; the grid search for the robot (make_env's
     # feasibility check) and for the barrier's margin d

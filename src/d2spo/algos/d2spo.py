@@ -287,9 +287,9 @@ class D2SPOLearner(TD3Learner):
         return u
 
     # -- one vectorised step -------------------------------------------------------------
-    def _iteration(self, c: D2SPOCarry, due: bool | None = None):
-        """One vectorised step. ``due`` (a Python bool) says whether it ends with UPDATE(Ω, Θ)
-        (``chunk``); None reads the schedule from the step count."""
+    def _step(self, c: D2SPOCarry):
+        """One vectorised step without UPDATE(Ω, Θ): (carry, log, the step's key for the update). The
+        log holds the update's metrics as NaN (their shapes traced once per learner)."""
         def act(k, random_phase):
             u_rl = explore(self.nets, c.agent, c.obs, k["act"], random_phase, self.cfg.exploration_noise)
             ctx = self.filter_context(c.env_state) if self.d2.runtime_filter else None
@@ -297,7 +297,7 @@ class D2SPOLearner(TD3Learner):
 
         step = explore_and_store(c.td3, ("act", "env", "update", "data", "safety"), act, self.env, self.params,
                                  self.anneal, self.num_envs, self.cfg.learning_starts)
-        info, u_rl, action, k_safe = step.info, step.proposal, step.action, step.keys["safety"]
+        info, u_rl, action = step.info, step.proposal, step.action
         tr = sd.Transition(pose=info["pose"], next_pose=info["next_pose"], context=self.context(info),
                            obs=c.obs, action=action, u_rl=u_rl)
         data, data_stats = sd.update_datasets(c.data, step.keys["data"], tr, features_fn=self.features, cfg=self.cbf_cfg)
@@ -307,55 +307,65 @@ class D2SPOLearner(TD3Learner):
                 return safe_action(self.safety_nets, c.safety, self.x_of_obs(o), u)
         agent, metrics = learn_from_buffer(self.nets, c.agent, step.carry.buffer, step.keys["update"], step.carry.steps,
                                            self.num_envs, self.cfg, execute_fn, self.d2.proposal_weight)
+        c = D2SPOCarry(step.carry.replace(agent=agent), c.safety, data)
+        if self._safety_metrics is None:
+            self._safety_metrics = jax.eval_shape(self._safety_update, c, step.keys["safety"])[1]
+        metrics.update(jax.tree_util.tree_map(lambda t: jnp.full(t.shape, jnp.nan, t.dtype), self._safety_metrics))
+        metrics["safety/override"] = jnp.mean(jnp.linalg.norm(action - u_rl, axis=-1))
+        metrics["charts/label_radius"] = jnp.mean(step.params.label_radius)
+        return c, episode_log(step.done, info, metrics), step.keys["safety"]
 
+    def _safety_update(self, c: D2SPOCarry, k_safe: jax.Array):
+        """UPDATE(Ω, Θ) after a step, on its datasets, with its RL proposal (the updated actor plus
+        exploration noise) and its key: (safety state, metrics). Kept as it was until P_exp holds a
+        batch (metrics NaN)."""
         def u_rl_fn(o):  # the current RL proposal, with exploration noise, as π_Ω will see it
-            u = self.nets.actor.apply(agent.actor, o)
+            u = self.nets.actor.apply(c.agent.actor, o)
             noise = self.cfg.exploration_noise * jax.random.normal(jax.random.fold_in(k_safe, 1), u.shape)
             return jnp.clip(u + noise, -1.0, 1.0)
 
-        def safety_update(s):
-            return update(k_safe, s, data, nets=self.safety_nets, cfg=self.cbf_cfg, features_fn=self.features,
-                          dt=self.dt, u_rl_fn=u_rl_fn)
+        new, metrics = update(k_safe, c.safety, c.data, nets=self.safety_nets, cfg=self.cbf_cfg,
+                              features_fn=self.features, dt=self.dt, u_rl_fn=u_rl_fn)
+        enough = c.data.p_exp.size >= self.cbf_cfg.batch_size
+        safety = jax.tree_util.tree_map(lambda a, b: jnp.where(enough, a, b), new, c.safety)
+        return safety, jax.tree_util.tree_map(lambda v: jnp.where(enough, v, jnp.nan), metrics)
 
-        def skip(s):  # no update this step: the update's metrics as NaN (their shapes traced once per learner)
-            if self._safety_metrics is None:
-                self._safety_metrics = jax.eval_shape(safety_update, c.safety)[1]
-            return s, jax.tree_util.tree_map(lambda t: jnp.full(t.shape, jnp.nan, t.dtype), self._safety_metrics)
-
-        enough = data.p_exp.size >= self.cbf_cfg.batch_size
-        if due is None:  # the schedule from the step count: a branch
-            due_now = (step.carry.steps % self.d2.update_every == 0) & enough
-            safety, s_metrics = jax.lax.cond(due_now, safety_update, skip, c.safety)
-        elif due:  # the last step of a block (``chunk``): UPDATE(Ω, Θ) once there is a batch of P_exp
-            new, s_metrics = safety_update(c.safety)
-            keep = lambda a, b: jnp.where(enough, a, b)
-            safety = jax.tree_util.tree_map(keep, new, c.safety)
-            s_metrics = jax.tree_util.tree_map(lambda v: jnp.where(enough, v, jnp.nan), s_metrics)
-        else:
-            safety, s_metrics = skip(c.safety)
-        metrics.update(s_metrics)
-        metrics["safety/override"] = jnp.mean(jnp.linalg.norm(action - u_rl, axis=-1))
-        metrics["charts/label_radius"] = jnp.mean(step.params.label_radius)
-        return D2SPOCarry(step.carry.replace(agent=agent), safety, data), episode_log(step.done, info, metrics)
+    def _with_update(self, c: D2SPOCarry, log: ChunkLog, k_safe: jax.Array) -> tuple[D2SPOCarry, ChunkLog]:
+        """UPDATE(Ω, Θ) after a step; its metrics replace the NaN placeholders of the step's log (the
+        log of that one step, or of a block that it ends: the last row)."""
+        safety, s_metrics = self._safety_update(c, k_safe)
+        metrics = dict(log.metrics)
+        for k, v in s_metrics.items():
+            metrics[k] = v if metrics[k].ndim == v.ndim else metrics[k].at[-1].set(v)
+        return c.replace(safety=safety), log._replace(metrics=metrics)
 
     def chunk(self, carry: D2SPOCarry) -> tuple[D2SPOCarry, ChunkLog]:
         every = self.d2.update_every
         if self.chunk_steps % every == 0:
-            # Every chunk starts in phase: a scan over blocks of ``update_every`` steps, the last of
-            # which updates (Ω, Θ). The schedule is then in the program's structure, the same for
+            # Every chunk starts in phase: a scan over blocks of ``update_every`` steps, after the last
+            # of which UPDATE(Ω, Θ) runs. The schedule is then in the program's structure, the same for
             # every seed under jax.vmap, and no lax.cond holds the update: inside a branch the update
             # cost the chunk ~60 ms, 3x its own time, and this layout takes 20% off a chunk (bench/RESULTS.md).
+            # The step is traced once (the scan's body), not once more for the block's last step.
             def block(c, _):
-                c, head = jax.lax.scan(lambda c, _: self._iteration(c, False), c, None, length=every - 1)
-                c, last = self._iteration(c, True)
-                return c, jax.tree_util.tree_map(lambda h, t: jnp.concatenate([h, t[None]]), head, last)
+                c, (log, keys) = jax.lax.scan(lambda c, _: self._step_out(c), c, None, length=every)
+                return self._with_update(c, log, keys[-1])
 
             carry, log = jax.lax.scan(block, carry, None, length=self.chunk_steps // every)
             log = jax.tree_util.tree_map(lambda a: a.reshape((self.chunk_steps,) + a.shape[2:]), log)
-        else:
-            carry, log = jax.lax.scan(lambda c, _: self._iteration(c), carry, None, length=self.chunk_steps)
+        else:  # the schedule from the step count: a branch
+            def one(c, _):
+                c, log, k_safe = self._step(c)
+                due = c.steps % every == 0
+                return jax.lax.cond(due, lambda: self._with_update(c, log, k_safe), lambda: (c, log))
+
+            carry, log = jax.lax.scan(one, carry, None, length=self.chunk_steps)
         finite = params_finite(carry.agent) & params_finite((carry.safety.cbf, carry.safety.policy, carry.safety.nominal))
         return carry, log._replace(nonfinite=jnp.any(log.nonfinite) | ~finite)
+
+    def _step_out(self, c: D2SPOCarry):
+        c, log, k_safe = self._step(c)
+        return c, (log, k_safe)
 
     # -- evaluation ----------------------------------------------------------------------
     def policy(self, carry: D2SPOCarry):
