@@ -26,7 +26,7 @@ from d2spo.envs.env_config import EnvConfig
 from d2spo.errors import ConfigError, NaNError
 from d2spo.fields import check_choice, check_fields, field_docstring
 from d2spo.rollout import make_rollout, rates
-from d2spo.run import POLICY_CHOICES, build, load_policy, load_run_config
+from d2spo.run import POLICY_CHOICES, build, load_policy, load_run_config, preflight_checks
 from d2spo.runio import atomic_write_json
 
 DynamicsOverrides = dataclasses.make_dataclass(
@@ -210,6 +210,7 @@ def _specialist_rollouts(cfg: TrainConfig, learner, policy, ecfg: EvalConfig, ov
     size = learner.env.observation_size
     for lay in ecfg.layouts():
         env, params, other = learner_on(cfg, lay, ecfg.dynamics, overrides)
+        preflight_checks(cfg, env, params)  # as training: the time and barrier-margin warnings here
         if env.observation_size != size:
             raise ConfigError("layout", f"the policy was trained with observations of size {size}, "
                               f"layout {lay!r} gives {env.observation_size} (different number of areas or "

@@ -19,16 +19,8 @@ from rich.table import Column, Table
 from rich.text import Text
 
 from d2spo.config import TrainConfig
-from d2spo.run import load_run_config
+from d2spo.run import default_out, load_run_config
 from d2spo.train import train, train_seeds
-
-
-def default_out(cfg: TrainConfig) -> Path:
-    task = cfg.task if cfg.task.replace("-", "").isalnum() else "custom"
-    layout = Path(cfg.layout).stem if cfg.layout.endswith(".json") else cfg.layout.replace(":", "")
-    if cfg.generalist:
-        layout = f"generalist{cfg.generalist_layouts}"
-    return Path("runs") / f"{cfg.algo}-{task}-{layout}-s{cfg.seed}"
 
 
 def summary_table(summary: dict, title: str):

@@ -15,12 +15,13 @@ from pathlib import Path
 import jax
 from flax import serialization
 
-from d2spo.algos import make_learner
+from d2spo.algos import has_runtime_filter, make_learner
 from d2spo.algos.generalist import build_generalist
 from d2spo.checkpoint import has_checkpoint, load_checkpoint, run_fingerprint
 from d2spo.config import TrainConfig, config_differences, config_from_dict, config_to_dict
 from d2spo.envs import layout_bank, make_env
 from d2spo.envs.generalist import GENERALIST_MAX_STEPS
+from d2spo.envs.preflight import preflight
 from d2spo.errors import ConfigError, RunDirError
 from d2spo.runio import atomic_write_bytes, atomic_write_json, read_json, remove_file, remove_tmp_files
 
@@ -61,6 +62,22 @@ def prepare_dir(out: Path, cfg: TrainConfig, resume: bool) -> None:
         remove_file(p)
     atomic_write_json(cfg_path, config_to_dict(cfg))
 
+
+
+def preflight_checks(cfg: TrainConfig, env, params) -> None:
+    """The checks before a run of ``cfg`` on (env, params), training or evaluation
+    (``envs.preflight.preflight``): the task can be done, within an episode, and, for a learner that
+    executes π_Ω (D²SPO, SL), keeping the barrier's margin ``cfg.cbf.d``."""
+    preflight(env, params, repr(cfg.task), margin=cfg.cbf.d if has_runtime_filter(cfg.algo) else 0.0)
+
+
+def default_out(cfg: TrainConfig) -> Path:
+    """Where `d2spo train` writes a run without --out: runs/ALGO-TASK-LAYOUT-sSEED."""
+    task = cfg.task if cfg.task.replace("-", "").isalnum() else "custom"
+    layout = Path(cfg.layout).stem if cfg.layout.endswith(".json") else cfg.layout.replace(":", "")
+    if cfg.generalist:
+        layout = f"generalist{cfg.generalist_layouts}"
+    return Path("runs") / f"{cfg.algo}-{task}-{layout}-s{cfg.seed}"
 
 
 def load_run_config(run_dir: Path) -> TrainConfig:

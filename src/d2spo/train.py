@@ -18,21 +18,13 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 
-from d2spo.algos import has_runtime_filter
 from d2spo.checkpoint import Checkpoints, fingerprint, has_checkpoint, run_fingerprint
 from d2spo.config import TrainConfig, config_to_dict
-from d2spo.envs.preflight import preflight
 from d2spo.errors import ConfigError, RunDirWarning
 from d2spo.record import ProgressFn, RunRecord, Validation
 from d2spo.rollout import acting_on
-from d2spo.run import build, group_dir, prepare_dir
+from d2spo.run import build, group_dir, preflight_checks, prepare_dir
 from d2spo.runio import RunLock, read_json, remove_tmp_files
-
-
-def preflight_of(cfg: TrainConfig, env, params) -> None:
-    """The checks before training (``envs.preflight.preflight``): the task can be done, within an
-    episode, and, for a learner that executes π_Ω (D²SPO, SL), keeping the barrier's margin ``cfg.cbf.d``."""
-    preflight(env, params, repr(cfg.task), margin=cfg.cbf.d if has_runtime_filter(cfg.algo) else 0.0)
 
 
 def train(
@@ -48,7 +40,7 @@ def train(
     t_enter = time.perf_counter()
     out = Path(out)
     built = build(cfg)  # a config that cannot be built is refused before anything is written
-    preflight_of(cfg, *built[:2])
+    preflight_checks(cfg, *built[:2])
     if resume and cfg.eval_untrained and has_checkpoint(out):
         raise ConfigError("eval_untrained", "the initial policy of a resumed run is gone; "
                           "evaluate it in a run that starts from its first episode")
@@ -180,7 +172,7 @@ def train_seeds(
     t_enter = time.perf_counter()
     outs = [Path(o) for o in outs]
     built = build(cfgs[0])
-    preflight_of(cfgs[0], *built[:2])
+    preflight_checks(cfgs[0], *built[:2])
     with contextlib.ExitStack() as locks:
         for out in outs:
             locks.enter_context(RunLock(out))
