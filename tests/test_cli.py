@@ -33,6 +33,8 @@ def test_tyro_box_condenses_to_one_line():
         ["no-such-command"],
         ["env", "show", "--rollout-steps", "many"],
         ["ltl"],
+        ["train", "--task", "true", "--episodes", "1"],  # done before the first step: nothing to learn
+        ["env", "check", "--task", "A1 | !A1"],
     ],
 )
 def test_usage_errors_exit_2_with_one_line(args):
@@ -125,3 +127,29 @@ def test_train_lists_and_takes_the_flags_of_the_learner_algo_names():
     assert cli.parse(["train", "--algo", "cpo", "--cpo.rollout-steps", "512"]).config().cpo.rollout_steps == 512
     res = run_cli("train", "--algo", "td3", "--cpo.rollout-steps", "512")
     assert res.returncode == 2 and "--cpo.rollout-steps" in res.stderr and "Traceback" not in res.stderr
+
+
+@pytest.mark.parametrize("what", ["deep", "long-number"])
+def test_unreadable_json_is_one_line_exit_2(what, tmp_path, capsys):
+    """A layout, a --dynamics file or a run's config.json nested 100 000 deep, or holding a number of
+    5000 digits, is one line and exit 2, not a RecursionError or ValueError traceback."""
+    text = "[" * 100_000 + "]" * 100_000 if what == "deep" else '{"arena": [' + "9" * 5000 + ', 5]}'
+    bad = tmp_path / "bad.json"
+    bad.write_text(text)
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "config.json").write_text(text)
+    for args in (["env", "check", "--layout", str(bad)], ["train", "--dynamics", str(bad), "--out", str(tmp_path / "o")],
+                 ["eval", str(tmp_path / "run")]):
+        assert cli.main(args) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("d2spo: error:") and "JSON" in err[0], (args, err)
+
+
+@pytest.mark.parametrize("args", [["env", "show", "--out", "{d}/x.txt"], ["ltl", "phi1", "--layout", "paper", "--plot", "{d}/y.docx"],
+                                  ["eval", "{d}", "--plot", "{d}/z.doc"], ["env", "show", "--out", "{d}/no/x.png"]])
+def test_a_picture_path_matplotlib_cannot_write_is_one_line_exit_2(args, tmp_path, capsys):
+    """Checked before any work: a suffix that is no picture format, or a folder that does not exist."""
+    assert cli.main([a.format(d=tmp_path) for a in args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("d2spo: error:") and ("picture format" in err[0] or "folder" in err[0])
+    assert not list(tmp_path.glob("*.*"))  # nothing written

@@ -43,7 +43,7 @@ from d2spo.errors import ConfigError, D2SPOWarning, LTLSyntaxError, NaNError, Us
 from d2spo.evaluate import EvalConfig, evaluate_run, write_evaluation
 from d2spo.fields import check_fields
 from d2spo.ltl import task_formula, translate
-from d2spo.plots import evaluation_figure, state_fields_figure
+from d2spo.plots import check_picture_path, evaluation_figure, state_fields_figure
 from d2spo.progress import train_with_progress
 from d2spo.repair import RepairConfig, repair_run
 from d2spo.report import build_report
@@ -77,6 +77,8 @@ class LtlCmd:
             raise UserError("--layout and --all-letters are exclusive; choose one")
         if self.plot is not None and self.layout is None:
             raise UserError("--plot needs --layout")
+        if self.plot is not None:
+            check_picture_path(self.plot, "plot")
         aut = translate(task_formula(self.formula))
         if self.all_letters:
             feasible, letters = None, "every letter (all areas may hold at once)"
@@ -118,6 +120,7 @@ class EnvShowCmd:
     """Seed for the rollout."""
 
     def run(self) -> int:
+        check_picture_path(self.out, "out")
         lay = layouts.load(self.layout)
         trajs, title = None, None
         if self.rollout_steps > 0:
@@ -192,8 +195,7 @@ class EvalCmd:
         keep = 0
         if self.plot is not None:  # checked before the rollouts, which may take minutes
             check_fields(self, count=("plot_episodes",))
-            if not self.plot.parent.is_dir():
-                raise ConfigError("plot", f"{self.plot}: the folder {self.plot.parent} does not exist")
+            check_picture_path(self.plot, "plot")
             keep = self.plot_episodes
         res = evaluate_run(self.run_dir, self.cfg, keep_paths=keep)
         paths = res.pop("paths", None)

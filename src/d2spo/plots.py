@@ -30,6 +30,7 @@ from matplotlib.patches import Circle, Rectangle
 
 from d2spo.envs import geometry
 from d2spo.envs.render import OBSTACLE_COLOR, START_COLOR, add_legend, draw_layout, draw_trajectory
+from d2spo.errors import ConfigError
 from d2spo.rollout import make_rollout
 from d2spo.run import load_policy, load_snapshot
 from d2spo.runio import read_episodes
@@ -38,6 +39,18 @@ OUTCOME_COLORS = {"completed": "tab:purple", "collided": "tab:red", "neither": "
 """Trajectory colours: the task completed (true labelling), a collision, or the episode ran out."""
 OUTCOME_NAMES = {"completed": "task completed", "collided": "collision", "neither": "out of time"}
 """How the legends name each outcome of ``OUTCOME_COLORS``."""
+
+
+def check_picture_path(path: Path, field: str) -> None:
+    """ConfigError unless matplotlib can write a picture to ``path`` (flag ``field``): a format it
+    knows by the suffix, in a folder that exists. Checked before the work that draws it."""
+    path = Path(path)
+    formats = FigureCanvasAgg(Figure()).get_supported_filetypes()
+    if path.suffix[1:].lower() not in formats:
+        raise ConfigError(field, f"{path}: not a picture format; end the name in one of "
+                          f"{', '.join('.' + f for f in sorted(formats))}")
+    if not path.parent.is_dir():
+        raise ConfigError(field, f"{path}: the folder {path.parent} does not exist")
 
 
 def policy_trajectories(learner, policy, env, params, episodes: int, seed: int, rollout=None):

@@ -153,6 +153,7 @@ class RunRecord:
             self.validate(learner.policy(carry))
         if force or n_done >= self.next_ckpt or self.done:
             self.writer.sync()
+            self.tb.flush()  # what TensorBoard shows survives a kill as far as the checkpoint does
             self.checkpoints.save(carry, self.meta)
             every = self.cfg.checkpoint_every
             self.next_ckpt = (n_done // every + 1) * every

@@ -101,8 +101,11 @@ def read_json(path: Path, what: str) -> dict:
         return json.loads(path.read_bytes())
     except json.JSONDecodeError as e:
         raise RunDirError(f"{path}: not valid JSON ({e.msg} at line {e.lineno})") from None
-    except ValueError:  # not UTF-8
-        raise RunDirError(f"{path}: not valid JSON (not UTF-8 text)") from None
+    except RecursionError:
+        raise RunDirError(f"{path}: not valid JSON (nested too deeply)") from None
+    except ValueError as e:  # not UTF-8, or a number too long to read
+        why = "not UTF-8 text" if isinstance(e, UnicodeDecodeError) else str(e).split(";")[0]
+        raise RunDirError(f"{path}: not valid JSON ({why})") from None
 
 
 def make_run_dir(path: Path) -> None:

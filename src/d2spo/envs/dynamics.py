@@ -118,6 +118,9 @@ def load_dynamics(path: str | Path) -> dict[str, float]:
         data = json.loads(text)
     except json.JSONDecodeError as e:
         raise ConfigError("dynamics", f"{path}: malformed JSON: {e.msg} (line {e.lineno}, column {e.colno})") from None
+    except (RecursionError, ValueError) as e:  # nested too deeply; a number too long to read
+        why = "nested too deeply" if isinstance(e, RecursionError) else str(e).split(";")[0]
+        raise ConfigError("dynamics", f"{path}: unreadable JSON ({why})") from None
     if not isinstance(data, dict):
         raise ConfigError("dynamics", f"{path}: expected a JSON object, got {type(data).__name__}")
     unknown = sorted(set(data) - set(DYNAMICS_FIELDS) - {"name", "description"})

@@ -151,6 +151,10 @@ def _circle_intersections(c1, r1, c2, r2) -> list[np.ndarray]:
 # ----------------------------------------------------------------------------------- loading
 
 
+def _why(e: Exception) -> str:
+    return "nested too deeply" if isinstance(e, RecursionError) else str(e).split(";")[0]
+
+
 def load(name_or_path: str) -> Layout:
     """A validated layout by built-in name, ``random[:SEED]`` (``generator.generate``), ``random5[:SEED]``
     (``generator.random_layout``), or JSON file path."""
@@ -182,6 +186,8 @@ def load(name_or_path: str) -> Layout:
         except json.JSONDecodeError as e:
             where = f"line {e.lineno}, column {e.colno}"
             raise ConfigError("layout", f"{path}: malformed JSON: {e.msg} ({where})") from None
+        except (RecursionError, ValueError) as e:  # nested too deeply; a number too long to read
+            raise ConfigError("layout", f"{path}: unreadable JSON ({_why(e)})") from None
         return from_json(data, default_name=path.stem)
     raise ConfigError("layout", f"unknown layout {name_or_path!r}; use one of {list(BUILTIN)}, "
                       "'random[:SEED]', 'random5[:SEED]' or a path to a .json file")

@@ -25,9 +25,13 @@ ROOM = 2.0
 
 
 def check_letters(task: CompiledTask, what: str) -> None:
-    """ConfigError unless a sequence of the letters the layout can produce completes the task
-    (``what`` names the task in the message): what ``make_env`` checks for every task."""
+    """ConfigError unless a sequence of the letters the layout can produce completes the task, and
+    unless the task needs one (``true``, ``A1 | !A1``: done before the first step); ``what`` names the
+    task in the message. What ``make_env`` checks for every task."""
     arrays = task.arrays
+    if bool(arrays.accepting[int(arrays.initial)]):
+        raise ConfigError("task", f"{what} holds before the robot moves (its automaton starts accepting): there is "
+                          "nothing to learn; give a task the robot must act for, e.g. 'F A1'")
     if int(arrays.distance[int(arrays.initial)]) >= UNREACHABLE:
         layout = task.layout
         missing = sorted(set(task.automaton.aps) - set(layout.area_names))
