@@ -153,3 +153,13 @@ def test_a_picture_path_matplotlib_cannot_write_is_one_line_exit_2(args, tmp_pat
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("d2spo: error:") and ("picture format" in err[0] or "folder" in err[0])
     assert not list(tmp_path.glob("*.*"))  # nothing written
+
+
+@pytest.mark.parametrize("extra,named", [(["--episodes", "100"], "--episodes"), (["--out", "OTHER"], "--out"),
+                                         (["--td3.batch-size", "64"], "--td3.batch-size")])
+def test_resume_refuses_the_flags_its_config_json_would_override(extra, named, tmp_path, capsys):
+    """`--resume DIR` continues with DIR/config.json: a training flag beside it would be ignored, so it
+    is refused (one line, exit 2) instead of silently dropped."""
+    assert cli.main(["train", "--resume", str(tmp_path), "--no-progress", *extra]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("d2spo: error: resume:") and named in err[0], err

@@ -22,7 +22,7 @@ from rich.console import Console
 
 from d2spo import compile_cache
 from d2spo.certify import CertifyConfig, certify_run, load_cbf_run, write_outputs
-from d2spo.config import TrainConfig, algo_named, flags_for, plain
+from d2spo.config import TrainConfig, algo_named, config_differences, flags_for, plain
 from d2spo.console import (
     error,
     print_certify,
@@ -165,10 +165,12 @@ class TrainCmd:
     def config(self) -> TrainConfig:
         """The run's config: the flags, with the --dynamics file filling the dynamics fields they leave unset."""
         cfg = plain(self.cfg)
+        if self.resume is not None:  # the run's own config.json wins: a flag beside it would be ignored
+            given = [f for f, v in (("--out", self.out), ("--dynamics", self.dynamics)) if v is not None]
+            if given := given + ["--" + d.split(":")[0].replace("_", "-") for d in config_differences(TrainConfig(), cfg)]:
+                raise ConfigError("resume", f"continues the run with its own config.json; leave out {', '.join(given)}")
         if self.dynamics is None:
             return cfg
-        if self.resume is not None:
-            raise ConfigError("dynamics", "--resume continues the run with its own config.json; leave out --dynamics")
         values = load_dynamics(self.dynamics)
         env = dataclasses.replace(cfg.env, **{k: v for k, v in values.items() if getattr(cfg.env, k) is None})
         return dataclasses.replace(cfg, env=env)
