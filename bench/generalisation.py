@@ -104,7 +104,7 @@ def store(cache: Path, task: str, key: tuple, entry: dict) -> None:
 def evaluate_cases(run: Path, tasks: list[str], names: list[str], episodes: int, keep_paths: int,
                    cache: Path) -> tuple[dict, str]:
     """({task: {"filter": {...}, "alone": {...}, "refused": {layout: reason}}}, which policy) of the
-    generalist (its validated best where it has one: ``evaluate.load_policy``). Each task's results
+    generalist (its validated best where it has one: ``run.load_policy``). Each task's results
     go to ``cache`` as soon as they are measured (``cached``)."""
     import dataclasses
 
