@@ -210,7 +210,8 @@ def _specialist_rollouts(cfg: TrainConfig, learner, policy, ecfg: EvalConfig, ov
     size = learner.env.observation_size
     for lay in ecfg.layouts():
         env, params, other = learner_on(cfg, lay, ecfg.dynamics, overrides)
-        preflight_checks(cfg, env, params)  # as training: the time and barrier-margin warnings here
+        if lay is not None or ecfg.dynamics is not None or overrides:  # training checked its own layout
+            preflight_checks(cfg, env, params)  # as training: the time and barrier-margin warnings here
         if env.observation_size != size:
             raise ConfigError("layout", f"the policy was trained with observations of size {size}, "
                               f"layout {lay!r} gives {env.observation_size} (different number of areas or "
