@@ -52,3 +52,11 @@ class TaskWarning(D2SPOWarning):
 class RunDirWarning(D2SPOWarning):
     """Something in a run directory was repaired or skipped (e.g. a damaged checkpoint replaced by
     the previous one). The CLI shows it as one line on stderr."""
+
+
+def json_trouble(e: Exception) -> str:
+    """Why ``json.loads`` gave up on a text, in a few words: nested too deeply (RecursionError), not
+    UTF-8 text, or its own message (a number too long to read)."""
+    if isinstance(e, RecursionError):
+        return "nested too deeply"
+    return "not UTF-8 text" if isinstance(e, UnicodeDecodeError) else str(e).split(";")[0]

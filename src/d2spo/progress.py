@@ -45,7 +45,6 @@ def summary_table(summary: dict, title: str):
 
 
 def train_with_progress(cfg: TrainConfig, out: Path | None, resume: Path | None, show: bool) -> int:
-
     console = Console(stderr=True)
     if resume is not None:
         cfg = load_run_config(resume)

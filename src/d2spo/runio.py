@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from d2spo.errors import RunDirError, RunInUseError
+from d2spo.errors import RunDirError, RunInUseError, json_trouble
 
 try:
     import fcntl
@@ -101,11 +101,8 @@ def read_json(path: Path, what: str) -> dict:
         return json.loads(path.read_bytes())
     except json.JSONDecodeError as e:
         raise RunDirError(f"{path}: not valid JSON ({e.msg} at line {e.lineno})") from None
-    except RecursionError:
-        raise RunDirError(f"{path}: not valid JSON (nested too deeply)") from None
-    except ValueError as e:  # not UTF-8, or a number too long to read
-        why = "not UTF-8 text" if isinstance(e, UnicodeDecodeError) else str(e).split(";")[0]
-        raise RunDirError(f"{path}: not valid JSON ({why})") from None
+    except (RecursionError, ValueError) as e:  # nested too deeply, not UTF-8, a number too long to read
+        raise RunDirError(f"{path}: not valid JSON ({json_trouble(e)})") from None
 
 
 def make_run_dir(path: Path) -> None:

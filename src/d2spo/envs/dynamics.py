@@ -29,7 +29,7 @@ from pathlib import Path
 import jax.numpy as jnp
 from flax import struct
 
-from d2spo.errors import ConfigError
+from d2spo.errors import ConfigError, json_trouble
 
 
 @dataclass(frozen=True)
@@ -119,8 +119,7 @@ def load_dynamics(path: str | Path) -> dict[str, float]:
     except json.JSONDecodeError as e:
         raise ConfigError("dynamics", f"{path}: malformed JSON: {e.msg} (line {e.lineno}, column {e.colno})") from None
     except (RecursionError, ValueError) as e:  # nested too deeply; a number too long to read
-        why = "nested too deeply" if isinstance(e, RecursionError) else str(e).split(";")[0]
-        raise ConfigError("dynamics", f"{path}: unreadable JSON ({why})") from None
+        raise ConfigError("dynamics", f"{path}: unreadable JSON ({json_trouble(e)})") from None
     if not isinstance(data, dict):
         raise ConfigError("dynamics", f"{path}: expected a JSON object, got {type(data).__name__}")
     unknown = sorted(set(data) - set(DYNAMICS_FIELDS) - {"name", "description"})

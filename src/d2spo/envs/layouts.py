@@ -21,7 +21,7 @@ import numpy as np
 
 from d2spo.envs import generator
 from d2spo.envs.workspace import Area, Layout, Obstacle, validate
-from d2spo.errors import ConfigError
+from d2spo.errors import ConfigError, json_trouble
 
 BUILTIN = ("paper", "relaxed", "open", "physical-1", "physical-2", "physical-3", "physical-4")
 """Names of the layouts shipped as JSON files in ``d2spo/envs/layouts/``."""
@@ -151,10 +151,6 @@ def _circle_intersections(c1, r1, c2, r2) -> list[np.ndarray]:
 # ----------------------------------------------------------------------------------- loading
 
 
-def _why(e: Exception) -> str:
-    return "nested too deeply" if isinstance(e, RecursionError) else str(e).split(";")[0]
-
-
 def load(name_or_path: str) -> Layout:
     """A validated layout by built-in name, ``random[:SEED]`` (``generator.generate``), ``random5[:SEED]``
     (``generator.random_layout``), or JSON file path."""
@@ -187,7 +183,7 @@ def load(name_or_path: str) -> Layout:
             where = f"line {e.lineno}, column {e.colno}"
             raise ConfigError("layout", f"{path}: malformed JSON: {e.msg} ({where})") from None
         except (RecursionError, ValueError) as e:  # nested too deeply; a number too long to read
-            raise ConfigError("layout", f"{path}: unreadable JSON ({_why(e)})") from None
+            raise ConfigError("layout", f"{path}: unreadable JSON ({json_trouble(e)})") from None
         return from_json(data, default_name=path.stem)
     raise ConfigError("layout", f"unknown layout {name_or_path!r}; use one of {list(BUILTIN)}, "
                       "'random[:SEED]', 'random5[:SEED]' or a path to a .json file")
