@@ -27,6 +27,7 @@ from d2spo.envs import EnvConfig
 from d2spo.errors import ConfigError
 from d2spo.fields import check_fields
 from d2spo.ltl.anneal import AnnealConfig
+from d2spo.memory import check_memory
 from d2spo.safety.cbf import CBFConfig
 
 PAPER_EPISODES = 20_000
@@ -151,8 +152,12 @@ class TrainConfig:
         if self.td3.hidden is None:
             object.__setattr__(self, "td3", dataclasses.replace(self.td3, hidden=table["td3.hidden"]))
 
-    def check(self) -> TrainConfig:
-        """This config (every field is checked when it is made, ``__post_init__``)."""
+    def check(self, seeds: int = 1) -> TrainConfig:
+        """This config, if this machine can hold a run of it (``seeds`` vmapped together): every field
+        is checked when it is made (``__post_init__``), the memory its arrays need here, from the
+        config alone (``d2spo.memory``), before anything is built. A config.json that is read back
+        (to evaluate a run) is not held to this machine's memory."""
+        check_memory(self, seeds)
         return self
 
 

@@ -23,10 +23,12 @@ from d2spo.algos import has_runtime_filter
 from d2spo.config import TrainConfig
 from d2spo.envs import dynamics as dyn
 from d2spo.envs.env_config import EnvConfig
+from d2spo.envs.layouts import layout_file, random_seed
 from d2spo.errors import ConfigError, NaNError
 from d2spo.fields import check_choice, check_fields, field_docstring
+from d2spo.inputs import sha256_of
 from d2spo.rollout import make_rollout, rates
-from d2spo.run import POLICY_CHOICES, build, load_policy, load_run_config, preflight_checks
+from d2spo.run import POLICY_CHOICES, build, check_layout_unchanged, load_policy, load_run_config, preflight_checks
 from d2spo.runio import atomic_write_json
 
 DynamicsOverrides = dataclasses.make_dataclass(
@@ -173,6 +175,8 @@ def evaluate_run(run_dir: Path, ecfg: EvalConfig = EvalConfig(), keep_paths: int
                    if v is not None}
     if cbf_changes:
         cfg = dataclasses.replace(cfg, cbf=dataclasses.replace(cfg.cbf, **cbf_changes))
+    if ecfg.layout is None:  # the training layout: as it was when the run started
+        check_layout_unchanged(run_dir, cfg, f"to evaluate on it as it is now, pass --layout {cfg.layout}")
     layouts = ecfg.layouts()
     env_cfg = eval_env_config(cfg, ecfg.layout, ecfg.dynamics, overrides)
     if cfg.generalist:
@@ -184,6 +188,7 @@ def evaluate_run(run_dir: Path, ecfg: EvalConfig = EvalConfig(), keep_paths: int
     out = {
         "run": str(run_dir), "policy": which, "episodes": ecfg.episodes * len(layouts),
         "layout": ecfg.layout or cfg.layout, "layouts": [lay or cfg.layout for lay in layouts],
+        "layout_sha256": layout_sha256(ecfg.layout or cfg.layout),
         "dynamics": dynamics_label(ecfg.dynamics, overrides, cfg.env.preset),
         "dynamics_values": {k: getattr(env_cfg.resolved(), k) for k in dyn.DYNAMICS_FIELDS}, "seed": ecfg.seed,
         "task": ecfg.task or cfg.task, "task_given": ecfg.task is not None and ecfg.task != cfg.task,
@@ -241,10 +246,28 @@ def _generalist_rollouts(run_dir: Path, cfg: TrainConfig, ecfg: EvalConfig, env_
     return results, limit, meta["policy"]
 
 
+def layout_sha256(layout: str) -> str | None:
+    """SHA-256 of the layout file ``layout`` names; None for a built-in or procedural layout."""
+    file = layout_file(layout)
+    return None if file is None else sha256_of(file, lambda message: ConfigError("layout", message))
+
+
+def layout_tag(layout: str, sha256: str | None = None) -> str:
+    """The layout's part of an evaluation's file name, another for every other layout: a built-in
+    name as it is, ``random:S`` as ``randomS``, ``random5:S`` as ``random5-S``, a file as its stem
+    and the first 12 hex digits of its content's SHA-256 (``sha256``), e.g. ``lab-3f9a0c2b71de``."""
+    seeded = random_seed(layout)
+    if seeded is not None:
+        kind, seed = seeded
+        return f"random{seed}" if kind == "random" else f"{kind}-{seed}"
+    return f"{Path(layout).stem}-{sha256[:12]}" if sha256 else Path(layout).stem.replace(":", "")
+
+
 def evaluation_path(run_dir: Path, res: dict) -> Path:
-    """Where ``write_evaluation`` puts ``res``: RUN_DIR/eval-LAYOUT[xN]-DYNAMICS[-filter-aA-iN].json."""
+    """Where ``write_evaluation`` puts ``res``: RUN_DIR/eval-LAYOUT[xN]-DYNAMICS[-filter-aA-iN].json,
+    LAYOUT as ``layout_tag`` writes it."""
     n = len(res["per_layout"])  # random:0 over 3 layouts is another evaluation than random:0 alone
-    tag = f"{Path(res['layout']).stem.replace(':', '')}{f'x{n}' if n > 1 else ''}-{res['dynamics']}"
+    tag = f"{layout_tag(res['layout'], res.get('layout_sha256'))}{f'x{n}' if n > 1 else ''}-{res['dynamics']}"
     if res.get("task_given"):
         tag += f"-{zero_shot.task_tag(res['task'])}"
     if str(res.get("policy", "")).startswith("best"):  # a validated generalist's kept policy

@@ -10,7 +10,8 @@ from pathlib import Path
 
 import jax
 
-from d2spo.errors import RunDirError
+from d2spo.errors import RunDirError, json_trouble
+from d2spo.inputs import read_regular
 
 SECTIONS = (
     ("table2", "md", "Table II: ϕ1"),
@@ -63,13 +64,52 @@ def _stale(how: dict) -> str:
     return f"; {n} of them trained with other settings than the defaults of the day (`--allow-stale`)" if n else ""
 
 
+_META_TYPES = {"targets": list, "seeds": int, "episodes": int, "runs": list, "finished": int, "train": bool,
+               "backend": str, "methods": list, "stale": dict, "rendered": dict}
+"""The fields of reproduce.json the report reads, with their types; the first four are in every
+version's file."""
+
+
+def read_meta(path: Path) -> dict:
+    """reproduce.json, as `d2spo reproduce` wrote it; a damaged one (cut short, not UTF-8, not an
+    object with the fields of ``_META_TYPES``) is a RunDirError in one line."""
+    def damaged(why: str) -> RunDirError:
+        return RunDirError(f"{path}: damaged ({why}); `d2spo reproduce ... --no-train --out {path.parent}` "
+                           "writes it again")
+
+    try:
+        meta = json.loads(read_regular(path, RunDirError))
+    except json.JSONDecodeError as e:
+        raise damaged(f"not valid JSON: {e.msg} (line {e.lineno})") from None
+    except (RecursionError, ValueError) as e:  # not UTF-8, nested too deeply, a number too long to read
+        raise damaged(json_trouble(e)) from None
+    if not isinstance(meta, dict):
+        raise damaged(f"a JSON {_JSON_NAMES.get(type(meta), 'value')}, not an object")
+    for i, (key, kind) in enumerate(_META_TYPES.items()):
+        if key not in meta and i < 4:
+            raise damaged(f"no {key!r}")
+        if key in meta and (not isinstance(meta[key], kind) or (kind is int and isinstance(meta[key], bool))):
+            raise damaged(f"{key!r} is not a JSON {_JSON_NAMES[kind]}")
+    if not all(isinstance(t, str) for t in meta["targets"]):
+        raise damaged("'targets' holds something else than names")
+    for name, how in meta.get("rendered", {}).items():
+        methods = how.get("methods") or [] if isinstance(how, dict) else None
+        if not isinstance(methods, list) or not all(isinstance(m, str) for m in methods):
+            raise damaged(f"'rendered.{name}' is not an object with a list of methods")
+    return meta
+
+
+_JSON_NAMES = {list: "list", int: "integer", float: "number", bool: "boolean", str: "string", dict: "object",
+               type(None): "null"}
+
+
 def build_report(out: Path) -> Path:
     """Write OUT/report.md from what is in OUT; raises RunDirError if nothing is there."""
     out = Path(out)
     if not out.is_dir():
         raise RunDirError(f"{out}: no such directory; run `d2spo reproduce ... --out {out}` first")
     meta_path = out / "reproduce.json"
-    meta = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
+    meta = read_meta(meta_path) if meta_path.exists() else {}
     parts = ["# d2spo: reproduction report", ""]
     if meta:
         parts += [f"Last command: `d2spo reproduce {' '.join(meta.get('targets', []))} --seeds {meta.get('seeds')} "
@@ -83,7 +123,11 @@ def build_report(out: Path) -> Path:
             continue
         found += 1
         if kind == "md":
-            parts += [path.read_text().rstrip(), ""]
+            try:
+                parts += [read_regular(path, RunDirError).decode("utf-8").rstrip(), ""]
+            except UnicodeDecodeError:
+                raise RunDirError(f"{path}: not UTF-8 text; `d2spo reproduce {name} --no-train --out {out}` "
+                                  "writes it again") from None
         else:
             parts += [f"### {title}", "", f"![{name}]({path.name})", ""]
         how = meta.get("rendered", {}).get(name)

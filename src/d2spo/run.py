@@ -19,10 +19,11 @@ from d2spo.algos import has_runtime_filter, make_learner
 from d2spo.algos.generalist import build_generalist
 from d2spo.checkpoint import has_checkpoint, load_checkpoint, run_fingerprint
 from d2spo.config import TrainConfig, config_differences, config_from_dict, config_to_dict
-from d2spo.envs import layout_bank, make_env
+from d2spo.envs import layout_bank, layouts, make_env
 from d2spo.envs.generalist import GENERALIST_MAX_STEPS
 from d2spo.envs.preflight import preflight
 from d2spo.errors import ConfigError, RunDirError
+from d2spo.inputs import sha256_of
 from d2spo.runio import atomic_write_bytes, atomic_write_json, read_json, remove_file, remove_tmp_files
 
 
@@ -55,13 +56,54 @@ def prepare_dir(out: Path, cfg: TrainConfig, resume: bool) -> None:
             diffs = config_differences(theirs, cfg) or ["settings this learner does not read"]
             raise RunDirError(f"{out}: resuming takes the run's own config.json, and this config differs "
                               f"({'; '.join(diffs)})")
+        check_layout_unchanged(out, cfg, RESUME_REMEDY)
         return
     if (out / "summary.json").exists() or has_checkpoint(out):
         raise RunDirError(f"{out}: already holds a run; use --resume {out} or another --out")
     for p in out.glob("policy-*.msgpack"):
         remove_file(p)
     atomic_write_json(cfg_path, config_to_dict(cfg))
+    record_inputs(out, cfg)
 
+
+INPUTS = "inputs.json"
+"""The SHA-256 of the layout file a run trains on, recorded as it starts (``record_inputs``):
+config.json holds the file's path only. (A ``--dynamics`` file needs none: config.json holds its values.)"""
+RESUME_REMEDY = "resuming would train on another layout: restore the file, or start a new run with another --out"
+
+
+def _layout_error(message: str) -> ConfigError:
+    return ConfigError("layout", message)
+
+
+def record_inputs(out: Path, cfg: TrainConfig) -> None:
+    """Write ``INPUTS`` for a new run of ``cfg`` on a layout file; none for a built-in or random layout."""
+    path = Path(out) / INPUTS
+    file = None if cfg.generalist else layouts.layout_file(cfg.layout)
+    if file is None:
+        remove_file(path)  # left by an earlier start of this directory on a layout file
+        return
+    atomic_write_json(path, {"layout": {"file": cfg.layout, "sha256": sha256_of(file, _layout_error)}})
+
+
+def check_layout_unchanged(run_dir: Path, cfg: TrainConfig, remedy: str) -> None:
+    """RunDirError, ending in ``remedy``, when the layout file ``cfg`` names no longer holds what
+    the run ``run_dir`` started with (``INPUTS``). A run without ``INPUTS`` (a built-in or random
+    layout, or written before d2spo recorded it) is not checked."""
+    path = Path(run_dir) / INPUTS
+    file = None if cfg.generalist else layouts.layout_file(cfg.layout)
+    if file is None or not path.exists():
+        return
+    data = read_json(path, "the hash of the run's layout file")
+    entry = data.get("layout") if isinstance(data, dict) else None
+    if not isinstance(entry, dict) or not isinstance(entry.get("sha256"), str):
+        raise RunDirError(f"{path}: damaged (no layout.sha256); restore it, or delete it to skip this check")
+    if entry.get("file") != cfg.layout:  # config.json was edited: its checkpoint fingerprint says so
+        return
+    now = sha256_of(file, _layout_error)
+    if now != entry["sha256"]:
+        raise RunDirError(f"{run_dir}: its layout file {cfg.layout} changed since the run started (SHA-256 "
+                          f"{now[:12]}…, recorded {entry['sha256'][:12]}… in {INPUTS}); {remedy}")
 
 
 def preflight_checks(cfg: TrainConfig, env, params) -> None:

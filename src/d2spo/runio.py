@@ -17,11 +17,13 @@ training next takes the directory.
 from __future__ import annotations
 
 import csv
+import errno
 import io
 import json
 import os
 import secrets
 import socket
+import stat
 import time
 from contextlib import suppress
 from pathlib import Path
@@ -30,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from d2spo.errors import RunDirError, RunInUseError, json_trouble
+from d2spo.inputs import read_regular
 
 try:
     import fcntl
@@ -95,10 +98,11 @@ def remove_tmp_files(directory: Path) -> None:
 
 def read_json(path: Path, what: str) -> dict:
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise RunDirError(f"{path.parent}: no {path.name} ({what}); is this a d2spo run directory?")
+    data = read_regular(path, RunDirError)  # not /dev/zero, a FIFO or a directory in its place
     try:
-        return json.loads(path.read_bytes())
+        return json.loads(data)
     except json.JSONDecodeError as e:
         raise RunDirError(f"{path}: not valid JSON ({e.msg} at line {e.lineno})") from None
     except (RecursionError, ValueError) as e:  # nested too deeply, not UTF-8, a number too long to read
@@ -131,7 +135,7 @@ class RunLock:
         if fcntl is None:  # pragma: no cover
             return self
         for _ in range(5):
-            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+            fd = _open_lock(self.path, os.O_RDWR | os.O_CREAT)
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
@@ -159,6 +163,28 @@ class RunLock:
             self._fd = None
 
 
+_NO_FOLLOW = getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0)
+
+
+def _open_lock(path: Path, flags: int) -> int:
+    """A descriptor of the lock file ``path``, which must be a plain file: a symbolic link planted
+    there is not followed (its target, perhaps outside the directory, would be truncated and
+    written), nor is a FIFO, device or directory opened as one (RunDirError)."""
+    try:
+        fd = os.open(path, flags | _NO_FOLLOW, 0o666)
+    except OSError as e:
+        if e.errno not in (errno.ELOOP, errno.EISDIR, errno.ENXIO, errno.EWOULDBLOCK):
+            raise _named(e, path) from None
+        fd = None
+    if fd is None or not stat.S_ISREG(os.fstat(fd).st_mode):
+        if fd is not None:
+            os.close(fd)
+        what = "a symbolic link" if path.is_symlink() else "not a plain file"
+        raise RunDirError(f"{path}: {what}; a run's lock is a plain file d2spo creates: remove it, or use another "
+                          "directory")
+    return fd
+
+
 def _holder_line(fd: int) -> str:
     """The line a ``RunLock`` holder wrote into its lock file."""
     return os.read(fd, 200).decode(errors="replace").strip() or "unknown holder"
@@ -172,7 +198,7 @@ def run_holder(run_dir: Path) -> str | None:
     if fcntl is None:  # pragma: no cover (no flock)
         return None
     try:
-        fd = os.open(path, os.O_RDONLY)
+        fd = _open_lock(path, os.O_RDONLY)
     except FileNotFoundError:  # never locked, or removed by its holder as it finished
         return None
     try:

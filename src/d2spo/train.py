@@ -23,7 +23,7 @@ from d2spo.config import TrainConfig, config_to_dict
 from d2spo.errors import ConfigError, RunDirWarning
 from d2spo.record import ProgressFn, RunRecord, Validation
 from d2spo.rollout import acting_on
-from d2spo.run import build, group_dir, preflight_checks, prepare_dir
+from d2spo.run import RESUME_REMEDY, build, check_layout_unchanged, group_dir, preflight_checks, prepare_dir
 from d2spo.runio import RunLock, read_json, remove_tmp_files
 
 
@@ -39,6 +39,9 @@ def train(
     """
     t_enter = time.perf_counter()
     out = Path(out)
+    cfg.check()  # the memory it needs (config.TrainConfig.check), before anything is built
+    if resume:  # before the build reads the layout file
+        check_layout_unchanged(out, cfg, RESUME_REMEDY)
     built = build(cfg)  # a config that cannot be built is refused before anything is written
     preflight_checks(cfg, *built[:2])
     if resume and cfg.eval_untrained and has_checkpoint(out):
@@ -171,6 +174,7 @@ def train_seeds(
             raise ConfigError("seed", "train_seeds: the configs may differ only in their seed")
     t_enter = time.perf_counter()
     outs = [Path(o) for o in outs]
+    cfgs[0].check(seeds=len(cfgs))
     built = build(cfgs[0])
     preflight_checks(cfgs[0], *built[:2])
     with contextlib.ExitStack() as locks:

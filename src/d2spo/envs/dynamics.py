@@ -30,6 +30,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from d2spo.errors import ConfigError, json_trouble
+from d2spo.inputs import read_regular
 
 
 @dataclass(frozen=True)
@@ -109,9 +110,7 @@ def load_dynamics(path: str | Path) -> dict[str, float]:
     out-of-range value) raises ConfigError naming ``dynamics`` or ``dynamics.FIELD``."""
     path = Path(path)
     try:
-        text = path.read_bytes().decode("utf-8")
-    except OSError as e:
-        raise ConfigError("dynamics", f"cannot read {path}: {e.strerror}") from None
+        text = read_regular(path, lambda message: ConfigError("dynamics", message)).decode("utf-8")
     except UnicodeDecodeError as e:
         raise ConfigError("dynamics", f"{path}: not UTF-8 text (byte {e.start})") from None
     try:

@@ -27,6 +27,7 @@ The vector env resets a finished sub-environment on the next call to ``step`` by
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import sys
 from functools import lru_cache, partial
@@ -133,6 +134,24 @@ def _frame_renderer(env: Env) -> FrameRenderer:
     return FrameRenderer(env.layout, env.config.robot_radius, env.config.sensing_radius)
 
 
+def _refuse_forked_workers() -> None:
+    """ConfigError when the env is being made by a ``gymnasium.vector.AsyncVectorEnv``
+    (``make_vec(..., vectorization_mode="async")``) that will start its workers with ``fork``: a
+    forked copy of a process in which JAX runs waits forever on JAX's threads, which fork does not
+    copy. ``spawn`` and ``forkserver`` workers start a fresh interpreter, and work."""
+    frame = sys._getframe(1)
+    while frame is not None:  # AsyncVectorEnv makes a first env itself, before it starts its workers
+        owner = frame.f_locals.get("self")
+        if isinstance(owner, gymnasium.vector.AsyncVectorEnv):
+            if multiprocessing.get_context(getattr(owner, "context", None)).get_start_method() == "fork":
+                raise ConfigError("vectorization_mode", "'async' starts its workers with fork here, and a forked "
+                                  "copy of a process running JAX hangs; pass vector_kwargs={'context': 'spawn'} "
+                                  "(in a script guarded by if __name__ == '__main__'), or leave vectorization_mode "
+                                  "out for one batched env, which is faster")
+            return
+        frame = frame.f_back
+
+
 class NavEnv(gymnasium.Env):
     """One navigation environment with Gymnasium's single-env contract: after ``terminated`` or
     ``truncated``, ``step`` has returned the episode's last observation and the caller resets."""
@@ -141,6 +160,7 @@ class NavEnv(gymnasium.Env):
 
     def __init__(self, task: Any = "phi1", config: EnvConfig | None = None, render_mode: str | None = None,
                  **overrides):
+        _refuse_forked_workers()
         _check_render_mode(render_mode, ["rgb_array", "human"])
         self._fns = compiled(env_config(config, overrides), task)
         self.env, self.params = self._fns.env, self._fns.params

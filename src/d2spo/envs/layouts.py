@@ -22,6 +22,7 @@ import numpy as np
 from d2spo.envs import generator
 from d2spo.envs.workspace import Area, Layout, Obstacle, validate
 from d2spo.errors import ConfigError, json_trouble
+from d2spo.inputs import read_regular
 
 BUILTIN = ("paper", "relaxed", "open", "physical-1", "physical-2", "physical-3", "physical-4")
 """Names of the layouts shipped as JSON files in ``d2spo/envs/layouts/``."""
@@ -172,9 +173,7 @@ def load(name_or_path: str) -> Layout:
     path = Path(name_or_path)
     if path.suffix == ".json" or path.exists():
         try:
-            text = path.read_text(encoding="utf-8")
-        except OSError as e:
-            raise ConfigError("layout", f"cannot read {path}: {e.strerror}") from None
+            text = read_regular(path, lambda message: ConfigError("layout", message)).decode("utf-8")
         except UnicodeDecodeError as e:
             raise ConfigError("layout", f"{path}: not UTF-8 text (byte {e.start})") from None
         try:
@@ -187,4 +186,25 @@ def load(name_or_path: str) -> Layout:
         return from_json(data, default_name=path.stem)
     raise ConfigError("layout", f"unknown layout {name_or_path!r}; use one of {list(BUILTIN)}, "
                       "'random[:SEED]', 'random5[:SEED]' or a path to a .json file")
+
+
+def random_seed(name_or_path: str) -> tuple[str, int] | None:
+    """(kind, seed) of a procedural layout ``random[:SEED]`` or ``random5[:SEED]`` that ``load``
+    accepts; None for any other name."""
+    kind, _, seed_text = name_or_path.partition(":")
+    if kind not in RANDOM_KINDS or not (seed_text or name_or_path == kind):
+        return None
+    try:
+        seed = int(seed_text or "0")
+    except ValueError:
+        return None
+    return (kind, seed) if seed >= 0 else None
+
+
+def layout_file(name_or_path: str) -> Path | None:
+    """The JSON file ``load(name_or_path)`` reads; None for a built-in or a procedural layout."""
+    kind, _, seed_text = name_or_path.partition(":")
+    if name_or_path in BUILTIN or (kind in RANDOM_KINDS and (seed_text or name_or_path == kind)):
+        return None
+    return Path(name_or_path)
 
