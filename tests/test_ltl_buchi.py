@@ -1,0 +1,353 @@
+"""Deterministic Büchi automata (``d2spo.ltl.to_dba``) against the semantics of LTL on lasso words.
+
+The reference ``holds`` is written here from the definitions and shares no code with
+``d2spo.ltl.buchi``: on a lasso word u·v^ω the positions are those of u and v, the successor of
+the last one is the first of v, and each sub-formula gets a truth value per position; ``U`` and
+``F`` are the least fixpoints of their one-step laws, ``R``, ``W`` and ``G`` the greatest (exact on
+a lasso: every position has one successor, so the fixpoints of the finite system of equations are
+the truth values of the infinite word). ``syntactic_recurrence`` is the syntactic recurrence
+class of Chang, Manna and Pnueli, whose formulas all have a deterministic Büchi automaton.
+"""
+
+from __future__ import annotations
+
+import itertools
+import random
+import time
+import warnings
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from d2spo.errors import UserError
+from d2spo.ltl import UNREACHABLE, BuchiAutomaton, NeverCompletedWarning, NoDeterministicBuchi, to_dba, translate
+from d2spo.ltl.formula import (
+    FALSE,
+    TRUE,
+    Always,
+    And,
+    Const,
+    Eventually,
+    Formula,
+    Iff,
+    Implies,
+    Next,
+    Not,
+    Or,
+    Prop,
+    Release,
+    Until,
+    WeakUntil,
+)
+from d2spo.ltl.parser import parse
+
+# --- The reference: LTL on lasso words --------------------------------------------------------------
+
+
+def holds(f: Formula, aps: tuple[str, ...], prefix: list[int], loop: list[int]) -> bool:
+    """Whether prefix·loop^ω satisfies f (letters: bit i <=> aps[i] holds)."""
+    word = prefix + loop
+    n = len(word)
+    nxt = [i + 1 for i in range(n - 1)] + [len(prefix)]
+
+    def fixpoint(start: bool, law) -> list[bool]:
+        value = [start] * n
+        while True:
+            new = [law(i, value[nxt[i]]) for i in range(n)]
+            if new == value:
+                return value
+            value = new
+
+    def ev(g: Formula) -> list[bool]:
+        if isinstance(g, Const):
+            return [g.value] * n
+        if isinstance(g, Prop):
+            return [bool(letter >> aps.index(g.name) & 1) for letter in word]
+        if isinstance(g, Not):
+            return [not x for x in ev(g.arg)]
+        if isinstance(g, Next):
+            inner = ev(g.arg)
+            return [inner[nxt[i]] for i in range(n)]
+        if isinstance(g, Eventually):
+            inner = ev(g.arg)
+            return fixpoint(False, lambda i, later: inner[i] or later)
+        if isinstance(g, Always):
+            inner = ev(g.arg)
+            return fixpoint(True, lambda i, later: inner[i] and later)
+        left, right = ev(g.left), ev(g.right)  # type: ignore[attr-defined]
+        if isinstance(g, And):
+            return [x and y for x, y in zip(left, right, strict=True)]
+        if isinstance(g, Or):
+            return [x or y for x, y in zip(left, right, strict=True)]
+        if isinstance(g, Implies):
+            return [not x or y for x, y in zip(left, right, strict=True)]
+        if isinstance(g, Iff):
+            return [x == y for x, y in zip(left, right, strict=True)]
+        if isinstance(g, Until):
+            return fixpoint(False, lambda i, later: right[i] or (left[i] and later))
+        if isinstance(g, WeakUntil):
+            return fixpoint(True, lambda i, later: right[i] or (left[i] and later))
+        assert isinstance(g, Release)
+        return fixpoint(True, lambda i, later: right[i] and (left[i] or later))
+
+    return ev(f)[0]
+
+
+def classes(f: Formula, positive: bool = True) -> tuple[bool, bool, bool]:
+    """(guarantee, safety, recurrence) membership of f (of !f if not positive), by syntax."""
+    if isinstance(f, (Const, Prop)):
+        return True, True, True
+    if isinstance(f, Not):
+        return classes(f.arg, not positive)
+    if isinstance(f, (And, Or, Next)):
+        parts = [classes(c, positive) for c in f.children()]
+        return tuple(all(p[k] for p in parts) for k in range(3))  # type: ignore[return-value]
+    if isinstance(f, Implies):
+        return classes(Or(Not(f.left), f.right), positive)
+    if isinstance(f, Iff):
+        g = Or(And(f.left, f.right), And(Not(f.left), Not(f.right)))
+        return classes(g if positive else Not(g), True)
+    if isinstance(f, (Eventually, Always)):
+        guarantee, safety, recurrence = classes(f.arg, positive)
+        if isinstance(f, Eventually) == positive:  # F, or G under a negation (!G a == F !a)
+            return guarantee, False, guarantee
+        return False, safety, recurrence
+    left, right = classes(f.left, positive), classes(f.right, positive)  # type: ignore[attr-defined]
+    if isinstance(f, WeakUntil) and not positive:  # !(a W b) == !b U (!a & !b)
+        return classes(Until(Not(f.right), And(Not(f.left), Not(f.right))), True)
+    least = isinstance(f, Until) == positive  # U, or R under a negation (!(a R b) == !a U !b)
+    if least:
+        return left[0] and right[0], False, left[2] and right[0]
+    return False, left[1] and right[1], left[2] and right[2]
+
+
+def syntactic_recurrence(f: Formula) -> bool:
+    """Every class above lies in the recurrence class (each rule keeps recurrence >= the others)."""
+    return classes(f)[2]
+
+
+def refutes_dba(f: Formula, witness: tuple[list[int], list[int], list[int]]) -> bool:
+    """Whether words u, x, y (lists of letters over f's sorted propositions) show, on short words,
+    that no deterministic Büchi automaton accepts exactly f's words: every u·z·x^ω with z a word
+    over {x, y} satisfies f while no u·(x^k y)^ω does. Landweber's argument: reading u and then x
+    repeatedly, such an automaton D must take an accepting transition after a finite z (u·z·x^ω is
+    accepted); insert y there and repeat: the word u·x^k1·y·x^k2·y··· makes D accept infinitely
+    often but, like u·(x^k y)^ω, does not satisfy f."""
+    aps = tuple(sorted(f.aps()))
+    u, x, y = witness
+    tails = [[]] + [sum(z, []) for k in range(1, 4) for z in itertools.product((x, y), repeat=k)]
+    return all(holds(f, aps, u + z, x) for z in tails) and not any(holds(f, aps, u, x * k + y) for k in range(1, 6))
+
+
+def lassos(n_letters: int, count: int, seed: int) -> list[tuple[list[int], list[int]]]:
+    """Every lasso with |u| <= 2 and 1 <= |v| <= 2 when that is at most ``count`` of them, else
+    ``count`` random ones with |u| <= 3 and 1 <= |v| <= 4."""
+    letters = range(n_letters)
+    every = [(list(u), list(v)) for k in range(3) for u in itertools.product(letters, repeat=k)
+             for m in (1, 2) for v in itertools.product(letters, repeat=m)]
+    if len(every) <= count:
+        return every
+    rng = random.Random(seed)
+    return [([rng.randrange(n_letters) for _ in range(rng.randint(0, 3))],
+             [rng.randrange(n_letters) for _ in range(rng.randint(1, 4))]) for _ in range(count)]
+
+
+def check_exact(text: str, count: int = 400) -> BuchiAutomaton:
+    f = parse(text)
+    dba = to_dba(f)
+    for prefix, loop in lassos(dba.n_letters, count, seed=len(text)):
+        assert dba.accepts_lasso(prefix, loop) == holds(f, dba.aps, prefix, loop), (text, prefix, loop)
+    return dba
+
+
+# --- Hand-written formulas ------------------------------------------------------------------------
+
+STATES = {  # formula -> state count of the automaton that to_dba builds (* = known to be minimal)
+    "G !A4 & F A1": 3,  # * need A1 / A1 seen, + rejecting sink
+    "G F a & G F b": 2,  # * wait for a / wait for b
+    "G F a & G F b & G !c": 3,  # * the same, + rejecting sink
+    "G (a -> F b)": 2,  # * no request pending / request pending
+    "G !c & F (a & F (b & F d))": 5,  # * need a / b / d, then G !c, + rejecting sink
+    "a U b": 3,  # *
+    "F a": 2,  # *
+    "G a": 2,  # *
+    "X a": 4,  # *
+    "a R b": 3,  # *
+    "a W b": 3,  # *
+    "true": 1,  # *
+    "false": 1,  # *
+    "G F a": 1,  # *
+    "F a & G F b": 2,  # *
+    "G (a -> X b)": 3,  # * no demand / b needed now, + rejecting sink
+    "G F a | G F b": 1,  # * accept on a or b
+    "G F a | F G a": 1,  # * the same language as G F a
+    "F G a & G a": 2,  # * the same language as G a
+    "F G a & G F !a": 1,  # * unsatisfiable
+    "a U (b & G F c)": 3,  # * a U b pending / G F c, + rejecting sink
+    "F (a & G F b)": 2,  # *
+    "G (a -> F b) & G (b -> F a)": 3,  # nothing pending / b pending / a pending
+    "(G F a & G F b) | G c": 3,  # c so far / wait for a / wait for b
+    "G (a -> (b U c))": 3,  # * no demand / b U c pending, + rejecting sink
+    "X X a & G F b": 5,  # * steps 0, 1, 2 / G F b, + rejecting sink
+}
+
+NO_DBA = ["F G a", "F G a & G F b", "!(G F a)", "G F a -> G F b", "F (a & X G !b)", "F G a | G F b", "F G a | G b",
+          "a U G b"]
+
+
+@pytest.mark.parametrize("text", sorted(STATES))
+def test_exact_on_lassos_and_state_counts(text):
+    dba = check_exact(text)
+    assert dba.n_states == STATES[text]
+    assert dba.initial == 0
+
+
+@pytest.mark.parametrize("text", NO_DBA)
+def test_formulas_without_a_dba_are_refused_in_one_line(text):
+    with pytest.raises(NoDeterministicBuchi) as caught:
+        to_dba(text)
+    message = str(caught.value)
+    assert "\n" not in message and "no deterministic Büchi automaton" in message
+    assert message.startswith(str(parse(text)))
+    assert isinstance(caught.value, UserError)
+    assert not syntactic_recurrence(parse(text))
+    assert refutes_dba(parse(text), caught.value.witness)
+
+
+def test_reference_recognises_the_classes():
+    assert syntactic_recurrence(parse("G (a -> F b) & G !c"))
+    assert syntactic_recurrence(parse("!(F G a)"))
+    assert not syntactic_recurrence(parse("F G a"))
+    assert not syntactic_recurrence(parse("!(a R G F b)"))
+    assert holds(parse("G F a"), ("a",), [0, 0], [0, 1]) and not holds(parse("G F a"), ("a",), [1], [0])
+    assert refutes_dba(parse("F G a"), ([], [1], [0])) and not refutes_dba(parse("G F a"), ([], [1], [0]))
+
+
+# --- Random formulas --------------------------------------------------------------------------------
+
+UNARY = (Not, Next, Eventually, Always)
+BINARY = (And, Or, Implies, Iff, Until, Release, WeakUntil)
+
+
+def formulas(aps: tuple[str, ...], depth: int) -> st.SearchStrategy[Formula]:
+    leaves = st.sampled_from([Prop(a) for a in aps] * 2 + [TRUE, FALSE])
+    if depth == 0:
+        return leaves
+    sub = formulas(aps, depth - 1)
+    return st.one_of(leaves, st.sampled_from(UNARY).flatmap(lambda op: st.builds(op, sub)),
+                     st.sampled_from(BINARY).flatmap(lambda op: st.builds(op, sub, sub)))
+
+
+def encode(letter: int, aps: tuple[str, ...], dba_aps: tuple[str, ...]) -> int:
+    """A letter over ``aps`` read over ``dba_aps`` (the propositions that occur in the formula)."""
+    return sum(1 << dba_aps.index(name) for i, name in enumerate(aps) if letter >> i & 1 and name in dba_aps)
+
+
+@settings(max_examples=250, deadline=None)
+@given(data=st.data(), aps=st.sampled_from([("p", "q"), ("p", "q", "r")]))
+def test_random_formulas_exact_or_rightly_refused(data, aps):
+    f = data.draw(formulas(aps, 3), label="formula")
+    try:
+        dba = to_dba(f)
+    except NoDeterministicBuchi as refusal:
+        assert not syntactic_recurrence(f)
+        assert refutes_dba(f, refusal.witness)
+        return
+    letters = st.integers(0, (1 << len(aps)) - 1)
+    for _ in range(8):
+        prefix = data.draw(st.lists(letters, max_size=3), label="prefix")
+        loop = data.draw(st.lists(letters, min_size=1, max_size=3), label="loop")
+        read = [encode(a, aps, dba.aps) for a in prefix], [encode(a, aps, dba.aps) for a in loop]
+        assert dba.accepts_lasso(*read) == holds(f, aps, prefix, loop)
+
+
+@settings(max_examples=100, deadline=None)
+@given(data=st.data(), aps=st.sampled_from([("p", "q"), ("p", "q", "r")]))
+def test_sinks_are_the_monitors_good_and_bad_prefixes(data, aps):
+    f = data.draw(formulas(aps, 3), label="formula")
+    try:
+        dba = to_dba(f)
+    except NoDeterministicBuchi:
+        return
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NeverCompletedWarning)
+        monitor = translate(f)
+    assert monitor.aps == dba.aps
+    word = data.draw(st.lists(st.integers(0, dba.n_letters - 1), max_size=6), label="word")
+    for q, m in zip(dba.run(word), monitor.run(word), strict=True):
+        assert dba.is_accepting_sink(q) == (m in monitor.accepting)
+        assert (q in dba.rejecting) == (m in monitor.rejecting)
+
+
+@pytest.mark.parametrize("text", ["F (a & F (b & F c))", "a U b", "(!c U a) & F b", "X (a | b)", "F a & F b"])
+def test_co_safe_tasks_end_in_an_accepting_sink(text):
+    dba, monitor = to_dba(text), translate(text)
+    (sink,) = dba.accepting_sinks
+    assert dba.delta[sink] == (sink,) * dba.n_letters and all(dba.accepting[sink])
+    assert dba.status(sink) == "accepting sink" and dba.state_formulas[sink] == "true"
+    for word in itertools.product(range(dba.n_letters), repeat=3):
+        assert (dba.run(word)[-1] == sink) == (monitor.run(word)[-1] in monitor.accepting)
+
+
+# --- Distances, the API, limits ---------------------------------------------------------------------
+
+
+def test_distances_to_the_next_accepting_transition():
+    dba = to_dba("G F a & G F b")
+    none, a, b, both = 0, dba.letter(["a"]), dba.letter(["b"]), dba.letter(["a", "b"])
+    singletons = [none, a, b]
+    start = dba.initial
+    assert dba.distances(singletons)[start] == 2  # a, then b
+    assert dba.distances()[start] == 1  # {a, b} at once
+    assert dba.distances([none, a])[start] == UNREACHABLE  # b never comes
+    after_a = dba.delta[start][a]
+    assert dba.distances(singletons)[after_a] == 1 and dba.accepting[after_a][b]
+    for letters in ([none, a], singletons, [none, a, b, both]):  # the BFS satisfies its equation
+        dist = dba.distances(letters)
+        for q in range(dba.n_states):
+            options = [1 if dba.accepting[q][x] else dist[dba.delta[q][x]] + 1 for x in letters]
+            assert dist[q] == min(min(options), UNREACHABLE)
+
+    task = to_dba("G !A4 & F A1")
+    dist = task.distances([0, task.letter(["A1"]), task.letter(["A4"])])
+    assert dist[task.initial] == 2  # A1, then one more step without A4
+    assert dist[task.delta[task.initial][task.letter(["A1"])]] == 1
+    assert [dist[q] for q in task.rejecting] == [UNREACHABLE]
+
+
+def test_api_and_rendering():
+    dba = to_dba("G (A1 -> F A2)")
+    assert dba.aps == ("A1", "A2") and dba.n_letters == 4 and not dba.rejecting and not dba.accepting_sinks
+    assert dba.state_formulas == ("G (!A1 | F A2)", "F A2 & G (!A1 | F A2)")
+    assert to_dba("G !A4 & F A1").state_formulas == ("F A1 & G !A4", "G !A4", "false")
+    assert "acceptance on transitions" in dba.pretty() and "(accepting)" in dba.pretty()
+    assert dba.to_dot().startswith("digraph") and "style=bold" in dba.to_dot()
+    assert dba.accepts_lasso([], [dba.letter(["A1"]), dba.letter(["A2"])])
+    assert not dba.accepts_lasso([dba.letter(["A1"])], [0])
+    with pytest.raises(ValueError, match="loop"):
+        dba.accepts_lasso([0], [])
+    with pytest.raises(ValueError, match="rejecting"):
+        BuchiAutomaton(dba.aps, 0, dba.delta, dba.accepting, frozenset({0}))
+    with pytest.raises(ValueError, match="unknown atomic proposition"):
+        dba.letter(["A3"])
+
+
+NAMED = ["G !A4 & F A1", "G F A1 & G F A3 & G !A4", "G (A1 -> F A2)", "G !purple & F (red & F (green & F yellow))",
+         "G F blue & G F green & G F yellow & G !magenta"]
+
+
+@pytest.mark.parametrize("text", NAMED)
+def test_named_tasks_translate_fast(text):
+    start = time.perf_counter()
+    to_dba(text)
+    assert time.perf_counter() - start < 1.0  # about 10 ms at most on a 2-core CPU
+    dba = check_exact(text, count=300)
+    assert not dba.accepting_sinks and len(dba.rejecting) == (1 if "!" in text else 0)
+
+
+def test_limits():
+    with pytest.raises(UserError, match="max_states"):
+        to_dba("G F a & G F b & G F c & F G d | G F e", max_states=3)
+    with pytest.raises(UserError, match="propositions"):
+        to_dba(" & ".join(f"G F p{i}" for i in range(13)))
