@@ -39,6 +39,11 @@ a, b, c, d = Prop("a"), Prop("b"), Prop("c"), Prop("d")
         ("XA1", Prop("XA1")),  # names are read greedily; "X A1" is next
         ("X A1", Next(Prop("A1"))),
         ("X(A1)", Next(Prop("A1"))),
+        # a word of X, F and G only is that chain of operators, as LTL is usually written
+        ("GF a", Always(Eventually(a))),
+        ("FG(a)", Eventually(Always(a))),
+        ("GFX a & XX b", And(Always(Eventually(Next(a))), Next(Next(b)))),
+        ("GFa", Prop("GFa")),  # a name: it has other letters
         # unary binds tightest
         ("!a & b", And(Not(a), b)),
         ("F a U b", Until(Eventually(a), b)),

@@ -12,8 +12,9 @@ Grammar, loosest binding first (see docs/ltl.md)::
 
 Accepted alternates: ``~`` for ``!``, ``&&`` for ``&``, ``||`` for ``|``, ``=>`` for ``->``,
 ``<=>`` for ``<->``, ``[]`` for ``G``, ``<>`` for ``F``. A NAME is ``[A-Za-z_][A-Za-z0-9_]*``
-other than the keywords ``true false X F G U R W``; names are read greedily, so ``XA1`` is the
-proposition ``XA1`` while ``X A1`` and ``X(A1)`` are "next A1".
+other than the keywords ``true false X F G U R W`` and the words made of the letters X, F and G only,
+which are chains of those operators (``GF a`` is ``G F a``, ``FG a`` is ``F G a``); names are read
+greedily, so ``XA1`` is the proposition ``XA1`` while ``X A1`` and ``X(A1)`` are "next A1".
 """
 
 from __future__ import annotations
@@ -44,6 +45,8 @@ from d2spo.ltl.formula import (
 )
 
 _OPERAND = "a formula (a proposition, true, false, '(' or one of ! X F G)"
+_UNARY_LETTERS = {"X", "F", "G"}
+"""A word of these letters only (``GF``, ``FG``, ``XX``) is that chain of unary operators."""
 _KEYWORDS = {"true": "true", "false": "false", "X": "X", "F": "F", "G": "G", "U": "U", "R": "R", "W": "W"}
 # Longest symbols first, so that "&&" is not read as "&" "&" and "<->" not as "<" "->".
 _SYMBOLS = [
@@ -73,7 +76,10 @@ def _tokenize(text: str) -> list[_Token]:
             while j < len(text) and text[j].isascii() and (text[j].isalnum() or text[j] == "_"):
                 j += 1
             word = text[i:j]
-            tokens.append(_Token(_KEYWORDS.get(word, "name"), word, i + 1))
+            if len(word) > 1 and set(word) <= _UNARY_LETTERS:  # "GF a", "FG a", "XX a": one operator per letter
+                tokens.extend(_Token(op, op, i + 1 + k) for k, op in enumerate(word))
+            else:
+                tokens.append(_Token(_KEYWORDS.get(word, "name"), word, i + 1))
             i = j
             continue
         for symbol, kind in _SYMBOLS:
