@@ -32,19 +32,31 @@ def test_cautious_start_makes_random_exploration_safe():
     assert float(jnp.linalg.norm(u - u_rl)) < 0.2
 
 
-def test_short_run_on_relaxed_learns_to_reach_a1_safely(tmp_path):
+def test_short_run_on_relaxed_learns_to_reach_a1_safely(tmp_path, monkeypatch):
     """500 episodes of D²SPO on the `relaxed` layout, task F A1 (its first leg; the two-area task
     needs thousands of episodes). The final policy must reach A1 far more often than the untrained
-    one and never collide; training itself stays mostly collision-free."""
+    one and never collide; training itself stays mostly collision-free. The run compiles its task
+    onto the layout once (envs/compiled_task.py): one distance computation, route and set of fields."""
     import dataclasses
 
+    from _counting import count_calls
+
     from d2spo.algos.td3 import TD3Config
+    from d2spo.envs import compiled_task, routes
+    from d2spo.ltl.automaton import Automaton
     from d2spo.train import train
 
+    calls = count_calls(monkeypatch, {"distances": (Automaton, "distances"), "route_length": (routes, "route_length"),
+                                      "reachable_states": (routes, "reachable_states"),
+                                      "state_fields": (compiled_task, "state_fields")})
+    # max_steps unset: the step limit follows the route; D²SPO: its barrier's margin is checked too
     cfg = TrainConfig(algo="d2spo", task="F A1", env=EnvConfig(layout="relaxed"), episodes=500, seed=0,
                       eval_episodes=32, eval_untrained=True,
                       td3=dataclasses.replace(TD3Config(), updates_per_step=2)).check()
     summary = train(cfg, tmp_path / "run")
+    # the grid search for the robot twice: make_env's feasibility check and the barrier's margin d
+    assert calls == {"distances": 1, "route_length": 1, "reachable_states": 2, "state_fields": 1}
+    monkeypatch.undo()
     untrained = summary["eval_untrained"]
     assert untrained["completion_rate"] <= 0.1
     assert summary["eval"]["completion_rate"] >= 0.8

@@ -56,12 +56,14 @@ def test_resets_draw_every_layout_and_observations_are_finite(built):
 
 def test_subgoal_descends_the_path_rewards_along_it_and_an_ending_episode_draws_a_new_layout(built):
     bank, env, params = built
-    states, _ = env.reset_batch(jax.random.PRNGKey(3), params, 16)
+    # jitted, each a program of its own: eagerly, every operation inside compiles one of its own
+    states, _ = jax.jit(lambda k: env.reset_batch(k, params, 16))(jax.random.PRNGKey(3))
     state = jax.tree.map(lambda a: a[0], states)
-    v = view(params, state.layout)
-    dist, direction, found = subgoal(v, state.q, state.pose[:2])
+    v = jax.jit(view)(params, state.layout)
+    subgoal_at = jax.jit(subgoal)
+    dist, direction, found = subgoal_at(v, state.q, state.pose[:2])
     assert bool(found) and float(dist) > 0.5 and abs(float(jnp.linalg.norm(direction)) - 1.0) < 1e-4
-    ahead = subgoal(v, state.q, state.pose[:2] + 0.05 * direction)[0]
+    ahead = subgoal_at(v, state.q, state.pose[:2] + 0.05 * direction)[0]
     assert float(ahead) < float(dist) - 0.03  # a step along it shortens the path
     # env 0 faces the direction and drives: the shaping term is positive; the others are on their
     # last step: they end and restart in drawn layouts
@@ -75,10 +77,10 @@ def test_subgoal_descends_the_path_rewards_along_it_and_an_ending_episode_draws_
     assert len(set(np.asarray(new.layout[1:]).tolist())) > 1
     # the CBF input read off the observation is what the sensed boxes alone give (walls are boxes):
     # the learner's data and its acting see the same x, with no arena
-    x_obs = env.cbf_input(info["next_obs"], params)
+    x_obs = jax.jit(env.cbf_input)(info["next_obs"], params)
     ctx = Sensed(info["box_lo"], info["box_hi"], info["sensed"] | True)
     big = jnp.array([-100.0, -100.0]), jnp.array([100.0, 100.0])
-    x_ctx = jax.vmap(lambda p, c: sensors.cbf_input(p, c, *big, env.n_rays, params.sensing_radius))(
+    x_ctx = jax.jit(jax.vmap(lambda p, c: sensors.cbf_input(p, c, *big, env.n_rays, params.sensing_radius)))(
         info["next_pose"], ctx)
     np.testing.assert_allclose(np.asarray(x_obs), np.asarray(x_ctx), atol=1e-4)
 

@@ -73,6 +73,12 @@ def synthetic(key):
     return synthetic_pretrain_data(key, lidar, sample_scene, CFG.pretrain_samples, cfg=CFG)
 
 
+# The tests' set-up, jitted: eagerly, each operation inside would compile a program of its own.
+initial_state = jax.jit(lambda key: init_safety_state(key, make_nets(CFG, H), CFG, K))
+scenes = jax.jit(lambda key, n: jax.vmap(sample_scene)(jax.random.split(key, n)), static_argnums=1)
+stepped = jax.jit(true_step)
+
+
 def test_h_learns_the_sign_of_safety_on_synthetic_data():
     nets = make_nets(CFG, H)
     train, test = synthetic(jax.random.PRNGKey(0)), synthetic(jax.random.PRNGKey(1))
@@ -107,10 +113,10 @@ def test_h_learns_the_sign_of_safety_on_synthetic_data():
 
 def test_t_e_reaches_theta_and_omega_but_not_the_nominal_model():
     nets = make_nets(CFG, H)
-    st = init_safety_state(jax.random.PRNGKey(0), nets, CFG, K)
-    pose, ctx = jax.vmap(sample_scene)(jax.random.split(jax.random.PRNGKey(1), 64))
+    st = initial_state(jax.random.PRNGKey(0))
+    pose, ctx = scenes(jax.random.PRNGKey(1), 64)
     u_rl = jnp.tile(jnp.array([1.0, 0.0]), (64, 1))
-    batch = TeBatch(pose, true_step(pose, u_rl), ctx, u_rl, jnp.ones(64), u_rl)
+    batch = TeBatch(pose, stepped(pose, u_rl), ctx, u_rl, jnp.ones(64), u_rl)
     # a large γ_exp makes every row's hinge active, so T_e has a gradient everywhere
     cfg = dataclasses.replace(CFG, gamma_exp=100.0)
 
@@ -118,15 +124,14 @@ def test_t_e_reaches_theta_and_omega_but_not_the_nominal_model():
         return barrier_terms(c, p, n, batch, nets=nets, cfg=cfg, features_fn=lidar, dt=DT)[0]
 
     g_c, g_p, g_n = jax.jit(jax.grad(te, argnums=(0, 1, 2)))(st.cbf, st.policy, st.nominal)
-    norm = lambda g: float(sum(jnp.sum(x**2) for x in jax.tree_util.tree_leaves(g)))
+    norm = lambda g: float(sum(np.sum(np.asarray(x) ** 2) for x in jax.tree_util.tree_leaves(g)))
     assert norm(g_c) > 0 and norm(g_p) > 0
     assert norm(g_n) == 0.0
 
 
 def test_cautious_start_makes_the_executed_policy_safe_before_any_real_data():
     nets = make_nets(CFG, H)
-    key = jax.random.PRNGKey(0)
-    st = init_safety_state(key, nets, CFG, K)
+    st = initial_state(jax.random.PRNGKey(0))
     data = synthetic(jax.random.PRNGKey(1))
 
     @jax.jit
@@ -159,9 +164,9 @@ def test_cautious_start_makes_the_executed_policy_safe_before_any_real_data():
     assert safe < raw / 5, (raw, safe)
 
     # one online UPDATE on real transitions runs, keeps everything finite and refits f_n to them
-    pose, ctx = jax.vmap(sample_scene)(jax.random.split(jax.random.PRNGKey(5), 64))
+    pose, ctx = scenes(jax.random.PRNGKey(5), 64)
     u = jnp.tile(jnp.array([0.5, 0.1]), (64, 1))
-    tr = Transition(pose=pose, next_pose=true_step(pose, u), context=ctx, obs=jnp.zeros((64, 1)), action=u, u_rl=u)
+    tr = Transition(pose=pose, next_pose=stepped(pose, u), context=ctx, obs=jnp.zeros((64, 1)), action=u, u_rl=u)
 
     @jax.jit
     def online(st, tr):

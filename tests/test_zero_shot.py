@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _counting import count_calls
 
 from d2spo.algos.d2spo import D2SPOConfig
 from d2spo.algos.generalist import build_generalist
@@ -180,17 +181,9 @@ def test_a_zero_shot_eval_of_n_layouts_builds_one_generalist_and_n_envs(gen_run,
     from d2spo import zero_shot
     from d2spo.evaluate import EvalConfig, evaluate_run
 
-    calls = {"make_env": 0, "build_generalist": 0, "run.build": 0}
-
-    def counted(name, fn):
-        def wrapper(*args, **kwargs):
-            calls[name] += 1
-            return fn(*args, **kwargs)
-        return wrapper
-
-    monkeypatch.setattr(zero_shot, "make_env", counted("make_env", zero_shot.make_env))
-    monkeypatch.setattr(zero_shot, "build_generalist", counted("build_generalist", zero_shot.build_generalist))
-    monkeypatch.setattr(run_mod, "build", counted("run.build", run_mod.build))
+    calls = count_calls(monkeypatch, {"make_env": (zero_shot, "make_env"),
+                                      "build_generalist": (zero_shot, "build_generalist"),
+                                      "run.build": (run_mod, "build")})
     # the evaluation of the first test here (the same program: its compilation is shared)
     ecfg = EvalConfig(episodes=4, task="phi2", layout="random:11", layout_seeds=2, runtime_filter=False)
     res = evaluate_run(gen_run, ecfg)

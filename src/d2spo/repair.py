@@ -84,22 +84,39 @@ def counterexamples(nets: dict) -> tuple[np.ndarray, list[tuple[np.ndarray, int]
 
 def add_counterexamples(run: CBFRun, ccfg: CertifyConfig, carry, poses_l: np.ndarray, groups, copies: int):
     """The datasets with `copies` copies of each new row (the oldest rows make room)."""
-    lrn, fn, pol = run.learner, _compiled(run, ccfg), policy_of(run._replace(carry=carry))
+    fn, pol = _compiled(run, ccfg), policy_of(run._replace(carry=carry))
+    add_unsafe, add_explored = _adders(run.learner, fn)
     data = carry.data
     if len(poses_l):
-        p = jnp.asarray(np.repeat(poses_l, copies, 0))
-        x = jax.vmap(lrn.features)(p, fn["context"](p))
-        data = data.replace(unsafe=replay.add_batch(data.unsafe, x))
+        data = add_unsafe(data, jnp.asarray(np.repeat(poses_l, copies, 0)))
     for poses, q in groups:
-        p = jnp.asarray(np.repeat(poses, copies, 0))
-        ctx = fn["context"](p)
-        obs = fn["observe"](p, jnp.int32(q))
-        _, _, u = fn["next_features"](pol, p, ctx, obs)
-        u_rl = lrn.nets.actor.apply(carry.agent.actor, obs)
-        nxt = nominal_next(lrn.safety_nets.nominal, carry.safety.nominal, p, u, lrn.dt)
-        tr = sd.Transition(pose=p, next_pose=nxt, context=ctx, obs=obs, action=u, u_rl=u_rl)
-        data = data.replace(p_exp=replay.add_batch(data.p_exp, tr))
+        data = add_explored(data, pol, carry.agent.actor, carry.safety.nominal,
+                            jnp.asarray(np.repeat(poses, copies, 0)), jnp.int32(q))
     return carry.replace(data=data)
+
+
+_ADD: dict = {}
+
+
+def _adders(lrn, fn: dict):
+    """``add_counterexamples``'s two steps, jitted once per learner and certify functions (each
+    compiles once per number of rows): X_L's new rows, and P_exp's rows for one automaton state."""
+    if (id(lrn), id(fn)) not in _ADD:
+        def unsafe(data, p):
+            x = jax.vmap(lrn.features)(p, fn["context"](p))
+            return data.replace(unsafe=replay.add_batch(data.unsafe, x))
+
+        def explored(data, pol, actor, nominal, p, q):
+            ctx = fn["context"](p)
+            obs = fn["observe"](p, q)
+            _, _, u = fn["next_features"](pol, p, ctx, obs)
+            u_rl = lrn.nets.actor.apply(actor, obs)
+            nxt = nominal_next(lrn.safety_nets.nominal, nominal, p, u, lrn.dt)
+            tr = sd.Transition(pose=p, next_pose=nxt, context=ctx, obs=obs, action=u, u_rl=u_rl)
+            return data.replace(p_exp=replay.add_batch(data.p_exp, tr))
+
+        _ADD[(id(lrn), id(fn))] = jax.jit(unsafe), jax.jit(explored)
+    return _ADD[(id(lrn), id(fn))]
 
 
 _TRAIN: dict = {}
