@@ -5,10 +5,11 @@ traceback: an interrupted `reproduce`, hyper-parameters out of range, bad `eval`
 from __future__ import annotations
 
 import csv
+import dataclasses
 import re
 
 import pytest
-from _reproduce import TINY_EPISODES, use_small_configs
+from _reproduce import TINY_EPISODES, small_config, use_small_configs
 
 from d2spo import record as record_mod
 from d2spo import reproduce as rp
@@ -64,6 +65,36 @@ def test_interrupted_reproduce_resumes_its_seed_group_exactly(tmp_path, monkeypa
         a, b = rp.run_dir(tmp_path / "a", spec), rp.run_dir(tmp_path / "b", spec)
         assert (a / "episodes.csv").read_bytes() == (b / "episodes.csv").read_bytes()
     assert not list(runs.glob(".group-*")), "the group directory is removed"
+
+
+def test_a_group_killed_between_its_seeds_summaries_before_any_checkpoint_resumes(tmp_path, monkeypatch):
+    """Runs shorter than the checkpoint period: killed after one seed wrote summary.json and before
+    the other did, the group never checkpointed. The rerun trains the group again from its start
+    (the finished seed is kept as it was) instead of refusing the finished seed's directory for
+    good and wiping the other's; the tables are those of an uninterrupted run."""
+    monkeypatch.setattr(rp.RunSpec, "config", lambda spec: dataclasses.replace(small_config(spec), checkpoint_every=1000))
+    kw = {"seeds": 2, "episodes": TINY_EPISODES, "methods": ["ppo-lag"], "progress": False, "log": lambda s: None}
+    rp.reproduce(["table3"], tmp_path / "a", **kw)
+    finish, calls = record_mod.RunRecord.finish, []
+
+    def killed_after_one_summary(run, *args):
+        calls.append(run)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return finish(run, *args)
+
+    monkeypatch.setattr(record_mod.RunRecord, "finish", killed_after_one_summary)
+    with pytest.raises(KeyboardInterrupt):
+        rp.reproduce(["table3"], tmp_path / "b", **kw)
+    monkeypatch.setattr(record_mod.RunRecord, "finish", finish)
+    specs = rp.runs_for("table3", 2, TINY_EPISODES, ["ppo-lag"])
+    assert [rp.is_finished(tmp_path / "b", s) for s in specs] == [True, False]
+    rp.reproduce(["table3"], tmp_path / "b", **kw)
+    for name in ("table3.md", "table3.csv"):
+        assert _table(tmp_path / "b" / name) == _table(tmp_path / "a" / name), name
+    for spec in specs:
+        a, b = rp.run_dir(tmp_path / "a", spec), rp.run_dir(tmp_path / "b", spec)
+        assert (a / "episodes.csv").read_bytes() == (b / "episodes.csv").read_bytes()
 
 
 def test_a_finished_groups_leftover_directory_is_removed(tmp_path):

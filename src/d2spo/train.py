@@ -205,7 +205,9 @@ def _train_seeds_locked(cfgs: list[TrainConfig], outs: list[Path], built, progre
     group = group_dir(outs)
     resume = has_checkpoint(group)
     for cfg, out in zip(cfgs, outs):
-        prepare_dir(out, cfg, resume)
+        # a seed that finished in an earlier start of this group, killed before the group's first
+        # checkpoint, is kept as it is while the group trains again from the start
+        prepare_dir(out, cfg, resume or (group.is_dir() and (out / "summary.json").is_file()))
     prints = [run_fingerprint(o) for o in outs]
     checkpoints = Checkpoints(group, fingerprint(prints))
     keys = jnp.stack([jax.random.PRNGKey(c.seed) for c in cfgs])
