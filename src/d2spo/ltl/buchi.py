@@ -120,6 +120,41 @@ class BuchiAutomaton:
         """The states from which every run is accepted (reached exactly after good prefixes)."""
         return frozenset(universal_states(self.delta, self.accepting))
 
+    def completed_states(self, feasible_letters: Collection[int] | None = None) -> frozenset[int]:
+        """The states where what is left of the task is a "never" part only: every run from them
+        on ``feasible_letters`` (every letter when None) that stays out of the rejecting sinks is
+        accepted. An episode may end there as completed (``G !A4 & F A1`` once A1 is reached, A4
+        never entered; a co-safe task in its accepting sink). Exactly the live states from which
+        no cycle of non-accepting transitions between live states can be reached."""
+        letters = range(self.n_letters) if feasible_letters is None else sorted({int(a) for a in feasible_letters})
+        live = [q for q in range(self.n_states) if q not in self.rejecting]
+        moves = {q: {self.delta[q][a] for a in letters} - self.rejecting for q in live}
+        plain = {q: {self.delta[q][a] for a in letters if not self.accepting[q][a]} - self.rejecting for q in live}
+        # the states on a cycle of non-accepting transitions: those that reach themselves in ``plain``
+        on_cycle = set()
+        for q in live:
+            seen, stack = set(), list(plain[q])
+            while stack:
+                t = stack.pop()
+                if t == q:
+                    on_cycle.add(q)
+                    break
+                if t not in seen:
+                    seen.add(t)
+                    stack.extend(plain[t])
+        # the live states that can reach one of them, by any transitions between live states
+        pred: dict[int, set[int]] = {q: set() for q in live}
+        for q in live:
+            for t in moves[q]:
+                pred[t].add(q)
+        bad, stack = set(on_cycle), list(on_cycle)
+        while stack:
+            for q in pred[stack.pop()]:
+                if q not in bad:
+                    bad.add(q)
+                    stack.append(q)
+        return frozenset(q for q in live if q not in bad)
+
     def is_accepting_sink(self, q: int) -> bool:
         """Every continuation from q is accepted: the task is done (a co-safe task may end here)."""
         return q in self.accepting_sinks
