@@ -23,3 +23,25 @@ from hypothesis import settings  # noqa: E402
 settings.register_profile("ci", derandomize=True)
 settings.register_profile("explore", derandomize=False)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
+
+
+# `make test` runs two pytest workers (pytest-xdist, `--dist loadgroup`): XLA compiles a program on
+# one core, and compiling is most of the suite. A test file is one group, so its module fixtures
+# are built once; files whose tests share compiled programs through the persistent cache (the same
+# config) are one group, so the second finds the first's program instead of compiling it again.
+_SHARED_PROGRAMS = {
+    "test_plots.py": "fig5-run",  # tests/test_d2spo.py builds the Fig. 5 learner (_reproduce.FIG5_EPISODES)
+    "test_d2spo.py": "fig5-run",
+    "test_run_faults.py": "tiny-run",  # the shapes of test_train.tiny()
+    "test_train.py": "tiny-run",
+    "test_reproduce.py": "small-reproduce",  # _reproduce.small_config
+    "test_fault_battery.py": "small-reproduce",
+}
+
+
+def pytest_collection_modifyitems(config, items):
+    import pytest
+
+    for item in items:
+        name = Path(str(item.fspath)).name
+        item.add_marker(pytest.mark.xdist_group(_SHARED_PROGRAMS.get(name, name)))

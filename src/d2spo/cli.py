@@ -22,6 +22,8 @@ from rich.console import Console
 
 from d2spo import compile_cache
 from d2spo.certify import CertifyConfig, certify_run, load_cbf_run, write_outputs
+from d2spo.cli_export import ExportCmd
+from d2spo.cli_reproduce import ReportCmd, ReproduceCmd
 from d2spo.config import TrainConfig, algo_named, config_differences, flags_for, plain
 from d2spo.console import (
     error,
@@ -46,8 +48,6 @@ from d2spo.ltl import task_formula, translate
 from d2spo.plots import check_picture_path, evaluation_figure, state_fields_figure
 from d2spo.progress import train_with_progress
 from d2spo.repair import RepairConfig, repair_run
-from d2spo.report import build_report
-from d2spo.reproduce import reproduce
 
 
 @dataclasses.dataclass
@@ -124,7 +124,7 @@ class EnvShowCmd:
         lay = layouts.load(self.layout)
         trajs, title = None, None
         if self.rollout_steps > 0:
-            task = f"F {lay.area_names[-1]}"  # the rollout's task: it ends on reaching the last area
+            task = f"F {lay.areas[-1].label}"  # the rollout's task: it ends on reaching the last area's label
             trajs = [random_rollout(self.layout, self.rollout_steps, self.seed, task=task)]
             title = f"layout {lay.name!r}: a random-action rollout, task {task!r} (seed {self.seed})"
         save_layout_png(lay, self.out, trajectories=trajs, title=title, trajectory_label="random actions (x: end)")
@@ -225,7 +225,7 @@ class EnvCheckCmd:
         cfg, lay = checked_layout(EnvConfig(layout=self.layout, preset=self.preset))
         n_obs = len(lay.obstacles)
         print(f"layout {lay.name!r}: arena {lay.arena[0]:g} x {lay.arena[1]:g} m, "
-              f"{n_obs} obstacle{'s' * (n_obs != 1)}, areas {', '.join(lay.area_names)}; "
+              f"{n_obs} obstacle{'s' * (n_obs != 1)}, areas {lay.describe_areas()}; "
               f"a robot of radius {cfg.robot_radius:g} m fits at the start and reaches every area")
         if self.task is None:
             print("no task checked (--task NAME_OR_FORMULA checks one)")
@@ -250,53 +250,6 @@ class EnvCmd:
 
     def run(self) -> int:
         return self.cmd.run()
-
-
-@dataclasses.dataclass
-class ReproduceCmd:
-    """Reproduce the paper's tables and figures: trains the missing runs, then writes OUT/table2.md, fig2.png, ..."""
-
-    targets: tyro.conf.Positional[list[str]]
-    """table2, table3, fig2, fig3, fig4, fig5 or all."""
-    seeds: int = 3
-    """Seeds per (method, task)."""
-    episodes: int = 20_000
-    """Training episodes per run (the paper: 20000); smaller for a quick look (fig4 and fig5 scale with it)."""
-    out: Path = Path("results")
-    """Output directory; finished runs in OUT/runs are reused, interrupted ones resume."""
-    backend: str = "local"
-    """'local' (one run after another in this process) or 'ray' (one Ray task per run)."""
-    address: str | None = None
-    """Ray cluster address (with --backend ray); default: start a local Ray instance."""
-    methods: tuple[str, ...] = ("cpo", "ppo-lag", "td3-lag", "sac-lag", "rcrl", "d2spo")
-    """Rows of Tables II-III and curves of Fig. 2."""
-    progress: bool = True
-    """Show a progress bar per run (local backend)."""
-    train: bool = True
-    """Train the missing runs; --no-train only renders what has finished (seed counts are shown)."""
-    vmap_seeds: bool = True
-    """Local backend: train the seeds of one setting together, vmapped in one program
-    (--no-vmap-seeds: one seed after another)."""
-    allow_stale: bool = False
-    """Use runs in OUT/runs that were trained with other settings than today's defaults (e.g. by
-    an older d2spo) instead of stopping; the report counts them."""
-
-    def run(self) -> int:
-        reproduce(self.targets, self.out, self.seeds, self.episodes, self.backend, self.address, self.methods,
-                  self.progress, train=self.train, vmap_seeds=self.vmap_seeds, allow_stale=self.allow_stale)
-        return 0
-
-
-@dataclasses.dataclass
-class ReportCmd:
-    """Gather the tables and figures of `d2spo reproduce` into OUT/report.md."""
-
-    out: tyro.conf.Positional[Path] = Path("results")
-    """The --out directory of `d2spo reproduce`."""
-
-    def run(self) -> int:
-        print(build_report(self.out))
-        return 0
 
 
 @dataclasses.dataclass
@@ -344,6 +297,7 @@ def commands(algo: str):
         Annotated[ReproduceCmd, tyro.conf.subcommand("reproduce")],
         Annotated[ReportCmd, tyro.conf.subcommand("report")],
         Annotated[CertifyCmd, tyro.conf.subcommand("certify")],
+        Annotated[ExportCmd, tyro.conf.subcommand("export")],
     ]
 
 

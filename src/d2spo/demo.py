@@ -32,11 +32,11 @@ from d2spo.run import load_policy
 def random_rollout(layout: str, steps: int, seed: int, task: str | None = None) -> np.ndarray:
     """Positions [T, 2] of one env driven by uniform random actions until its first episode ends.
 
-    The default task is to reach the layout's last area, which every layout can express.
+    The default task is to reach the layout's last area's label, which every layout can express.
     """
 
     if task is None:
-        task = f"F {layouts.load(layout).area_names[-1]}"
+        task = f"F {layouts.load(layout).areas[-1].label}"
     env, params = make_env(EnvConfig(layout=layout), task=task)
 
     def body(carry, key):

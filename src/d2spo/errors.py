@@ -36,6 +36,10 @@ class RunInUseError(RunDirError):
     """A run directory is locked by a training in another process (``runio.RunLock``)."""
 
 
+class ArtefactError(UserError):
+    """An exported policy directory (``d2spo export``) is missing, damaged or of another format."""
+
+
 class NaNError(RuntimeError):
     """Training produced a non-finite value. Raised instead of training through it."""
 

@@ -26,10 +26,10 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import ListedColormap
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
-from matplotlib.patches import Circle, Rectangle
+from matplotlib.patches import Circle
 
 from d2spo.envs import geometry
-from d2spo.envs.render import OBSTACLE_COLOR, START_COLOR, add_legend, draw_layout, draw_trajectory
+from d2spo.envs.render import OBSTACLE_COLOR, START_COLOR, add_legend, draw_layout, draw_trajectory, obstacle_patch
 from d2spo.errors import ConfigError
 from d2spo.rollout import make_rollout
 from d2spo.run import load_policy, load_snapshot
@@ -326,7 +326,7 @@ def state_fields_figure(layout, aut, fields, path: str | Path, distance=None, dp
                 ax.contourf(np.linspace(0, w, mask.shape[1]), np.linspace(0, h, mask.shape[0]), mask.astype(float),
                             levels=[0.5, 1.5], colors=[color], alpha=0.75)
         for o in layout.obstacles:
-            ax.add_patch(Rectangle(tuple(o.lo), 2 * o.half_extents[0], 2 * o.half_extents[1], color=OBSTACLE_COLOR))
+            ax.add_patch(obstacle_patch(o, color=OBSTACLE_COLOR))
         for a in layout.areas:
             ax.add_patch(Circle(a.center, a.radius, fill=False, edgecolor="white", linewidth=0.8))
             ax.annotate(a.name, a.center, ha="center", va="center", fontsize=8, weight="bold", color="white")

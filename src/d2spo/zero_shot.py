@@ -66,6 +66,12 @@ def generalist_layout(env_cfg, name: str, task: str, margin: float = 0.0) -> tup
     if names != wanted:
         raise ConfigError("layout", f"{where}: a generalist reads the areas {', '.join(wanted)}; "
                           f"this layout has {', '.join(names) or 'none'}")
+    if relabelled := [a.name for a in lay.areas if a.label != a.name]:
+        raise ConfigError("layout", f"{where}: a generalist reads each area as the proposition of its name; "
+                          f"areas {', '.join(relabelled)} carry other labels")
+    if lay.disks:
+        raise ConfigError("layout", f"{where}: a generalist senses box obstacles only; this layout has "
+                          f"{len(lay.disks)} disk obstacles")
     areas = tuple(sorted(lay.areas, key=lambda a: a.name))
     for i, a in enumerate(areas):
         for b in areas[i + 1:]:

@@ -167,8 +167,9 @@ class OneLayout:
         return None
 
     def synthetic_sample(self, params, key: jax.Array):
-        """A hypothetical pose among random boxes in this arena (pre-training data, not the layout)."""
-        n = int(params.geom.box_lo.shape[0])
+        """A hypothetical pose among random boxes in this arena, as many as the layout has obstacles
+        (pre-training data, not the layout)."""
+        n = int(params.geom.n_obstacles)
         m = max(n, 1)
         k1, k2, k3, k4 = jax.random.split(key, 4)
         lo, hi = self.arena(params)
@@ -200,7 +201,7 @@ class D2SPOLearner(TD3Learner):
         self.H = float(econf.sensing_radius)
         self.dt = float(econf.dt)
         self.safety_nets = make_nets(cbf, self.H)
-        self.n_obstacles = int(params.geom.box_lo.shape[0])
+        self.n_obstacles = int(params.geom.n_obstacles)
         self.n_features = env.n_rays + 1
         self.layouts = layouts(env, params, self.d2)
         self._safety_metrics = None  # shapes of UPDATE(Ω, Θ)'s metrics, traced once (``_iteration``)

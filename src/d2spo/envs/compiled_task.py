@@ -3,8 +3,8 @@ the pre-flight checks read.
 
 ``compile_task(automaton, layout, label_mode, robot_radius, field_costs)`` computes the letters the
 layout can produce, the automaton's distances to acceptance over them (Prog(q), Sec. IV-C), its
-arrays, which area each automaton proposition is and the role of each letter in each state
-(target, forbidden, neutral). The grid computations run on first use, at most once: with
+arrays, which areas carry each automaton proposition (their label) and the role of each letter in
+each state (target, forbidden, neutral). The grid computations run on first use, at most once: with
 ``field_costs`` the per-state shaping fields (``fields``, ``envs.state_fields``), the shortest
 route (``route_length``) and the automaton states the robot can reach (``reached``, ``envs.routes``).
 """
@@ -45,7 +45,7 @@ class CompiledTask:
     arrays: AutomatonArrays
     """The automaton as arrays, its ``distance`` over the feasible letters."""
     area_bits: np.ndarray
-    """int32 [N]: the letter bit each area sets (0 for an area that is no proposition)."""
+    """int32 [N]: the letter bit each area sets, its label's (0 for an area whose label is no proposition)."""
     roles: np.ndarray | None
     """int8 [Q, 2**n_aps]: the role (``state_fields.NEUTRAL``, ``TARGET``, ``FORBIDDEN``) of reading each
     letter in each state (``state_fields.letter_roles``; the areas: ``state_fields.named_areas``)."""
@@ -84,7 +84,7 @@ def compile_task(automaton: Any, layout: Layout, label_mode: str, robot_radius: 
     ``preflight.check_feasible``'s."""
     aps = tuple(automaton.aps)
     feasible = tuple(layouts.feasible_letters(layout, aps, label_mode))
-    bits = np.array([1 << aps.index(a.name) if a.name in aps else 0 for a in layout.areas], np.int32)
+    bits = np.array([1 << aps.index(a.label) if a.label in aps else 0 for a in layout.areas], np.int32)
     if not isinstance(automaton, Automaton):  # arrays() only
         arrays = AutomatonArrays(*(jnp.asarray(a) for a in automaton.arrays(list(feasible))))
         return CompiledTask(automaton, layout, label_mode, robot_radius, feasible, None, arrays, bits, None, None)

@@ -39,8 +39,9 @@ about 18 s on a 2-core CPU. The sweeps grow with the number of nodes times the g
 40 m arena took 283 s, 200 m minutes and over 6 GB), so a larger arena is refused up front."""
 
 
-def clearance(xs: np.ndarray, ys: np.ndarray, box_lo: np.ndarray, box_hi: np.ndarray, arena: tuple) -> np.ndarray:
-    """Distance from each node to the nearest obstacle box or wall (0 inside a box)."""
+def clearance(xs: np.ndarray, ys: np.ndarray, box_lo: np.ndarray, box_hi: np.ndarray, arena: tuple,
+              disks=()) -> np.ndarray:
+    """Distance from each node to the nearest obstacle box, disk (cx, cy, r) or wall (0 inside an obstacle)."""
     px, py = np.meshgrid(xs, ys)  # [ny, nx]
     walls = np.minimum.reduce([px, py, arena[0] - px, arena[1] - py])
     best = walls
@@ -48,19 +49,21 @@ def clearance(xs: np.ndarray, ys: np.ndarray, box_lo: np.ndarray, box_hi: np.nda
         dx = np.maximum.reduce([lo[0] - px, np.zeros_like(px), px - hi[0]])
         dy = np.maximum.reduce([lo[1] - py, np.zeros_like(py), py - hi[1]])
         best = np.minimum(best, np.hypot(dx, dy))
+    for cx, cy, r in disks:
+        best = np.minimum(best, np.maximum(np.hypot(px - cx, py - cy) - r, 0.0))
     return best
 
 
 @functools.lru_cache(maxsize=64)
 def _fields(arena: tuple, boxes: tuple, areas: tuple, robot_radius: float, spacing: float,
-            blocked_cost: float) -> np.ndarray:
+            blocked_cost: float, disks: tuple = ()) -> np.ndarray:
     nx = int(round(arena[0] / spacing)) + 1
     ny = int(round(arena[1] / spacing)) + 1
     xs = np.linspace(0.0, arena[0], nx)
     ys = np.linspace(0.0, arena[1], ny)
     box_lo = np.array([b[0] for b in boxes], float).reshape(-1, 2)
     box_hi = np.array([b[1] for b in boxes], float).reshape(-1, 2)
-    blocked = clearance(xs, ys, box_lo, box_hi, arena) < robot_radius
+    blocked = clearance(xs, ys, box_lo, box_hi, arena, disks) < robot_radius
     mult = np.where(blocked, blocked_cost, 1.0)
     px, py = np.meshgrid(xs, ys)
     shifts = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0)]
@@ -90,8 +93,9 @@ def _fields(arena: tuple, boxes: tuple, areas: tuple, robot_radius: float, spaci
 
 
 def distance_fields(arena, box_lo, box_hi, area_center, area_radius, robot_radius: float,
-                    spacing: float = SPACING, blocked_cost: float = BLOCKED_COST) -> np.ndarray:
-    """float32 [N, ny, nx]: path length from grid node (row y, column x) to the centre of area i.
+                    spacing: float = SPACING, blocked_cost: float = BLOCKED_COST, disks=()) -> np.ndarray:
+    """float32 [N, ny, nx]: path length from grid node (row y, column x) to the centre of area i,
+    round the boxes and the disk obstacles ``disks`` ((cx, cy, r) each).
 
     Nodes inside area i (within its radius of the centre) hold their straight-line distance.
     Cached per (layout, robot radius): random-layout sweeps and tests build the same env often.
@@ -104,7 +108,8 @@ def distance_fields(arena, box_lo, box_hi, area_center, area_radius, robot_radiu
                           "supported: use a smaller arena or layout scale, or --shaping-metric euclidean")
     boxes = tuple((tuple(map(float, lo)), tuple(map(float, hi))) for lo, hi in zip(np.asarray(box_lo), np.asarray(box_hi)))
     areas = tuple((float(c[0]), float(c[1]), float(r)) for c, r in zip(np.asarray(area_center), np.asarray(area_radius)))
-    return _fields(arena, boxes, areas, float(robot_radius), float(spacing), float(blocked_cost))
+    disks = tuple(tuple(map(float, d)) for d in disks)
+    return _fields(arena, boxes, areas, float(robot_radius), float(spacing), float(blocked_cost), disks)
 
 
 def lookup(fields: jnp.ndarray, xy: jnp.ndarray, spacing: float = SPACING, index=slice(None)) -> jnp.ndarray:

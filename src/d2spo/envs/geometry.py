@@ -1,4 +1,4 @@
-"""Workspace geometry as arrays: axis-aligned box obstacles inside a rectangular arena.
+"""Workspace geometry as arrays: axis-aligned box and disk obstacles inside a rectangular arena.
 
 Everything here is pure JAX and works on one position; ``vmap`` it for batches. Distances are
 measured from the robot *centre*; the robot radius enters only in :func:`collides`.
@@ -39,10 +39,20 @@ class Geometry:
     """float32 [2]: lower-left corner of the arena."""
     arena_hi: jnp.ndarray
     """float32 [2]: upper-right corner of the arena."""
+    disk_center: jnp.ndarray | None = None
+    """float32 [D, 2]: centre of each disk obstacle; None: no disks (the arrays of a layout without
+    them are exactly those of boxes only). Obstacle i < M is box i, obstacle M + j disk j."""
+    disk_radius: jnp.ndarray | None = None
+    """float32 [D]: radius of each disk obstacle; None with ``disk_center``."""
 
     @property
     def n_obstacles(self) -> int:
-        return self.box_lo.shape[-2]
+        """M + D: the boxes, then the disks (a sensed mask has this length)."""
+        return self.box_lo.shape[-2] + self.n_disks
+
+    @property
+    def n_disks(self) -> int:
+        return 0 if self.disk_center is None else self.disk_center.shape[-2]
 
 
 def box_signed_distance(pos: jnp.ndarray, geom: Geometry) -> jnp.ndarray:
@@ -63,6 +73,22 @@ def box_signed_distance(pos: jnp.ndarray, geom: Geometry) -> jnp.ndarray:
     return outside + inside
 
 
+def disk_signed_distance(pos: jnp.ndarray, geom: Geometry) -> jnp.ndarray:
+    """Signed distance [D] from a point ``pos`` [2] to every disk obstacle (negative inside); the
+    square root is guarded at the centre, so the gradient is finite everywhere."""
+    dx = pos[0] - geom.disk_center[:, 0]
+    dy = pos[1] - geom.disk_center[:, 1]
+    sq = dx * dx + dy * dy
+    positive = sq > 0.0
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, sq, 1.0)), 0.0) - geom.disk_radius
+
+
+def obstacle_signed_distance(pos: jnp.ndarray, geom: Geometry) -> jnp.ndarray:
+    """Signed distance [M + D] from ``pos`` to every obstacle: the boxes, then the disks."""
+    boxes = box_signed_distance(pos, geom)
+    return boxes if geom.disk_center is None else jnp.concatenate([boxes, disk_signed_distance(pos, geom)])
+
+
 def arena_signed_distance(pos: jnp.ndarray, geom: Geometry) -> jnp.ndarray:
     """Distance [] from ``pos`` to the nearest arena wall; negative when outside the arena."""
     lo = pos - geom.arena_lo
@@ -72,7 +98,8 @@ def arena_signed_distance(pos: jnp.ndarray, geom: Geometry) -> jnp.ndarray:
 
 def clearance(pos: jnp.ndarray, geom: Geometry) -> jnp.ndarray:
     """Signed distance [] from the robot centre to the nearest obstacle or wall."""
-    return min_over_obstacles(box_signed_distance(pos, geom), arena_signed_distance(pos, geom))
+    d = min_over_obstacles(box_signed_distance(pos, geom), arena_signed_distance(pos, geom))
+    return d if geom.disk_center is None else min_over_obstacles(disk_signed_distance(pos, geom), d)
 
 
 def collides(pos: jnp.ndarray, geom: Geometry, robot_radius: jnp.ndarray) -> jnp.ndarray:
@@ -81,5 +108,5 @@ def collides(pos: jnp.ndarray, geom: Geometry, robot_radius: jnp.ndarray) -> jnp
 
 
 def sensed_mask(pos: jnp.ndarray, geom: Geometry, sensing_radius: jnp.ndarray) -> jnp.ndarray:
-    """bool [M]: obstacles whose boundary is within the sensing radius H of ``pos`` (the set O_s)."""
-    return box_signed_distance(pos, geom) <= sensing_radius
+    """bool [M + D]: obstacles whose boundary is within the sensing radius H of ``pos`` (the set O_s)."""
+    return obstacle_signed_distance(pos, geom) <= sensing_radius

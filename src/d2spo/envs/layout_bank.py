@@ -118,6 +118,9 @@ class LayoutBank(NamedTuple):
 def pack(layouts: Sequence[Layout]) -> LayoutBank:
     """The layouts as arrays, fields not computed yet (``fields`` empty: [B, 0])."""
     for lay in layouts:
+        if lay.disks:
+            raise ConfigError("layout.obstacles", f"{lay.name}: a bank holds box obstacles only, got "
+                              f"{len(lay.disks)} disks")
         if lay.arena[0] != lay.arena[1]:
             raise ConfigError("layout.arena", f"{lay.name}: a bank holds square arenas, got {lay.arena}")
         if len(lay.areas) != N_AREAS:

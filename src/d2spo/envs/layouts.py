@@ -11,16 +11,18 @@ on a layout, ``letters_at`` the letter at given points.
 
 from __future__ import annotations
 
+import functools
 import itertools
 import json
 import math
+import operator
 from importlib import resources
 from pathlib import Path
 
 import numpy as np
 
 from d2spo.envs import generator
-from d2spo.envs.workspace import Area, Layout, Obstacle, validate
+from d2spo.envs.workspace import PROPOSITION_RULE, Area, DiskObstacle, Layout, Obstacle, is_proposition, validate
 from d2spo.errors import ConfigError, json_trouble
 from d2spo.inputs import read_regular
 
@@ -73,14 +75,7 @@ def from_json(data: dict, default_name: str = "custom") -> Layout:
     obstacles_raw = _get(data, "obstacles", f)
     if not isinstance(obstacles_raw, list):
         raise ConfigError(f"{f}.obstacles", "expected a list")
-    obstacles = tuple(
-        Obstacle(
-            _vector(_get(o, "center", g), 2, f"{g}.center"),
-            _vector(_get(o, "half_extents", g), 2, f"{g}.half_extents", positive=True),
-        )
-        for i, o in enumerate(obstacles_raw)
-        for g in [f"{f}.obstacles[{i}]"]
-    )
+    obstacles = tuple(_obstacle(o, f"{f}.obstacles[{i}]") for i, o in enumerate(obstacles_raw))
     areas_raw = _get(data, "areas", f)
     if not isinstance(areas_raw, list):
         raise ConfigError(f"{f}.areas", "expected a list")
@@ -90,13 +85,28 @@ def from_json(data: dict, default_name: str = "custom") -> Layout:
         area_name = _get(a, "name", g)
         if not isinstance(area_name, str) or not area_name.strip():
             raise ConfigError(f"{g}.name", f"expected a non-empty string, got {area_name!r}")
+        label = a.get("label")
+        if "label" in a and not is_proposition(label):  # given, even as the name: it must be a proposition
+            raise ConfigError(f"{g}.label", f"{label!r} is not a proposition name ({PROPOSITION_RULE})")
         areas.append(
             Area(area_name, _vector(_get(a, "center", g), 2, f"{g}.center"),
-                 _number(_get(a, "radius", g), f"{g}.radius", positive=True))
+                 _number(_get(a, "radius", g), f"{g}.radius", positive=True), label)
         )
     layout = Layout(name, arena, start, obstacles, tuple(areas))
     validate(layout)
     return layout
+
+
+def _obstacle(o, g: str) -> Obstacle | DiskObstacle:
+    """One obstacle entry: a box (``half_extents``) or a disk (``radius``)."""
+    center = _vector(_get(o, "center", g), 2, f"{g}.center")
+    if "radius" in o and "half_extents" in o:
+        raise ConfigError(g, "give half_extents (a box) or radius (a disk), not both")
+    if "radius" in o:
+        return DiskObstacle(center, _number(o["radius"], f"{g}.radius", positive=True))
+    if "half_extents" not in o:
+        raise ConfigError(f"{g}.half_extents", "missing (a box has half_extents, a disk radius)")
+    return Obstacle(center, _vector(o["half_extents"], 2, f"{g}.half_extents", positive=True))
 
 
 # ----------------------------------------------------------------------------------- letters
@@ -105,12 +115,12 @@ def from_json(data: dict, default_name: str = "custom") -> Layout:
 def feasible_letters(layout: Layout, aps: tuple[str, ...], label_mode: str) -> list[int]:
     """Letters (bitmasks over ``aps``) that labelling can actually produce in this layout.
 
-    A letter is the set of propositions true at one position: the areas that contain the robot
-    centre together. A set of areas can hold together iff their disks have a common point; for
-    disks, the intersection (if non-empty) contains either one of the centres or an intersection
-    point of two circles, so those candidate points are checked. Propositions with no area of the
-    same name are always false. The empty letter is included under ``step`` labelling only
-    (``event`` labelling never reads it).
+    A letter is the set of propositions true at one position: the labels of the areas that contain
+    the robot centre together. A set of areas can hold together iff their disks have a common point;
+    for disks, the intersection (if non-empty) contains either one of the centres or an intersection
+    point of two circles, so those candidate points are checked. Propositions that label no area are
+    always false. The empty letter is included under ``step`` labelling only (``event`` labelling
+    never reads it).
     """
     bit = {name: 1 << i for i, name in enumerate(aps)}
     centres = np.array([a.center for a in layout.areas], dtype=np.float64).reshape(-1, 2)
@@ -121,19 +131,19 @@ def feasible_letters(layout: Layout, aps: tuple[str, ...], label_mode: str) -> l
     letters = {0}
     for p in candidates:
         inside = np.linalg.norm(centres - p, axis=-1) <= radii * (1 + 1e-9) + 1e-12
-        letters.add(sum(bit.get(a.name, 0) for a, ok in zip(layout.areas, inside) if ok))
+        letters.add(functools.reduce(operator.or_, (bit.get(a.label, 0) for a, ok in zip(layout.areas, inside) if ok), 0))
     if label_mode == "event":
         letters.discard(0)
     return sorted(letters)
 
 
 def letters_at(points: np.ndarray, layout: Layout, aps: tuple[str, ...]) -> np.ndarray:
-    """int [...]: the letter at each point [..., 2] (bit i <=> the robot centre is inside area aps[i])."""
+    """int [...]: the letter at each point [..., 2] (bit i <=> the robot centre is inside an area labelled aps[i])."""
     out = np.zeros(points.shape[:-1], np.int64)
     for a in layout.areas:
-        if a.name in aps:
+        if a.label in aps:
             inside = np.hypot(points[..., 0] - a.center[0], points[..., 1] - a.center[1]) <= a.radius
-            out |= np.where(inside, 1 << aps.index(a.name), 0)
+            out |= np.where(inside, 1 << aps.index(a.label), 0)
     return out
 
 

@@ -1,4 +1,4 @@
-"""The navigation environment of Example 1: a unicycle among box obstacles with an LTL task.
+"""The navigation environment of Example 1: a unicycle among box and disk obstacles with an LTL task.
 
 A pure-JAX functional environment (Gymnasium ``FuncEnv`` / Brax style):
 
@@ -183,14 +183,16 @@ class Env:
 
     @staticmethod
     def _letters(xy: jnp.ndarray, q: jnp.ndarray, params: EnvParams) -> tuple[jnp.ndarray, jnp.ndarray]:
-        """Letters at position xy under relaxed labelling (in automaton state q) and true labelling."""
+        """Letters at position xy under relaxed labelling (in automaton state q) and true labelling: bit
+        i is set iff xy is inside an area labelled aps[i]."""
         dx = params.area_center[:, 0] - xy[0]
         dy = params.area_center[:, 1] - xy[1]
         d2 = dx * dx + dy * dy  # [N]; written out, a reduction over the axis of size 2 is slow on CPU
         radius = jnp.where(params.relax_mask[q], params.label_radius, params.area_radius)
-        relaxed = jnp.sum(jnp.where(d2 <= radius**2, params.area_bits, 0))
-        true = jnp.sum(jnp.where(d2 <= params.area_radius**2, params.area_bits, 0))
-        return relaxed.astype(jnp.int32), true.astype(jnp.int32)
+        bits = params.area_bits.astype(jnp.int32)  # areas of one label set one bit: OR them, not add
+        relaxed = jax.lax.reduce(jnp.where(d2 <= radius**2, bits, 0), np.int32(0), jax.lax.bitwise_or, (0,))
+        true = jax.lax.reduce(jnp.where(d2 <= params.area_radius**2, bits, 0), np.int32(0), jax.lax.bitwise_or, (0,))
+        return relaxed, true
 
     # ---------------------------------------------------------------------------------- reset
 

@@ -23,7 +23,7 @@ class EnvParams:
     """Everything ``reset``/``step`` need besides the state: a pytree, so it can change under jit."""
 
     geom: Geometry
-    """Arena and obstacle boxes (M of them)."""
+    """Arena and obstacles (M boxes, D disks)."""
     area_center: jnp.ndarray
     """float32 [N, 2]: area centres."""
     area_radius: jnp.ndarray
@@ -34,7 +34,8 @@ class EnvParams:
     """bool [Q, N]: in automaton state q, area i is labelled with its relaxed radius (else the true
     one). All true, unless ``AnnealConfig.relax == "targets"`` (``ltl.anneal.annealed_params``)."""
     area_bits: jnp.ndarray
-    """int32 [N]: the letter bits each area sets (bit i <=> automaton proposition aps[i])."""
+    """int32 [N]: the letter bit each area sets (bit i <=> automaton proposition aps[i], the area's
+    label; areas of one label set the same bit)."""
     advance: jnp.ndarray
     """bool [Q, N]: entering area i from automaton state q makes progress (for reward shaping)."""
     aut: AutomatonArrays
@@ -102,17 +103,20 @@ def env_params(cfg: EnvConfig, task: CompiledTask, max_steps: int) -> EnvParams:
     metric = cfg.reward.shaping_metric
     if metric == "geodesic":
         centre_fields = geodesic.distance_fields(
-            layout.arena, [o.lo for o in layout.obstacles], [o.hi for o in layout.obstacles],
-            [a.center for a in layout.areas], area_radius, cfg.reward.clearance(cfg.robot_radius))
+            layout.arena, [o.lo for o in layout.boxes], [o.hi for o in layout.boxes],
+            [a.center for a in layout.areas], area_radius, cfg.reward.clearance(cfg.robot_radius),
+            disks=[(*d.center, d.radius) for d in layout.disks])
     else:
         centre_fields = np.zeros((n_areas, 1, 1), np.float32)
     field = np.zeros((task.n_states, 1, 1), np.float32) if task.fields is None else task.fields.field
     return EnvParams(
         geom=Geometry(
-            box_lo=_f32(np.array([o.lo for o in layout.obstacles]).reshape(-1, 2)),
-            box_hi=_f32(np.array([o.hi for o in layout.obstacles]).reshape(-1, 2)),
+            box_lo=_f32(np.array([o.lo for o in layout.boxes]).reshape(-1, 2)),
+            box_hi=_f32(np.array([o.hi for o in layout.boxes]).reshape(-1, 2)),
             arena_lo=_f32([0.0, 0.0]),
             arena_hi=_f32(layout.arena),
+            disk_center=_f32([d.center for d in layout.disks]) if layout.disks else None,
+            disk_radius=_f32([d.radius for d in layout.disks]) if layout.disks else None,
         ),
         area_center=_f32(np.array([a.center for a in layout.areas]).reshape(n_areas, 2)),
         area_radius=_f32(area_radius),

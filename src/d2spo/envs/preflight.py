@@ -34,7 +34,7 @@ def check_letters(task: CompiledTask, what: str) -> None:
                           "nothing to learn; give a task the robot must act for, e.g. 'F A1'")
     if int(arrays.distance[int(arrays.initial)]) >= UNREACHABLE:
         layout = task.layout
-        missing = sorted(set(task.automaton.aps) - set(layout.area_names))
+        missing = sorted(set(task.automaton.aps) - set(layout.labels))
         hint = f" (propositions with no area, always false: {missing})" if missing else ""
         raise ConfigError("task", f"{what} cannot be completed in layout {layout.name!r}{hint}: no sequence of the "
                           "letters it can produce (areas entered alone, or together where they overlap) does it")
@@ -44,15 +44,15 @@ def check_feasible(task: CompiledTask, name: str, radius: float | None = None, r
     """ConfigError unless a robot of ``radius`` (default: the task's robot) can drive from the start
     to an accepting state. ``robot`` names that robot in the error (default: "a robot of radius R m").
 
-    Propositions must name areas of the layout, the letters the layout can produce must complete
+    Propositions must be labels of the layout's areas, the letters the layout can produce must complete
     the task, and a search over (automaton state, grid cell) (``routes.reachable_states``) must
     reach acceptance. The error names the farthest state reached and its target and forbidden areas.
     """
     aut, layout = task.automaton, task.layout
-    missing = [p for p in aut.aps if p not in layout.area_names]
+    missing = [p for p in aut.aps if p not in layout.labels]
     if missing:
         raise ConfigError("task", f"{name}: proposition {missing[0]!r} names no area of layout {layout.name!r} "
-                          f"(its areas: {', '.join(layout.area_names)})")
+                          f"(no area has that label; its labels: {', '.join(layout.labels) or 'none'})")
     distance = task.distance
     if distance[aut.initial] is None:
         raise ConfigError("task", f"{name} cannot be completed on layout {layout.name!r}: no sequence of the "

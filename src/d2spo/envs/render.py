@@ -13,19 +13,37 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle, Rectangle
 
-from d2spo.envs.workspace import Layout
+from d2spo.envs.workspace import DiskObstacle, Layout, Obstacle
 
 OBSTACLE_COLOR = "black"
 AREA_COLOR = "tab:green"
+LABEL_COLORS = ("tab:green", "tab:orange", "tab:purple", "tab:cyan", "tab:olive", "tab:pink", "tab:brown", "tab:gray")
+"""Area colours by label, in order of first use, when some label is shared by several areas."""
 START_COLOR = "tab:blue"
 ROBOT_COLOR = "tab:red"
+
+
+def obstacle_patch(o: Obstacle | DiskObstacle, **style):
+    """A matplotlib patch of one obstacle: a rectangle for a box, a circle for a disk."""
+    if isinstance(o, DiskObstacle):
+        return Circle(o.center, o.radius, **style)
+    return Rectangle(tuple(o.lo), 2 * o.half_extents[0], 2 * o.half_extents[1], **style)
+
+
+def area_colors(layout: Layout) -> list[str]:
+    """Each area's colour: ``AREA_COLOR`` when every label is one area's, else one colour per label."""
+    labels = layout.labels
+    if len(labels) == len(layout.areas):
+        return [AREA_COLOR] * len(layout.areas)
+    return [LABEL_COLORS[labels.index(a.label) % len(LABEL_COLORS)] for a in layout.areas]
 
 
 def draw_layout(
     layout: Layout, ax, show_sensing: bool = True, sensing_radius: float = 1.2, robot_radius: float | None = None
 ) -> None:
-    """Draw the arena, obstacles (black), labelled areas (green), start (blue) and the sensing disk,
-    with axes in metres and the layout's name as the title.
+    """Draw the arena, obstacles (black boxes and disks), named areas (green; coloured by label when
+    several areas share one, the label written beside each area whose label is not its name), start
+    (blue) and the sensing disk, with axes in metres and the layout's name as the title.
 
     ``sensing_radius`` (H) is drawn as a dashed circle around the start when ``show_sensing``;
     ``robot_radius``, when given, draws the robot's footprint at the start. The artists carry
@@ -34,12 +52,18 @@ def draw_layout(
     w, h = layout.arena
     ax.add_patch(Rectangle((0, 0), w, h, fill=False, edgecolor="black", linewidth=1.5))
     for i, o in enumerate(layout.obstacles):
-        ax.add_patch(Rectangle(tuple(o.lo), 2 * o.half_extents[0], 2 * o.half_extents[1], facecolor=OBSTACLE_COLOR,
-                               edgecolor=OBSTACLE_COLOR, label="obstacle" if i == 0 else None))
-    for i, a in enumerate(layout.areas):
-        ax.add_patch(Circle(a.center, a.radius, facecolor=AREA_COLOR, alpha=0.35, edgecolor=AREA_COLOR,
-                            label="area of interest (its name is the LTL proposition)" if i == 0 else None))
+        ax.add_patch(obstacle_patch(o, facecolor=OBSTACLE_COLOR, edgecolor=OBSTACLE_COLOR,
+                                    label="obstacle" if i == 0 else None))
+    labelled = any(a.label != a.name for a in layout.areas)
+    legend = f"area of interest (its {'label' if labelled else 'name'} is the LTL proposition)"
+    for i, (a, color) in enumerate(zip(layout.areas, area_colors(layout), strict=True)):
+        ax.add_patch(Circle(a.center, a.radius, facecolor=color, alpha=0.35, edgecolor=color,
+                            label=legend if i == 0 else None))
         ax.annotate(a.name, a.center, ha="center", va="center", fontsize=9, weight="bold")
+        if a.label != a.name:  # the proposition, beside the area (on the side towards the arena's middle)
+            left = a.center[0] > w / 2
+            ax.annotate(a.label, (a.center[0] + (-a.radius if left else a.radius), a.center[1] + a.radius),
+                        ha="right" if left else "left", va="bottom", fontsize=8, style="italic", color=color)
     sx, sy, st = layout.start
     ax.plot([sx], [sy], "o", color=START_COLOR, markersize=6, zorder=3, label="start; arrow: initial heading")
     ax.annotate("", (sx + 0.25 * np.cos(st) * max(w, h) / 5, sy + 0.25 * np.sin(st) * max(w, h) / 5), (sx, sy),

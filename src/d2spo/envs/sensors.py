@@ -6,24 +6,25 @@
 ``cbf_input_from_obs`` is the same x read off an observation (the lidar part of it, all obstacles
 within H sensed). The networks rescale x by 1/H (``safety.cbf.network_input``).
 
-The robot sees only what lies within its sensing radius H: obstacle boxes (restricted to the set
-O_s given as a mask) and the arena walls. Each of the K rays starts at the robot centre; ray k
-points at heading theta + 2*pi*k/K (ray 0 looks straight ahead, the rays go counter-clockwise).
+The robot sees only what lies within its sensing radius H: obstacle boxes and disks (restricted
+to the set O_s given as a mask) and the arena walls. Each of the K rays starts at the robot
+centre; ray k points at heading theta + 2*pi*k/K (ray 0 looks straight ahead, the rays go
+counter-clockwise).
 A reading is the distance in metres to the first surface hit, clipped to [0, H]; a ray that hits
 nothing within H reads H, and a ray cast from inside an obstacle reads 0.
 
-The ray casts are analytic (slab method for boxes and for the arena), so the scan is an exact,
-pure function of the pose, differentiable almost everywhere.
+The ray casts are analytic (slab method for boxes and for the arena, the quadratic for disks), so
+the scan is an exact, pure function of the pose, differentiable almost everywhere.
 """
 
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from flax import serialization, struct
 
 from d2spo.envs import geometry
 from d2spo.envs.geometry import UNROLL_MAX, Geometry
@@ -48,8 +49,8 @@ def lidar(
 ) -> jnp.ndarray:
     """The sensor model b(z, O_s): K ranges in metres, each in [0, H].
 
-    pose: [3] = (x, y, theta); geom: the workspace; sensed_mask: bool [M], the obstacle set O_s
-    (obstacles outside the mask are invisible); n_rays: K (static); H: sensing radius.
+    pose: [3] = (x, y, theta); geom: the workspace; sensed_mask: bool [M + D], the obstacle set O_s
+    (boxes, then disks; obstacles outside the mask are invisible); n_rays: K (static); H: sensing radius.
     Walls are always visible within H. ``unroll`` (static) picks how the minimum over obstacles is
     computed: an unrolled chain (fastest forward pass under vmap on CPU) or one reduction (compiles
     its gradient ~3x faster); None unrolls up to ``UNROLL_MAX`` obstacles. Both give identical values.
@@ -77,14 +78,37 @@ def lidar_cs(
     lo = geom.box_lo - xy  # [M, 2], corners relative to the robot
     hi = geom.box_hi - xy
     m = lo.shape[0]
+    box_mask = sensed_mask if geom.disk_center is None else sensed_mask[:m]
     if m <= UNROLL_MAX if unroll is None else unroll:  # one [K]-chain per obstacle (vectorises under vmap)
         t = jnp.minimum(t_wall, H)
         for i in range(m):
-            t = jnp.minimum(t, _box_range(lo[i], hi[i], inv_x, inv_y, sensed_mask[i], H))
+            t = jnp.minimum(t, _box_range(lo[i], hi[i], inv_x, inv_y, box_mask[i], H))
     else:
-        t_box = _box_range(lo[:, None, :], hi[:, None, :], inv_x, inv_y, sensed_mask[:, None], H)  # [M, K]
+        t_box = _box_range(lo[:, None, :], hi[:, None, :], inv_x, inv_y, box_mask[:, None], H)  # [M, K]
         t = jnp.minimum(jnp.min(t_box, axis=0), jnp.minimum(t_wall, H))
+    if geom.disk_center is not None:  # disks: the ray-circle quadratic
+        rel, r, disk_mask = geom.disk_center - xy, geom.disk_radius, sensed_mask[m:]  # centres relative to the robot
+        if geom.n_disks <= UNROLL_MAX if unroll is None else unroll:
+            for j in range(geom.n_disks):
+                t = jnp.minimum(t, _disk_range(rel[j, 0], rel[j, 1], r[j], dx, dy, disk_mask[j], H))
+        else:
+            t_disk = _disk_range(rel[:, 0, None], rel[:, 1, None], r[:, None], dx, dy, disk_mask[:, None], H)
+            t = jnp.minimum(t, jnp.min(t_disk, axis=0))
     return jnp.clip(t, 0.0, H)
+
+
+def _disk_range(cx, cy, radius, dx, dy, visible, H):
+    """Distance along each ray (unit direction dx, dy [K]) to a disk whose centre is (cx, cy) from the
+    robot, or H when missed or invisible; 0 from inside. The ray p(t) = t d meets the circle where
+    t^2 - 2 b t + c = 0, b = (cx, cy) . d, c = cx^2 + cy^2 - r^2: outside (c > 0) both roots have b's
+    sign, so it hits at t = b - sqrt(b^2 - c) when that is real and b >= 0."""
+    b = cx * dx + cy * dy
+    c = cx * cx + cy * cy - radius * radius
+    disc = b * b - c
+    real = disc > 0.0  # (a tangent ray, disc = 0, grazes the disk at t = b: counted as a miss)
+    t = b - jnp.where(real, jnp.sqrt(jnp.where(real, disc, 1.0)), 0.0)  # the root guarded for the gradient
+    t = jnp.where(c <= 0.0, 0.0, jnp.where(real & (b >= 0.0), t, H))
+    return jnp.where(visible, t, H)
 
 
 def _box_range(lo, hi, inv_x, inv_y, visible, H):
@@ -100,27 +124,46 @@ def _box_range(lo, hi, inv_x, inv_y, visible, H):
 # ------------------------------------------------------------------ the CBF's input x = b(z, O_s)
 
 
-class Sensed(NamedTuple):
-    """O_s: obstacle boxes and which of them the robot senses (leading batch axes allowed)."""
+@struct.dataclass
+class Sensed:
+    """O_s: obstacle boxes and disks and which of them the robot senses (leading batch axes allowed)."""
 
     box_lo: jax.Array
     """float32 [..., M, 2]: lower corners."""
     box_hi: jax.Array
     """float32 [..., M, 2]: upper corners."""
     mask: jax.Array
-    """bool [..., M]: sensed."""
+    """bool [..., M + D]: sensed (the boxes, then the disks)."""
+    disk_center: jax.Array | None = None
+    """float32 [..., D, 2]: disk centres; None: no disks."""
+    disk_radius: jax.Array | None = None
+    """float32 [..., D]: disk radii; None: no disks."""
+
+
+def _sensed_state(s: Sensed) -> dict:
+    """A checkpoint's record of O_s: without disks, the three fields it always had (so runs on
+    layouts without disks write byte-identical checkpoints)."""
+    keys = ("box_lo", "box_hi", "mask") + (() if s.disk_center is None else ("disk_center", "disk_radius"))
+    return {k: serialization.to_state_dict(getattr(s, k)) for k in keys}
+
+
+def _sensed_from_state(s: Sensed, state: dict) -> Sensed:
+    return s.replace(**{k: serialization.from_state_dict(getattr(s, k), v, name=k) for k, v in state.items()})
+
+
+serialization.register_serialization_state(Sensed, _sensed_state, _sensed_from_state, override=True)
 
 
 def sensed_obstacles(geom: Geometry, mask: jax.Array) -> Sensed:
-    """O_s among the layout's boxes: ``mask`` [..., M], the boxes broadcast to its leading axes."""
+    """O_s among the layout's obstacles: ``mask`` [..., M + D], the obstacles broadcast to its leading axes."""
     lead = mask.shape[:-1]
-    return Sensed(jnp.broadcast_to(geom.box_lo, lead + geom.box_lo.shape),
-                  jnp.broadcast_to(geom.box_hi, lead + geom.box_hi.shape), mask)
+    b = lambda a: None if a is None else jnp.broadcast_to(a, lead + a.shape)  # noqa: E731
+    return Sensed(b(geom.box_lo), b(geom.box_hi), mask, b(geom.disk_center), b(geom.disk_radius))
 
 
 def nearest_obstacle(xy: jax.Array, geom: Geometry, mask: jax.Array, H: jax.Array | float) -> jax.Array:
     """The paper's b: distance from xy to the nearest obstacle of the mask or wall, clipped to [0, H]."""
-    boxes = jnp.where(mask, geometry.box_signed_distance(xy, geom), H)
+    boxes = jnp.where(mask, geometry.obstacle_signed_distance(xy, geom), H)
     walls = geometry.arena_signed_distance(xy, geom)
     return jnp.clip(jnp.min(jnp.concatenate([boxes, walls[None]])), 0.0, H)
 
@@ -134,7 +177,7 @@ def cbf_input(pose: jax.Array, sensed: Sensed, arena_lo: jax.Array, arena_hi: ja
     box corner can lie between two rays (16 rays overestimate it by up to 27%). Pure and
     differentiable in ``pose`` almost everywhere (Eq. (9)'s T_e differentiates through it).
     """
-    geom = Geometry(sensed.box_lo, sensed.box_hi, arena_lo, arena_hi)
+    geom = Geometry(sensed.box_lo, sensed.box_hi, arena_lo, arena_hi, sensed.disk_center, sensed.disk_radius)
     scan = lidar(pose, geom, sensed.mask, n_rays, H)
     return jnp.concatenate([scan, nearest_obstacle(pose[:2], geom, sensed.mask, H)[None]])
 
@@ -147,6 +190,6 @@ def cbf_input_from_obs(obs: jax.Array, geom: Geometry, lidar_part: slice, pose_p
     scan = obs[..., lidar_part] * H
     p = obs[..., pose_part]
     xy = (p[..., :2] + 1.0) * 0.5 * (geom.arena_hi - geom.arena_lo) + geom.arena_lo
-    everything = jnp.ones((geom.box_lo.shape[0],), bool)
+    everything = jnp.ones((geom.n_obstacles,), bool)
     near = jnp.vectorize(lambda q: nearest_obstacle(q, geom, everything, H), signature="(2)->()")(xy)
     return jnp.concatenate([scan, near[..., None]], axis=-1)

@@ -7,8 +7,8 @@ rejects the task (docs/ltl.md, "Reward"). With ``shaping_metric="geodesic-per-st
 potential reads instead one field per automaton state q, computed here once per compiled task
 (``envs.compiled_task``):
 
-* every grid node carries the letter the robot would produce there (the areas whose disk holds
-  the node, true radii); reading letter a in state q is a *target* when it leads to a state
+* every grid node carries the letter the robot would produce there (the labels of the areas whose
+  disk holds the node, true radii); reading letter a in state q is a *target* when it leads to a state
   strictly closer to acceptance, *forbidden* when it leads to a rejecting state or farther from
   acceptance, *neutral* otherwise (e.g. it stays in q; ``letter_roles``). Working on letters, not
   on areas, makes overlapping areas exact (the lens of A1 and A2 is the letter {A1, A2});
@@ -55,9 +55,10 @@ class StateFields:
     """Per automaton state: its target and forbidden areas and its shaping distance field."""
 
     targets: tuple[tuple[str, ...], ...]
-    """Per state, the areas whose entry (alone) moves the automaton closer to acceptance."""
+    """Per state, the areas (names; every area of a label) whose entry (alone) moves the automaton
+    closer to acceptance."""
     forbidden: tuple[tuple[str, ...], ...]
-    """Per state, the areas whose entry (alone) rejects the task or moves it farther from acceptance."""
+    """Per state, the areas (names) whose entry (alone) rejects the task or moves it farther from acceptance."""
     field: np.ndarray
     """float32 [Q, ny, nx]: path length (m) from each grid node to a target read that avoids the
     forbidden reads (0 in states with no target: accepting, rejecting, dead); nodes as in
@@ -90,8 +91,9 @@ def letter_roles(aut: Automaton, distance: list[int | None], event: bool) -> np.
 
 def named_areas(aut: Automaton, layout: Layout, roles: np.ndarray, role: int) -> tuple[tuple[str, ...], ...]:
     """Per automaton state, the areas of ``layout`` whose entry alone has ``role`` (``TARGET`` or
-    ``FORBIDDEN``) there; ``roles`` is ``letter_roles``. Areas that are no proposition have none."""
-    bits = [aut.letter([a.name]) if a.name in aut.aps else 0 for a in layout.areas]
+    ``FORBIDDEN``) there, by name: every area of each label that has it; ``roles`` is
+    ``letter_roles``. Areas whose label is no proposition of ``aut`` have none."""
+    bits = [aut.letter([a.label]) if a.label in aut.aps else 0 for a in layout.areas]
     return tuple(tuple(a.name for a, b in zip(layout.areas, bits, strict=True) if b and roles[q, b] == role)
                  for q in range(aut.n_states))
 
@@ -176,9 +178,9 @@ def state_fields(aut: Automaton, layout: Layout, roles: np.ndarray, label_mode: 
     xs, ys = np.linspace(0.0, w, nx), np.linspace(0.0, h, ny)
     px, py = np.meshgrid(xs, ys)
     letters = letters_at(np.stack([px, py], -1), layout, aut.aps)
-    box_lo = np.array([o.lo for o in layout.obstacles], float).reshape(-1, 2)
-    box_hi = np.array([o.hi for o in layout.obstacles], float).reshape(-1, 2)
-    clear = geodesic.clearance(xs, ys, box_lo, box_hi, layout.arena)
+    box_lo = np.array([o.lo for o in layout.boxes], float).reshape(-1, 2)
+    box_hi = np.array([o.hi for o in layout.boxes], float).reshape(-1, 2)
+    clear = geodesic.clearance(xs, ys, box_lo, box_hi, layout.arena, [(*d.center, d.radius) for d in layout.disks])
     mult = np.where(clear < robot_radius, collide_cost, np.where(clear < clearance, clearance_cost, 1.0))
     centre_dist = np.stack([np.hypot(px - a.center[0], py - a.center[1]).ravel() for a in layout.areas])
     radius = np.array([a.radius for a in layout.areas])[:, None]

@@ -1,4 +1,4 @@
-"""A workspace: a rectangular arena, axis-aligned box obstacles, circular areas of interest, a start.
+"""A workspace: a rectangular arena, box and disk obstacles, labelled circular areas of interest, a start.
 
 ``Layout`` is the value; ``validate`` checks its geometry and ``check_robot_fits`` that a robot of
 a given radius fits at the start and reaches every area (on ``free_grid``, a conservative grid of
@@ -15,7 +15,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy import ndimage
 
-from d2spo.errors import ConfigError
+from d2spo.errors import ConfigError, UserError
+from d2spo.ltl.formula import Prop
+from d2spo.ltl.parser import parse
 
 
 @dataclass(frozen=True)
@@ -37,15 +39,32 @@ class Obstacle:
 
 
 @dataclass(frozen=True)
+class DiskObstacle:
+    """A disk (a round pillar)."""
+
+    center: tuple[float, float]
+    """Centre (x, y) in metres."""
+    radius: float
+    """Radius in metres."""
+
+
+@dataclass(frozen=True)
 class Area:
-    """A circular area of interest; an atomic proposition of the same name holds inside it."""
+    """A circular area of interest; the atomic proposition ``label`` holds while the robot is inside it."""
 
     name: str
-    """Name, e.g. ``A1``; the LTL proposition ``A1`` is true when the robot centre is inside."""
+    """Name, e.g. ``A1`` or ``desk-1``: unique in a layout, for display."""
     center: tuple[float, float]
     """Centre (x, y) in metres."""
     radius: float
     """Radius in metres (the true radius; the relaxed labelling radius is a parameter of the env)."""
+    label: str | None = None
+    """The LTL proposition the area makes true, e.g. ``desk``; several areas may share it (it holds
+    in any of them). None: the area's name (after construction ``label`` is always a string)."""
+
+    def __post_init__(self) -> None:
+        if self.label is None:
+            object.__setattr__(self, "label", self.name)
 
 
 @dataclass(frozen=True)
@@ -58,14 +77,33 @@ class Layout:
     """(width, height) in metres; the lower-left corner is the origin."""
     start: tuple[float, float, float]
     """Start pose (x, y, theta) before jitter; theta in radians."""
-    obstacles: tuple[Obstacle, ...]
-    """Box obstacles."""
+    obstacles: tuple[Obstacle | DiskObstacle, ...]
+    """Obstacles, boxes and disks in any order (the order of the JSON file)."""
     areas: tuple[Area, ...]
     """Areas of interest (A1 .. An)."""
 
     @property
     def area_names(self) -> tuple[str, ...]:
         return tuple(a.name for a in self.areas)
+
+    @property
+    def labels(self) -> tuple[str, ...]:
+        """The areas' labels (the propositions the layout can make true), each once, in order of first use."""
+        return tuple(dict.fromkeys(a.label for a in self.areas))
+
+    def describe_areas(self) -> str:
+        """The areas by name, each followed by its label where that differs: ``desk-1 (desk), kitchen``."""
+        return ", ".join(a.name if a.label == a.name else f"{a.name} ({a.label})" for a in self.areas)
+
+    @property
+    def boxes(self) -> tuple[Obstacle, ...]:
+        """The box obstacles, in order."""
+        return tuple(o for o in self.obstacles if isinstance(o, Obstacle))
+
+    @property
+    def disks(self) -> tuple[DiskObstacle, ...]:
+        """The disk obstacles, in order (the arrays hold the boxes first, then the disks)."""
+        return tuple(o for o in self.obstacles if isinstance(o, DiskObstacle))
 
     def scaled(self, s: float) -> Layout:
         """The same layout with every length multiplied by ``s`` (angles unchanged)."""
@@ -76,10 +114,11 @@ class Layout:
             arena=(self.arena[0] * s, self.arena[1] * s),
             start=(self.start[0] * s, self.start[1] * s, self.start[2]),
             obstacles=tuple(
+                DiskObstacle((o.center[0] * s, o.center[1] * s), o.radius * s) if isinstance(o, DiskObstacle) else
                 Obstacle((o.center[0] * s, o.center[1] * s), (o.half_extents[0] * s, o.half_extents[1] * s))
                 for o in self.obstacles
             ),
-            areas=tuple(Area(a.name, (a.center[0] * s, a.center[1] * s), a.radius * s) for a in self.areas),
+            areas=tuple(replace(a, center=(a.center[0] * s, a.center[1] * s), radius=a.radius * s) for a in self.areas),
         )
 
     def to_json(self) -> dict:
@@ -88,8 +127,10 @@ class Layout:
             "name": self.name,
             "arena": list(self.arena),
             "start": list(self.start),
-            "obstacles": [{"center": list(o.center), "half_extents": list(o.half_extents)} for o in self.obstacles],
-            "areas": [{"name": a.name, "center": list(a.center), "radius": a.radius} for a in self.areas],
+            "obstacles": [{"center": list(o.center), "radius": o.radius} if isinstance(o, DiskObstacle) else
+                          {"center": list(o.center), "half_extents": list(o.half_extents)} for o in self.obstacles],
+            "areas": [{"name": a.name, "center": list(a.center), "radius": a.radius}
+                      | ({} if a.label == a.name else {"label": a.label}) for a in self.areas],
         }
 
     # --- numpy geometry, used for validation and planning (the jitted versions are in geometry.py)
@@ -99,27 +140,47 @@ class Layout:
         xy = np.asarray(xy, dtype=np.float64)
         d = np.minimum.reduce([xy[..., 0], xy[..., 1], self.arena[0] - xy[..., 0], self.arena[1] - xy[..., 1]])
         for o in self.obstacles:
-            d = np.minimum(d, _box_sd(xy, o))
+            d = np.minimum(d, _signed_distance(xy, o))
         return d
 
 
-def _box_sd(xy: np.ndarray, o: Obstacle) -> np.ndarray:
+def _signed_distance(xy: np.ndarray, o: Obstacle | DiskObstacle) -> np.ndarray:
+    """Signed distance [...] from points xy [..., 2] to one obstacle (negative inside)."""
+    if isinstance(o, DiskObstacle):
+        return np.linalg.norm(xy - np.asarray(o.center), axis=-1) - o.radius
     q = np.abs(xy - np.asarray(o.center)) - np.asarray(o.half_extents)
     return np.linalg.norm(np.maximum(q, 0.0), axis=-1) + np.minimum(q.max(axis=-1), 0.0)
+
+
+PROPOSITION_RULE = "a letter or _, then letters, digits or _; not one of true false X F G U R W"
+"""What ``is_proposition`` accepts, in words (for error messages)."""
+
+
+def is_proposition(label: str) -> bool:
+    """Whether ``label`` is a proposition name of the LTL parser (``ltl.parser``: an identifier, no keyword)."""
+    try:
+        return isinstance(label, str) and parse(label) == Prop(label)
+    except UserError:
+        return False
 
 
 def validate(layout: Layout) -> None:
     """Geometric checks that do not depend on the robot. Raises ConfigError naming the field.
 
-    The start must lie inside the arena and outside every obstacle; every area disk must lie inside
-    the arena and must not overlap an obstacle; area names must be unique. The checks that need the
-    robot's size (start clearance, reachability) are in :func:`check_robot_fits`.
+    Every obstacle centre must lie inside the arena, the start inside the arena and outside every
+    obstacle; every area disk must lie inside the arena and must not overlap an obstacle; area names
+    must be unique, and a label other than the area's name must be a proposition name
+    (``is_proposition``). The checks that need the robot's size (start clearance, reachability) are
+    in :func:`check_robot_fits`.
     """
     w, h = layout.arena
     if not (w > 0 and h > 0):
         raise ConfigError("layout.arena", f"sizes must be positive, got {layout.arena}")
     for i, o in enumerate(layout.obstacles):
-        if min(o.half_extents) <= 0:
+        if isinstance(o, DiskObstacle):
+            if not o.radius > 0:
+                raise ConfigError(f"layout.obstacles[{i}].radius", f"must be positive, got {o.radius}")
+        elif min(o.half_extents) <= 0:
             raise ConfigError(f"layout.obstacles[{i}].half_extents", f"must be positive, got {o.half_extents}")
         if not (0 <= o.center[0] <= w and 0 <= o.center[1] <= h):
             raise ConfigError(f"layout.obstacles[{i}].center", f"{o.center} is outside the arena {layout.arena}")
@@ -127,7 +188,7 @@ def validate(layout: Layout) -> None:
     if not (0 < sx < w and 0 < sy < h):
         raise ConfigError("layout.start", f"{layout.start[:2]} is outside the arena {layout.arena}")
     for i, o in enumerate(layout.obstacles):
-        if _box_sd(np.array([sx, sy]), o) <= 0:
+        if _signed_distance(np.array([sx, sy]), o) <= 0:
             raise ConfigError("layout.start", f"{layout.start[:2]} is inside obstacle {i}")
     seen: set[str] = set()
     for i, a in enumerate(layout.areas):
@@ -136,12 +197,14 @@ def validate(layout: Layout) -> None:
         if a.name in seen:
             raise ConfigError(f"layout.areas[{i}].name", f"duplicate area name {a.name!r}")
         seen.add(a.name)
+        if a.label != a.name and not is_proposition(a.label):
+            raise ConfigError(f"layout.areas[{i}].label", f"{a.label!r} is not a proposition name ({PROPOSITION_RULE})")
         cx, cy = a.center
         if min(cx, cy, w - cx, h - cy) < a.radius:
             raise ConfigError(f"layout.areas[{i}]", f"area {a.name} (centre {a.center}, radius {a.radius}) "
                               f"is not inside the workspace {layout.arena}")
         for j, o in enumerate(layout.obstacles):
-            if _box_sd(np.array(a.center), o) <= a.radius:
+            if _signed_distance(np.array(a.center), o) <= a.radius:
                 raise ConfigError(f"layout.areas[{i}]", f"area {a.name} overlaps obstacle {j}")
 
 

@@ -1,0 +1,245 @@
+"""An exported policy on a robot: ``Policy.load(DIR)`` reads what ``d2spo export`` wrote and maps
+the robot's lidar ranges, pose and automaton state to an action, with numpy alone.
+
+The observation is built as ``envs.nav.Env.observe`` builds it (the manifest's ``observation``
+lists its parts); D²SPO's executed action is π_Ω(x, π_rl(obs)) with x = b(z, O_s) read off the
+observation (``sensors.cbf_input_from_obs``), then, with the filter on, the runtime filter's
+(``deploy.filter``). docs/deploy.md describes the artefact and the calls.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+
+from d2spo.deploy.dual import F32
+from d2spo.deploy.filter import Filter
+from d2spo.deploy.geometry import Map
+from d2spo.deploy.nets import Layer, Mlp, SafetyPolicy
+from d2spo.deploy.task import Automaton, TaskTracker
+from d2spo.errors import ArtefactError
+
+FORMAT = "d2spo-policy"
+"""The manifest's ``format``."""
+FORMAT_VERSION = 1
+"""The manifest's ``format_version`` this runtime reads."""
+MANIFEST = "manifest.json"
+WEIGHTS = "weights.npz"
+
+
+def file_sha256(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def _array(data, name: str, where: Path) -> np.ndarray:
+    if name not in data:
+        raise ArtefactError(f"{where}: {WEIGHTS} has no array {name!r}")
+    return np.asarray(data[name])
+
+
+class Policy:
+    """An exported policy: its networks, the map and the task, ready to act."""
+
+    def __init__(self, directory: Path, manifest: dict, arrays: dict, backend: str = "numpy"):
+        self.directory = Path(directory)
+        self.manifest = m = manifest
+        layers = lambda specs: tuple(Layer(_array(arrays, s["kernel"], directory).astype(F32),  # noqa: E731
+                                           _array(arrays, s["bias"], directory).astype(F32), s["activation"])
+                                     for s in specs)
+        sensor, lay = m["sensor"], m["layout"]
+        self.n_rays = int(sensor["n_rays"])
+        self.H = F32(sensor["sensing_radius"])
+        pts = lambda key, k, n: np.array([o[k] for o in lay[key]], F32).reshape(-1, n)  # noqa: E731
+        self.map = Map(np.array(lay["arena_lo"], F32), np.array(lay["arena_hi"], F32), pts("boxes", "lo", 2),
+                       pts("boxes", "hi", 2), pts("disks", "center", 2), pts("disks", "radius", 1)[:, 0],
+                       self.n_rays, self.H)
+        aut, areas = m["automaton"], lay["areas"]
+        self.automaton = Automaton(
+            tuple(aut["aps"]), np.array(aut["delta"], np.int32), int(aut["initial"]), np.array(aut["accepting"], bool),
+            np.array(aut["rejecting"], bool), aut["label_mode"] == "event", pts("areas", "center", 2),
+            np.array([a["radius"] for a in areas], F32), np.array([a["label_radius"] for a in areas], F32),
+            np.array([a["bit"] for a in areas], np.int32))
+        self.parts = {p["name"]: slice(p["start"], p["start"] + p["size"]) for p in m["observation"]["parts"]}
+        self.observation_size = int(m["observation"]["size"])
+        path = m.get("path_field")
+        self.path_field = None if path is None else _array(arrays, path["array"], directory).astype(F32)
+        nets = m["networks"]
+        self.actor = Mlp(layers(nets["actor"]["layers"]))
+        sp = nets.get("safety_policy")
+        self.safety_policy = None if sp is None else SafetyPolicy(
+            Mlp(layers(sp["hidden"])), *layers([sp["beta"], sp["a"]]), self.H)
+        f = m.get("filter")
+        self.filter = None if f is None else Filter(Mlp(layers(nets["cbf"]["layers"])),
+                                                    Mlp(layers(nets["nominal"]["layers"])), self.map, float(f["dt"]),
+                                                    f["alpha"], float(f["alpha_coef"]), int(f["iters"]),
+                                                    int(f["n_bisect"]))
+        self.filter_on = bool(f is not None and f["enabled"])
+        """Whether ``act`` filters by default: as the run was trained, or as ``d2spo export`` set it."""
+        act = m["action"]
+        self.v_max, self.omega_max = float(act["v_max"]), float(act["omega_max"])
+        self._session = None
+        if backend == "onnxruntime":
+            self._session = _onnx_session(self.directory, m)
+
+    @classmethod
+    def load(cls, directory, backend: str = "numpy") -> Policy:
+        """The policy ``d2spo export`` wrote into ``directory``. ``backend``: 'numpy', or
+        'onnxruntime' (the networks of π_rl and π_Ω run from policy.onnx; needs ``--onnx`` at export
+        and onnxruntime). ArtefactError when the directory is not a readable export of this format."""
+        if backend not in ("numpy", "onnxruntime"):
+            raise ValueError(f"backend must be 'numpy' or 'onnxruntime', got {backend!r}")
+        directory = Path(directory)
+        path = directory / MANIFEST
+        if not path.is_file():
+            raise ArtefactError(f"{directory}: no {MANIFEST}; is this a directory `d2spo export` wrote?")
+        try:
+            manifest = json.loads(path.read_bytes())
+        except (ValueError, RecursionError) as e:
+            raise ArtefactError(f"{path}: not valid JSON ({e})") from None
+        if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
+            raise ArtefactError(f"{path}: not a {FORMAT} manifest")
+        if manifest.get("format_version") != FORMAT_VERSION:
+            raise ArtefactError(f"{path}: format version {manifest.get('format_version')!r}; this d2spo reads "
+                                f"version {FORMAT_VERSION}")
+        try:
+            weights = directory / manifest["weights"]["file"]
+            if not weights.is_file():
+                raise ArtefactError(f"{directory}: no {weights.name}")
+            if file_sha256(weights) != manifest["weights"]["sha256"]:
+                raise ArtefactError(f"{weights}: damaged (its SHA-256 is not the manifest's)")
+            with np.load(weights, allow_pickle=False) as data:
+                arrays = {k: data[k] for k in data.files}
+            return cls(directory, manifest, arrays, backend)
+        except (KeyError, TypeError, IndexError) as e:  # a manifest edited by hand, or of a broken writer
+            raise ArtefactError(f"{path}: damaged ({type(e).__name__}: {e})") from None
+
+    # ------------------------------------------------------------------------ the observation
+
+    def observation(self, ranges, pose, q: int) -> np.ndarray:
+        """float32 [observation_size]: the env's observation from the lidar ``ranges`` [K] (m, ray k at
+        heading + 2πk/K counter-clockwise from the robot centre; above H or +inf read H), the pose
+        (x, y, θ) in the layout's frame and the automaton state q (``TaskTracker.q``)."""
+        ranges = np.asarray(ranges, F32).reshape(-1)
+        if ranges.shape[0] != self.n_rays or np.isnan(ranges).any():
+            raise ValueError(f"expected {self.n_rays} lidar ranges without NaN, got {ranges.shape[0]}: {ranges}")
+        if not 0 <= int(q) < self.automaton.n_states:
+            raise ValueError(f"automaton state {q} outside 0..{self.automaton.n_states - 1}")
+        pose = np.asarray(pose, F32).reshape(3)
+        xy, c, s = pose[:2], np.cos(pose[2]), np.sin(pose[2])
+        lo, hi = self.map.arena_lo, self.map.arena_hi
+        extent = hi - lo
+        rel = self.automaton.area_center - xy
+        forward = (c * rel[:, 0] + s * rel[:, 1]) / np.max(extent)
+        left = (c * rel[:, 1] - s * rel[:, 0]) / np.max(extent)
+        values = {
+            "lidar": np.clip(ranges, F32(0.0), self.H) / self.H,
+            "pose": np.concatenate([F32(2.0) * (xy - lo) / extent - F32(1.0), np.array([c, s], F32)]),
+            "areas": np.stack([forward, left], axis=-1).reshape(-1),
+            "automaton": (np.arange(self.automaton.n_states) == int(q)).astype(F32),
+        }
+        if "path" in self.parts:
+            d = self._descent(xy, int(q))
+            values["path"] = np.array([c * d[0] + s * d[1], c * d[1] - s * d[0]], F32)
+        obs = np.zeros(self.observation_size, F32)
+        for name, part in self.parts.items():
+            obs[part] = values[name]
+        return obs
+
+    def _descent(self, xy: np.ndarray, q: int) -> np.ndarray:
+        """``envs.geodesic.descent`` of state q's field at xy."""
+        spec = self.manifest["path_field"]
+        eps = F32(spec["eps"])
+        at = lambda d: _lookup(self.path_field[q], xy + d, F32(spec["spacing"]))  # noqa: E731
+        grad = np.array([at(np.array([eps, 0], F32)) - at(np.array([-eps, 0], F32)),
+                         at(np.array([0, eps], F32)) - at(np.array([0, -eps], F32))], F32)
+        norm = np.sqrt(grad[0] * grad[0] + grad[1] * grad[1])
+        return -grad / norm if norm > 0 else np.zeros(2, F32)
+
+    def x_of_observation(self, obs: np.ndarray) -> np.ndarray:
+        """x = b(z, O_s) [K + 1] read off an observation: its lidar part times H and the distance from
+        the position it reports to the nearest obstacle on the map (``sensors.cbf_input_from_obs``)."""
+        obs = np.asarray(obs, F32)
+        p = obs[self.parts["pose"]]
+        lo, hi = self.map.arena_lo, self.map.arena_hi
+        xy = (p[:2] + F32(1.0)) * F32(0.5) * (hi - lo) + lo
+        return np.concatenate([obs[self.parts["lidar"]] * self.H, [self.map.nearest(xy)]]).astype(F32)
+
+    def pose_of_observation(self, obs: np.ndarray) -> np.ndarray:
+        """(x, y, θ) read back from an observation's pose part (for a simulator that gives no pose)."""
+        p = np.asarray(obs, F32)[self.parts["pose"]]
+        lo, hi = self.map.arena_lo, self.map.arena_hi
+        xy = (p[:2] + F32(1.0)) * F32(0.5) * (hi - lo) + lo
+        return np.array([xy[0], xy[1], np.arctan2(p[3], p[2])], F32)
+
+    # ------------------------------------------------------------------------------- acting
+
+    def act(self, ranges, pose, q: int, filter: bool | None = None) -> np.ndarray:
+        """The action [2] in [-1, 1] for lidar ``ranges`` [K], ``pose`` (x, y, θ) and automaton state q;
+        ``filter``: the runtime filter on or off (None: ``filter_on``)."""
+        return self.act_observation(self.observation(ranges, pose, q), pose, filter)
+
+    def act_observation(self, obs, pose=None, filter: bool | None = None) -> np.ndarray:
+        """The action [2] for an observation as the env gives it; the filter reads ``pose`` (default:
+        the pose the observation reports)."""
+        obs = np.asarray(obs, F32)
+        use_filter = self.filter_on if filter is None else filter
+        if use_filter and self.filter is None:
+            raise ValueError("this policy has no runtime filter (only D²SPO's has one)")
+        if self.safety_policy is None:
+            return self._run_onnx(obs) if self._session else self.actor(obs)
+        x = self.x_of_observation(obs)
+        u = self._run_onnx(obs, x) if self._session else self.safety_policy(x, self.actor(obs))
+        if use_filter:
+            pose = self.pose_of_observation(obs) if pose is None else pose
+            u = self.filter(pose, u)[0]
+        return u
+
+    def _run_onnx(self, obs: np.ndarray, x: np.ndarray | None = None) -> np.ndarray:
+        feeds = {"obs": obs[None]} if x is None else {"obs": obs[None], "x": x[None]}
+        return self._session.run(["action"], feeds)[0][0]
+
+    def command(self, action) -> tuple[float, float]:
+        """(v, ω) the robot is commanded: the action clipped to [-1, 1] times (v_max, ω_max)."""
+        a = np.clip(np.asarray(action, F32), -1.0, 1.0)
+        return float(a[0]) * self.v_max, float(a[1]) * self.omega_max
+
+    def task_tracker(self) -> TaskTracker:
+        """A fresh tracker of the automaton state (``TaskTracker.reset`` it at the start pose)."""
+        return TaskTracker(self.automaton)
+
+    def scan(self, pose) -> np.ndarray:
+        """[K] the ranges the env's lidar reads at ``pose`` on the map (for a simulator, or to check a real scan)."""
+        pose = np.asarray(pose, F32)
+        return self.map.lidar(pose[:2], np.cos(pose[2]), np.sin(pose[2]))
+
+
+def _lookup(field: np.ndarray, xy: np.ndarray, spacing: np.float32) -> np.float32:
+    """Bilinear interpolation of one grid field at xy, clamped to the grid (``envs.geodesic.lookup``).
+    xy / spacing is taken as xy times 1/spacing, as XLA compiles a division by a constant."""
+    ny, nx = field.shape
+    inv = F32(1.0) / spacing
+    fx = np.clip(xy[0] * inv, F32(0.0), F32(nx - 1.0))
+    fy = np.clip(xy[1] * inv, F32(0.0), F32(ny - 1.0))
+    x0 = int(np.clip(np.floor(fx), 0, nx - 2))
+    y0 = int(np.clip(np.floor(fy), 0, ny - 2))
+    tx, ty = fx - F32(x0), fy - F32(y0)
+    f00, f01, f10, f11 = field[y0, x0], field[y0, x0 + 1], field[y0 + 1, x0], field[y0 + 1, x0 + 1]
+    one = F32(1.0)
+    return (one - ty) * ((one - tx) * f00 + tx * f01) + ty * ((one - tx) * f10 + tx * f11)
+
+
+def _onnx_session(directory: Path, manifest: dict):
+    onnx = manifest.get("onnx")
+    if not onnx:
+        raise ArtefactError(f"{directory}: no ONNX networks (export with `d2spo export --onnx`)")
+    try:
+        import onnxruntime
+    except ImportError:
+        raise ArtefactError("the onnxruntime backend needs onnxruntime (pip install 'd2spo[onnx]')") from None
+    path = directory / onnx["policy"]["file"]
+    if not path.is_file() or file_sha256(path) != onnx["policy"]["sha256"]:
+        raise ArtefactError(f"{path}: missing or damaged (its SHA-256 is not the manifest's)")
+    return onnxruntime.InferenceSession(str(path), providers=["CPUExecutionProvider"])

@@ -1,0 +1,97 @@
+"""The task's automaton on the robot: the letter of a position, its transitions, and a tracker that
+keeps the automaton state q the policy observes (``envs.nav.Env._letters``, ``ltl.labelling``).
+
+A letter is a bit set: bit i holds while the robot centre is inside an area labelled with the
+automaton's proposition ``aps[i]``. The state the policy observes is the *relaxed* one, read with
+each area's labelling radius (the area's own radius unless the run set ``--label-radius``); the
+task counts as done when the state read with the true radii accepts. Under ``event`` labelling
+the automaton reads a letter only when it differs from the last one and is not empty.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from d2spo.deploy.dual import F32
+
+
+@dataclass(frozen=True)
+class Automaton:
+    """The manifest's ``automaton`` and the areas' labelling data."""
+
+    aps: tuple[str, ...]
+    """Propositions; bit i of a letter is aps[i]."""
+    delta: np.ndarray
+    """int32 [Q, 2**len(aps)]: the next state for each letter."""
+    initial: int
+    accepting: np.ndarray
+    """bool [Q]."""
+    rejecting: np.ndarray
+    """bool [Q]."""
+    event: bool
+    """Event labelling (True) or step labelling."""
+    area_center: np.ndarray
+    """float32 [N, 2]."""
+    area_radius: np.ndarray
+    """float32 [N]: true radii (``q_true``, completion)."""
+    label_radius: np.ndarray
+    """float32 [N]: labelling radii (the observed q)."""
+    area_bits: np.ndarray
+    """int32 [N]: the letter bit each area sets (0: its label is no proposition of the task)."""
+
+    @property
+    def n_states(self) -> int:
+        return int(self.delta.shape[0])
+
+    def letter(self, x: float, y: float, true: bool = False) -> int:
+        """The letter at (x, y): the bits of the areas holding it, by labelling radius (or true radius)."""
+        dx = self.area_center[:, 0] - F32(x)
+        dy = self.area_center[:, 1] - F32(y)
+        radius = self.area_radius if true else self.label_radius
+        inside = dx * dx + dy * dy <= radius * radius
+        return int(np.bitwise_or.reduce(np.where(inside, self.area_bits, 0), initial=0))
+
+    def advance(self, q: int, letter: int, prev_letter: int) -> int:
+        """The state after reading ``letter`` at q, the previous step's letter being ``prev_letter``."""
+        if self.event and (letter == prev_letter or letter == 0):
+            return int(q)
+        return int(self.delta[q, letter])
+
+
+class TaskTracker:
+    """The automaton state along one run of the robot: ``reset`` at the start pose, then ``update``
+    after every control step with the pose reached. ``q`` is what the policy observes."""
+
+    def __init__(self, automaton: Automaton):
+        self.automaton = automaton
+        self.q = self.q_true = automaton.initial
+        self.letter = self.letter_true = 0
+
+    def reset(self, x: float, y: float) -> int:
+        """A new run from (x, y): the automaton reads the start's letter (as the env's reset does)."""
+        aut = self.automaton
+        self.letter, self.letter_true = aut.letter(x, y), aut.letter(x, y, true=True)
+        self.q = aut.advance(aut.initial, self.letter, 0)
+        self.q_true = aut.advance(aut.initial, self.letter_true, 0)
+        return self.q
+
+    def update(self, x: float, y: float) -> int:
+        """After a step to (x, y): the new state q."""
+        aut = self.automaton
+        letter, letter_true = aut.letter(x, y), aut.letter(x, y, true=True)
+        self.q = aut.advance(self.q, letter, self.letter)
+        self.q_true = aut.advance(self.q_true, letter_true, self.letter_true)
+        self.letter, self.letter_true = letter, letter_true
+        return self.q
+
+    @property
+    def completed(self) -> bool:
+        """The task is done (the state read with the true radii accepts)."""
+        return bool(self.automaton.accepting[self.q_true])
+
+    @property
+    def finished(self) -> bool:
+        """The episode would end here: q accepts or rejects (the env's termination)."""
+        return bool(self.automaton.accepting[self.q] or self.automaton.rejecting[self.q])
