@@ -26,7 +26,7 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(VENV)/bin/ruff check src tests bench examples
-	$(PY) -m pytest --durations=10 tests
+	$(PY) -m pytest -n 2 --dist loadgroup --durations=10 tests
 
 # What .ci/run runs on each other Python version: import, a few fast tests, a 50-episode train.
 smoke: $(STAMP)
