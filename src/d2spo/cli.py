@@ -347,6 +347,10 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     except KeyboardInterrupt:
         error("interrupted")
+        if argv is None:  # the `d2spo` command (a caller's main(args) returns): leave now, for an XLA
+            sys.stdout.flush()  # compilation still running on another thread would hold the exit for
+            sys.stderr.flush()  # its seconds, and interpreter teardown under it has crashed
+            os._exit(130)
         return 130
 
 

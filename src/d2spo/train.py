@@ -9,7 +9,6 @@ directory (the learner a config names, config.json, the policies) is ``d2spo.run
 
 from __future__ import annotations
 
-import concurrent.futures
 import contextlib
 import shutil
 import time
@@ -65,17 +64,15 @@ def _train_locked(cfg: TrainConfig, out: Path, built, resume: bool, progress: Pr
         checkpoints.tidy()
         carry = jax.tree_util.tree_map(jnp.asarray, carry)
     t_compile = _compiling([progress], [meta], cfg)
-    ahead = None
     if not (resume and meta is not None):
         if resume:
             warnings.warn(f"{out}: no checkpoint was written before it stopped; training from the first episode",
                           RunDirWarning, stacklevel=3)
-        ahead = _compile_ahead(chunk, jax.eval_shape(learner.init, key))
         carry = learner_program(learner, "init")(key)
     untrained = None
     if cfg.eval_untrained and cfg.eval_episodes > 0 and meta is None:
         untrained = jax.tree_util.tree_map(jnp.copy, learner.policy(carry))  # ``chunk`` donates the carry
-    overhead = _compiled(chunk, carry, t_enter, t_compile, [progress], [meta], cfg, ahead)
+    overhead = _compiled(chunk, carry, t_enter, t_compile, [progress], [meta], cfg)
     validation = Validation(cfg, env, params, learner) if cfg.generalist and cfg.validation_layouts else None
     run = RunRecord(cfg, out, meta, checkpoints, overhead, validation)
     chunks_this_call = 0
@@ -129,23 +126,10 @@ def _compiling(progress: list[ProgressFn | None], metas: list[dict | None], cfg:
     return time.perf_counter()
 
 
-def _compile_ahead(chunk, shapes) -> concurrent.futures.Future:
-    """Start compiling ``chunk`` for a carry of ``shapes`` on a thread of its own while ``init``
-    compiles and runs on this one: XLA compiles a program on one core, and a new run's two programs
-    then compile side by side (``_compiled`` waits for it)."""
-    pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="d2spo-compile")
-    future = pool.submit(lambda: chunk.lower(shapes).compile())
-    pool.shutdown(wait=False)
-    return future
-
-
 def _compiled(chunk, carry, t_enter: float, t_compile: float, progress: list[ProgressFn | None],
-              metas: list[dict | None], cfg: TrainConfig, ahead: concurrent.futures.Future | None = None) -> dict:
+              metas: list[dict | None], cfg: TrainConfig) -> dict:
     """Compile ``chunk`` ahead of its first call (the calls reuse the compilation), so that its time
-    is known and shown, after the compilation ``_compile_ahead`` started, if any; returns the
-    overhead times for ``RunRecord``."""
-    if ahead is not None:
-        ahead.result()
+    is known and shown; returns the overhead times for ``RunRecord``."""
     chunk.lower(carry).compile()
     now = time.perf_counter()
     for fn, meta in zip(progress, metas):
@@ -220,14 +204,12 @@ def _train_seeds_locked(cfgs: list[TrainConfig], outs: list[Path], built, progre
         carry = jax.tree_util.tree_map(jnp.asarray, carry)
         metas = gmeta["runs"]
         t_compile = _compiling(progress, metas, cfgs[0])
-        ahead = None
     else:
         group.mkdir(parents=True, exist_ok=True)
         metas = [None] * len(cfgs)
         t_compile = _compiling(progress, metas, cfgs[0])
-        ahead = _compile_ahead(chunk, jax.eval_shape(jax.vmap(learner.init), keys))
         carry = learner_program(learner, "init", vmapped=True)(keys)
-    overhead = _compiled(chunk, carry, t_enter, t_compile, progress, metas, cfgs[0], ahead)
+    overhead = _compiled(chunk, carry, t_enter, t_compile, progress, metas, cfgs[0])
     summaries: list[dict | None] = [read_json(o / "summary.json", "summary") if (o / "summary.json").is_file()
                                     else None for o in outs]
     runs = [None if s_ is not None else RunRecord(c, o, m, Checkpoints(o, p), overhead)

@@ -1,0 +1,41 @@
+"""Ctrl-C on the `d2spo` command: one line, exit status 130 within 2 s, the run directory left as
+a run that can be resumed or started again (issue #35: it died by SIGSEGV 25-37 s later)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from d2spo.runio import run_holder
+
+D2SPO = Path(sys.executable).with_name("d2spo")
+
+
+@pytest.mark.skipif(not D2SPO.exists() or os.name != "posix", reason="needs the installed d2spo command and SIGINT")
+def test_ctrl_c_while_compiling_exits_at_once_with_one_line(tmp_path):
+    out = tmp_path / "run"
+    env = {**os.environ, "D2SPO_COMPILE_CACHE": "off"}  # compiling, whatever the cache holds
+    proc = subprocess.Popen([str(D2SPO), "train", "--task", "phi1", "--layout", "paper", "--episodes", "8",
+                             "--num-envs", "2", "--out", str(out), "--no-progress"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    deadline = time.monotonic() + 120
+    while not (out / "config.json").exists():  # the run directory is prepared: compilation starts
+        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+        time.sleep(0.1)
+    time.sleep(2.0)
+    sent = time.monotonic()
+    proc.send_signal(signal.SIGINT)
+    stdout, stderr = proc.communicate(timeout=60)
+    waited = time.monotonic() - sent
+    assert proc.returncode == 130, (proc.returncode, stderr[-2000:])
+    assert waited < 2.0, waited
+    assert [ln for ln in stderr.splitlines() if ln.strip()] == ["d2spo: error: interrupted"]
+    assert run_holder(out) is None  # the lock is free
+    assert not [p.name for p in out.iterdir() if p.name.endswith(".tmp")]
