@@ -36,6 +36,8 @@ _SHARED_PROGRAMS = {
     "test_train.py": "tiny-run",
     "test_reproduce.py": "small-reproduce",  # _reproduce.small_config
     "test_fault_battery.py": "small-reproduce",
+    "test_certify_run.py": "tiny-d2spo",  # _tiny.tiny_cfg
+    "test_export.py": "tiny-d2spo",
 }
 
 

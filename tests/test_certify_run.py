@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import subprocess
 import sys
@@ -11,33 +10,17 @@ import sys
 import jax
 import numpy as np
 import pytest
+from _tiny import tiny_cfg, write_run
 
 from d2spo import cli
 from d2spo.checkpoint import Checkpoints, run_fingerprint
-from d2spo.config import TrainConfig, config_to_dict
-from d2spo.envs import EnvConfig
-from d2spo.runio import atomic_write_json
-from d2spo.safety.cbf import CBFConfig
 
 CCFG_TINY = dict(grid_step=0.25, headings=2, residual_episodes=2, search_starts=8, search_steps=4)
 """A small grid and search: certification of the tiny runs below takes seconds once compiled."""
-TINY_CBF = CBFConfig(hidden=(8,), policy_hidden=(8,), nominal_hidden=(8,), transitions_capacity=64,
-                     p_exp_capacity=64, unsafe_capacity=64, batch_size=8)
 
 
-def _tiny_cfg(algo: str = "d2spo") -> TrainConfig:
-    cfg = TrainConfig(algo=algo, task="phi1", episodes=4, num_envs=2, env=EnvConfig(layout="paper", max_steps=8),
-                      cbf=TINY_CBF)
-    cfg = dataclasses.replace(cfg, d2spo=dataclasses.replace(cfg.d2spo, pretrain=False),
-                              td3=dataclasses.replace(cfg.td3, buffer_size=64, hidden=(8,)))
-    return cfg.check()
 
 
-def _write_run(path, cfg: TrainConfig, carry=None) -> None:
-    path.mkdir(parents=True)
-    atomic_write_json(path / "config.json", config_to_dict(cfg))
-    if carry is not None:
-        Checkpoints(path, run_fingerprint(path)).save(carry, {"episodes": 0, "env_steps": 0, "chunks": 0, "wall_seconds": 0.0})
 
 
 @pytest.fixture(scope="module")
@@ -45,11 +28,11 @@ def untrained_run(tmp_path_factory):
     """A d2spo run directory whose checkpoint is the learner's initial state (no training)."""
     from d2spo.run import build
 
-    cfg = _tiny_cfg()
+    cfg = tiny_cfg()
     _, _, learner = build(cfg)
     carry = jax.jit(learner.init)(jax.random.PRNGKey(0))
     path = tmp_path_factory.mktemp("certify") / "run"
-    _write_run(path, cfg, carry)
+    write_run(path, cfg, carry)
     return path
 
 
@@ -93,12 +76,12 @@ def _one_error_line(capsys, args) -> str:
 
 def test_bad_input_gets_one_line_and_exit_2(tmp_path, capsys, untrained_run):
     assert "no such run directory" in _one_error_line(capsys, ["certify", str(tmp_path / "nothing")])
-    _write_run(tmp_path / "tlgrl", _tiny_cfg("tlgrl"))
+    write_run(tmp_path / "tlgrl", tiny_cfg("tlgrl"))
     assert "no learned CBF" in _one_error_line(capsys, ["certify", str(tmp_path / "tlgrl")])
-    _write_run(tmp_path / "nockpt", _tiny_cfg())
+    write_run(tmp_path / "nockpt", tiny_cfg())
     assert "no checkpoint" in _one_error_line(capsys, ["certify", str(tmp_path / "nockpt")])
     foreign = tmp_path / "foreign"
-    _write_run(foreign, _tiny_cfg(), carry={"something": np.zeros(3)})
+    write_run(foreign, tiny_cfg(), carry={"something": np.zeros(3)})
     assert "checkpoint" in _one_error_line(capsys, ["certify", str(foreign)])
     assert "eps_safe" in _one_error_line(capsys, ["certify", str(untrained_run), "--eps-safe", "0"])
     assert "eps_unsafe" in _one_error_line(capsys, ["certify", str(untrained_run), "--repair", "--eps-unsafe", "-1",
@@ -129,7 +112,7 @@ def filled_run(untrained_run, tmp_path_factory):
     near = np.asarray(_compiled(run, ccfg)["nearest"](jnp.asarray(grid)))
     carry = add_counterexamples(run, ccfg, run.carry, grid[near <= 0.2][:40], [(grid[near >= 0.3][:40], 0)], 1)
     path = tmp_path_factory.mktemp("repair") / "run"
-    _write_run(path, _tiny_cfg(), _shifted(run._replace(carry=carry), 0.3).carry)
+    write_run(path, tiny_cfg(), _shifted(run._replace(carry=carry), 0.3).carry)
     return path
 
 

@@ -16,40 +16,24 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _tiny import tiny_cfg, write_run
 
 from d2spo import cli
 from d2spo.algos import make_learner
-from d2spo.checkpoint import Checkpoints, run_fingerprint
-from d2spo.config import TrainConfig, config_to_dict
+from d2spo.config import TrainConfig
 from d2spo.deploy import Policy
 from d2spo.envs import EnvConfig, sensors
 from d2spo.errors import ArtefactError
 from d2spo.export import ExportConfig, export_run, write_export
 from d2spo.ltl.labelling import next_state
 from d2spo.run import build
-from d2spo.runio import atomic_write_json
-from d2spo.safety.cbf import CBFConfig
 from d2spo.safety.filter import cbf_condition
 
 ROOT = Path(__file__).resolve().parent.parent
-TINY_CBF = CBFConfig(hidden=(8,), policy_hidden=(8,), nominal_hidden=(8,), transitions_capacity=64,
-                     p_exp_capacity=64, unsafe_capacity=64, batch_size=8)
-"""tests/test_certify_run.py's tiny networks and datasets (the same programs, from the compilation cache)."""
 
 
-def _tiny_cfg(algo: str = "d2spo", layout: str = "paper", task: str = "phi1") -> TrainConfig:
-    cfg = TrainConfig(algo=algo, task=task, episodes=4, num_envs=2, env=EnvConfig(layout=layout, max_steps=8),
-                      cbf=TINY_CBF)
-    cfg = dataclasses.replace(cfg, d2spo=dataclasses.replace(cfg.d2spo, pretrain=False),
-                              td3=dataclasses.replace(cfg.td3, buffer_size=64, hidden=(8,)))
-    return cfg.check()
 
 
-def _write_run(path: Path, cfg: TrainConfig, carry=None) -> None:
-    path.mkdir(parents=True)
-    atomic_write_json(path / "config.json", config_to_dict(cfg))
-    if carry is not None:
-        Checkpoints(path, run_fingerprint(path)).save(carry, {"episodes": 0, "env_steps": 0, "chunks": 0, "wall_seconds": 0.0})
 
 
 def _has(module: str) -> bool:
@@ -80,7 +64,7 @@ def _tiny_run(root: Path, cfg: TrainConfig):
     p["params"]["Dense_0"]["bias"][0] = -1.0
     p["params"]["Dense_1"]["kernel"][0, 0] = 1.0
     carry = carry.replace(safety=carry.safety.replace(cbf=jax.tree_util.tree_map(jnp.asarray, p)))
-    _write_run(root / "run", cfg, carry)
+    write_run(root / "run", cfg, carry)
     export_run(root / "run", root / "out", ExportConfig(onnx=_has("onnx")))
     return root / "run", root / "out", cfg, learner, learner.policy(carry)
 
@@ -88,7 +72,7 @@ def _tiny_run(root: Path, cfg: TrainConfig):
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     """``_tiny_run`` of ϕ1 on ``paper``."""
-    return _tiny_run(tmp_path_factory.mktemp("export"), _tiny_cfg())
+    return _tiny_run(tmp_path_factory.mktemp("export"), tiny_cfg())
 
 
 @pytest.fixture(scope="module", params=["paper", "office"])
@@ -98,7 +82,7 @@ def case(request, tmp_path_factory):
         return request.getfixturevalue("tiny")
     root = tmp_path_factory.mktemp("office")
     (root / "office.json").write_text(json.dumps(OFFICE))
-    return _tiny_run(root, _tiny_cfg(layout=str(root / "office.json"), task="F desk & F kitchen"))
+    return _tiny_run(root, tiny_cfg(layout=str(root / "office.json"), task="F desk & F kitchen"))
 
 
 @pytest.fixture(scope="module")
@@ -193,7 +177,7 @@ def test_other_learners_export_their_actor(algo, case, states, tmp_path):
     cfg = dataclasses.replace(case[2], algo=algo)
     _, _, learner = build(cfg)
     carry = jax.jit(learner.init)(jax.random.PRNGKey(1))
-    _write_run(tmp_path / "run", cfg, carry)
+    write_run(tmp_path / "run", cfg, carry)
     m = export_run(tmp_path / "run", tmp_path / "out")
     assert m["filter"] is None and "safety_policy" not in m["networks"]
     policy = Policy.load(tmp_path / "out")
@@ -294,16 +278,16 @@ def test_export_command_and_bad_input(tiny, tmp_path, capsys):
     assert not Policy.load(tmp_path / "cli").filter_on
     assert "no such run directory" in _one_error_line(capsys, ["export", str(tmp_path / "nothing"), "--out",
                                                                str(tmp_path / "o")])
-    _write_run(tmp_path / "nockpt", _tiny_cfg())
+    write_run(tmp_path / "nockpt", tiny_cfg())
     assert "no checkpoint" in _one_error_line(capsys, ["export", str(tmp_path / "nockpt"), "--out", str(tmp_path / "o")])
     (tmp_path / "file").write_text("x")
     assert "exists and is not a directory" in _one_error_line(capsys, ["export", str(run), "--out",
                                                                        str(tmp_path / "file")])
     assert "holds no exported policy" in _one_error_line(capsys, ["export", str(run), "--out", str(run)])
-    _write_run(tmp_path / "ppo", _tiny_cfg("ppo-lag"))
+    write_run(tmp_path / "ppo", tiny_cfg("ppo-lag"))
     assert "ppo-lag is not exported" in _one_error_line(capsys, ["export", str(tmp_path / "ppo"), "--out",
                                                                  str(tmp_path / "o")])
-    _write_run(tmp_path / "td3", _tiny_cfg("td3"))
+    write_run(tmp_path / "td3", tiny_cfg("td3"))
     assert "only D²SPO has a runtime filter" in _one_error_line(capsys, ["export", str(tmp_path / "td3"), "--out",
                                                                          str(tmp_path / "o"), "--filter-iters", "2"])
     assert not (tmp_path / "o").exists()
