@@ -23,15 +23,17 @@ import numpy as np
 
 from d2spo.envs import generator
 from d2spo.envs.workspace import PROPOSITION_RULE, Area, DiskObstacle, Layout, Obstacle, is_proposition, validate
+from d2spo.envs.zones import zones_layout
 from d2spo.errors import ConfigError, json_trouble
 from d2spo.inputs import read_regular
 
 BUILTIN = ("paper", "relaxed", "open", "physical-1", "physical-2", "physical-3", "physical-4")
 """Names of the layouts shipped as JSON files in ``d2spo/envs/layouts/``."""
 
-RANDOM_KINDS = ("random", "random5")
+RANDOM_KINDS = ("random", "random5", "zones")
 """Procedural layouts by seed: ``random:SEED`` (``generator.generate``: 5-10 m arenas of three
-styles) and ``random5:SEED`` (``generator.random_layout``: 5 m arenas)."""
+styles), ``random5:SEED`` (``generator.random_layout``: 5 m arenas) and ``zones:SEED``
+(``zones.zones_layout``: ZoneEnv's eight coloured zones)."""
 
 
 # ----------------------------------------------------------------------------------- JSON parsing
@@ -179,6 +181,8 @@ def load(name_or_path: str) -> Layout:
             raise ConfigError("layout", f"random layout seed must be an integer, got {seed_text!r}") from None
         if seed < 0:
             raise ConfigError("layout", f"random layout seed must be non-negative, got {seed}")
+        if kind == "zones":
+            return zones_layout(seed)
         return generator.random_layout(seed) if kind == "random5" else generator.generate(seed)
     path = Path(name_or_path)
     if path.suffix == ".json" or path.exists():
@@ -195,7 +199,7 @@ def load(name_or_path: str) -> Layout:
             raise ConfigError("layout", f"{path}: unreadable JSON ({json_trouble(e)})") from None
         return from_json(data, default_name=path.stem)
     raise ConfigError("layout", f"unknown layout {name_or_path!r}; use one of {list(BUILTIN)}, "
-                      "'random[:SEED]', 'random5[:SEED]' or a path to a .json file")
+                      "'random[:SEED]', 'random5[:SEED]', 'zones[:SEED]' or a path to a .json file")
 
 
 def random_seed(name_or_path: str) -> tuple[str, int] | None:

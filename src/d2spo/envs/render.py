@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.colors import is_color_like
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle, Rectangle
 
@@ -31,10 +32,14 @@ def obstacle_patch(o: Obstacle | DiskObstacle, **style):
 
 
 def area_colors(layout: Layout) -> list[str]:
-    """Each area's colour: ``AREA_COLOR`` when every label is one area's, else one colour per label."""
+    """Each area's colour: ``AREA_COLOR`` when every label is one area's, else one colour per label:
+    the label itself when every label names a colour (``zones:SEED``'s green, yellow, blue and
+    magenta), else ``LABEL_COLORS`` in order of first use."""
     labels = layout.labels
     if len(labels) == len(layout.areas):
         return [AREA_COLOR] * len(layout.areas)
+    if all(is_color_like(label) for label in labels):
+        return [a.label for a in layout.areas]
     return [LABEL_COLORS[labels.index(a.label) % len(LABEL_COLORS)] for a in layout.areas]
 
 
