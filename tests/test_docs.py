@@ -29,3 +29,27 @@ def test_every_python_block_runs_as_written(page, tmp_path, monkeypatch, capsys)
             exec(compile(code, f"{page.name}, python block {i}", "exec"), namespace)
         except Exception as e:  # noqa: BLE001 - the test names the block that failed
             pytest.fail(f"{page.name}, python block {i} of {len(blocks(page))}: {type(e).__name__}: {e}")
+
+
+def test_the_pages_ship_with_the_package_and_d2spo_docs_reads_them(capsys):
+    from d2spo.cli import main
+    from d2spo.cli_docs import pages
+
+    shipped = pages()
+    assert set(shipped) == {p.stem for p in (ROOT / "docs").glob("*.md")}
+    assert main(["docs"]) == 0
+    listing = capsys.readouterr().out
+    assert "ltl  " in listing and "LTL tasks" in listing
+    assert main(["docs", "docs/ltl.md"]) == 0 and "Büchi automata" in capsys.readouterr().out
+    assert main(["docs", "ltl", "--path"]) == 0 and capsys.readouterr().out.strip().endswith("ltl.md")
+    assert main(["docs", "nope"]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == [
+        f"d2spo: error: no documentation page 'nope'; the pages: {', '.join(shipped)}"]
+
+
+def test_every_page_the_code_names_exists():
+    """Help texts and errors name pages as docs/NAME.md: `d2spo docs NAME` must find each."""
+    named = set()
+    for path in (ROOT / "src" / "d2spo").rglob("*.py"):
+        named |= set(re.findall(r"docs/([a-z_]+)\.md", path.read_text(encoding="utf-8")))
+    assert named and named <= {p.stem for p in (ROOT / "docs").glob("*.md")}, named

@@ -22,9 +22,10 @@ from rich.console import Console
 
 from d2spo import compile_cache
 from d2spo.certify import CertifyConfig, certify_run, load_cbf_run, write_outputs
+from d2spo.cli_docs import DocsCmd
 from d2spo.cli_export import ExportCmd
 from d2spo.cli_reproduce import ReportCmd, ReproduceCmd
-from d2spo.config import TrainConfig, algo_named, config_differences, flags_for, plain
+from d2spo.config import TrainConfig, algo_named, config_differences, config_file_named, flags_for, plain
 from d2spo.console import (
     error,
     print_certify,
@@ -44,7 +45,7 @@ from d2spo.envs.render import save_layout_png
 from d2spo.errors import ConfigError, D2SPOWarning, LTLSyntaxError, NaNError, UserError
 from d2spo.evaluate import EvalConfig, evaluate_run, write_evaluation
 from d2spo.fields import check_fields
-from d2spo.ltl import task_formula, translate
+from d2spo.ltl import task_automaton, task_formula
 from d2spo.plots import check_picture_path, evaluation_figure, state_fields_figure
 from d2spo.progress import train_with_progress
 from d2spo.repair import RepairConfig, repair_run
@@ -79,7 +80,7 @@ class LtlCmd:
             raise UserError("--plot needs --layout")
         if self.plot is not None:
             check_picture_path(self.plot, "plot")
-        aut = translate(task_formula(self.formula))
+        aut = task_automaton(task_formula(self.formula))  # a Büchi task where no finite run completes it
         if self.all_letters:
             feasible, letters = None, "every letter (all areas may hold at once)"
         elif self.layout is not None:
@@ -153,6 +154,8 @@ class TrainCmd:
     flags listed are those of the learner --algo names (default d2spo): `d2spo train --algo cpo --help`."""
 
     cfg: Annotated[TrainConfig, tyro.conf.arg(name="")]
+    from_config: Annotated[Path | None, tyro.conf.arg(name="config")] = None
+    """Train from this config.json (as a run directory holds it); flags given beside it override its fields."""
     out: Path | None = None
     """Run directory; None: runs/ALGO-TASK-LAYOUT-sSEED."""
     resume: Path | None = None
@@ -165,6 +168,8 @@ class TrainCmd:
     def config(self) -> TrainConfig:
         """The run's config: the flags, with the --dynamics file filling the dynamics fields they leave unset."""
         cfg = plain(self.cfg)
+        if self.resume is not None and self.from_config is not None:
+            raise ConfigError("resume", "continues the run with its own config.json; leave out --config")
         if self.resume is not None:  # the run's own config.json wins: a flag beside it would be ignored
             given = [f for f, v in (("--out", self.out), ("--dynamics", self.dynamics)) if v is not None]
             if given := given + ["--" + d.split(":")[0].replace("_", "-") for d in config_differences(TrainConfig(), cfg)]:
@@ -283,13 +288,17 @@ class CertifyCmd:
         return 0
 
 
-def commands(algo: str):
-    """The subcommands, ``train`` with the flags of the learner ``algo`` (``config.flags_for``)."""
-    train = dataclasses.make_dataclass("TrainCmd", [("cfg", Annotated[flags_for(algo), tyro.conf.arg(name="")])],
+def commands(algo: str, base: TrainConfig | None = None):
+    """The subcommands, ``train`` with the flags of the learner ``algo`` (``config.flags_for``), their
+    defaults ``base``'s (the ``--config`` file's) if given."""
+    flags = flags_for(algo)
+    train = dataclasses.make_dataclass("TrainCmd", [("cfg", Annotated[flags, tyro.conf.arg(name="")])],
                                        bases=(TrainCmd,))
     train.__doc__ = TrainCmd.__doc__
+    default = None if base is None else train(cfg=flags(**{f.name: getattr(base, f.name)
+                                                            for f in dataclasses.fields(TrainConfig)}))
     return Union[
-        Annotated[train, tyro.conf.subcommand("train")],
+        Annotated[train, tyro.conf.subcommand("train", default=default)],
         Annotated[EvalCmd, tyro.conf.subcommand("eval")],
         Annotated[LtlCmd, tyro.conf.subcommand("ltl")],
         Annotated[EnvCmd, tyro.conf.subcommand("env")],
@@ -298,6 +307,7 @@ def commands(algo: str):
         Annotated[ReportCmd, tyro.conf.subcommand("report")],
         Annotated[CertifyCmd, tyro.conf.subcommand("certify")],
         Annotated[ExportCmd, tyro.conf.subcommand("export")],
+        Annotated[DocsCmd, tyro.conf.subcommand("docs")],
     ]
 
 
@@ -306,10 +316,11 @@ def parse(args: list[str]):
     if args in (["--version"], ["-V"]):
         print(f"d2spo {version()}")
         raise SystemExit(0)
+    base = config_file_named(args)  # `train --config FILE`: its fields are the flags' defaults
     buf = io.StringIO()
     try:
         with contextlib.redirect_stderr(buf):
-            return tyro.cli(commands(algo_named(args)), args=args, prog="d2spo",
+            return tyro.cli(commands(algo_named(args, base), base), args=args, prog="d2spo",
                             description="D²SPO: safe RL with LTL tasks and learned control barrier functions. "
                                         "`d2spo --version` prints the version.")
     except SystemExit as e:

@@ -8,6 +8,7 @@ default changed, the old one: ``FORMER_DEFAULTS``).
 from __future__ import annotations
 
 import dataclasses
+import json
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,8 +25,9 @@ from d2spo.algos.sac_lag import SACLagConfig
 from d2spo.algos.td3 import DEFAULT_WIDTHS, TD3Config
 from d2spo.algos.td3_lag import TD3LagConfig
 from d2spo.envs import EnvConfig
-from d2spo.errors import ConfigError
+from d2spo.errors import ConfigError, json_trouble
 from d2spo.fields import check_fields
+from d2spo.inputs import read_regular
 from d2spo.ltl.anneal import AnnealConfig
 from d2spo.memory import check_memory
 from d2spo.safety.cbf import CBFConfig
@@ -271,10 +273,42 @@ def flags_for(algo: str) -> type:
     return dataclasses.make_dataclass("TrainConfig", hidden, bases=(TrainConfig,), frozen=True)
 
 
-def algo_named(args: list[str]) -> str:
-    """The learner a ``d2spo train`` command line names with ``--algo`` (default: ``TrainConfig``'s)."""
-    given = [b for a, b in zip(args, args[1:]) if a == "--algo"] + [a[7:] for a in args if a.startswith("--algo=")]
-    return given[-1] if given else TrainConfig.algo
+def _flag_value(args: list[str], flag: str) -> str | None:
+    """The last value ``--flag V`` or ``--flag=V`` gives on a command line, None if none does."""
+    given = [b for a, b in zip(args, args[1:]) if a == flag] + [a[len(flag) + 1:] for a in args
+                                                                  if a.startswith(flag + "=")]
+    return given[-1] if given else None
+
+
+def algo_named(args: list[str], base: TrainConfig | None = None) -> str:
+    """The learner a ``d2spo train`` command line names with ``--algo`` (default: ``base``'s, the
+    ``--config`` file's, or ``TrainConfig``'s)."""
+    return _flag_value(args, "--algo") or (base or TrainConfig).algo
+
+
+def config_file_named(args: list[str]) -> TrainConfig | None:
+    """The config of the file ``d2spo train --config FILE`` names (``config_file``), None without one."""
+    path = _flag_value(args, "--config") if args[:1] == ["train"] else None
+    return None if path is None else config_file(Path(path))
+
+
+def config_file(path: Path) -> TrainConfig:
+    """The config a config.json file describes (as a run directory holds it: ``config_to_dict``); a
+    missing file, a file that is not JSON or a wrong field is a ConfigError naming the file."""
+    def fail(message: str) -> ConfigError:
+        return ConfigError("config", f"{path}: {message}")
+
+    text = read_regular(path, lambda message: ConfigError("config", message))  # its messages name the file
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise fail(f"not valid JSON ({e.msg} at line {e.lineno})") from None
+    except (RecursionError, ValueError) as e:
+        raise fail(f"not valid JSON ({json_trouble(e)})") from None
+    try:
+        return config_from_dict(data)
+    except ConfigError as e:
+        raise fail(str(e)) from None
 
 
 def plain(cfg: TrainConfig) -> TrainConfig:

@@ -109,6 +109,8 @@ def print_evaluation(res: dict, path: Path, filter_asked: bool | None) -> None:
     else:
         row(per[0]["layout"], res)
     Console().print(t)
+    if "accepting_visits_per_episode" in res:  # a Büchi task: scored by its accepting visits too
+        print(f"accepting visits per episode: {res['accepting_visits_per_episode']:.2f}")
     print(f"wrote {path}")
 
 

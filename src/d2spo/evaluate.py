@@ -200,6 +200,8 @@ def evaluate_run(run_dir: Path, ecfg: EvalConfig = EvalConfig(), keep_paths: int
         **{k: float(np.mean([r[k] for r in results]))
            for k in ("safety_rate", "completion_rate", "mean_return", "mean_distance")},
     }
+    if results and all("accepting_visits_per_episode" in r for r in results):  # a Büchi task (``ltl.buchi_task``)
+        out["accepting_visits_per_episode"] = float(np.mean([r["accepting_visits_per_episode"] for r in results]))
     if paths is not None:
         out["paths"] = paths
     return out

@@ -59,7 +59,7 @@ def policy_trajectories(learner, policy, env, params, episodes: int, seed: int, 
     (e.g. for several snapshots of one run)."""
     if rollout is None:
         rollout = make_rollout(learner, env, episodes, int(params.max_steps))
-    collided, completed, _, _, poses = rollout(params, policy, jax.random.PRNGKey(seed))
+    collided, completed, _, _, poses, *_ = rollout(params, policy, jax.random.PRNGKey(seed))
     return np.asarray(poses), np.asarray(collided), np.asarray(completed)
 
 

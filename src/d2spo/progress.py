@@ -37,10 +37,15 @@ def summary_table(summary: dict, title: str):
     t.add_row(f"safety rate (last {summary['window_episodes']})", pct(summary["safety_rate"]))
     t.add_row(f"completion rate (last {summary['window_episodes']})", pct(summary["completion_rate"]))
     t.add_row("completion rate, relaxed labelling", pct(summary["completion_rate_relaxed"]))
+    if "accepting_visits_per_episode" in summary:  # a Büchi task
+        t.add_row(f"accepting visits per episode (last {summary['window_episodes']})",
+                  f"{summary['accepting_visits_per_episode']:.2f}")
     if "eval" in summary:
         e = summary["eval"]
         t.add_row(f"final policy: safety ({e['episodes']} episodes)", pct(e["safety_rate"]))
         t.add_row(f"final policy: completion ({e['episodes']} episodes)", pct(e["completion_rate"]))
+        if "accepting_visits_per_episode" in e:
+            t.add_row("final policy: accepting visits per episode", f"{e['accepting_visits_per_episode']:.2f}")
     return t
 
 
@@ -84,7 +89,8 @@ def _label(cfg: TrainConfig, width: int = 22) -> str:
 
 def _stats(d: dict, eps_per_s: float) -> str:
     pct = lambda v: "–" if v != v else f"{100 * v:.1f}%"  # NaN before the first episode ends
-    return (f"{eps_per_s:.1f} ep/s · safe {pct(d['safety_rate'])} · done {pct(d['completion_rate'])} "
+    visits = f" · visits {d['accepting_visits']:.2f}/ep" if "accepting_visits" in d else ""  # a Büchi task
+    return (f"{eps_per_s:.1f} ep/s · safe {pct(d['safety_rate'])}{visits} · done {pct(d['completion_rate'])} "
             f"(relaxed {pct(d['completion_rate_relaxed'])})")
 
 

@@ -30,6 +30,8 @@ from d2spo.runio import EpisodeWriter, atomic_write_bytes, atomic_write_json, wi
 
 ProgressFn = Callable[[dict], None]
 """What a run reports its progress to: one dict per event (``d2spo.progress`` draws them)."""
+EPISODE_SCALARS = {"episode/return": 1, "episode/cost": 2, "episode/completed": 4}
+"""TensorBoard's per-episode scalars (x: the episode's index) and their columns in ``rows_from_log``'s rows."""
 
 
 def rows_from_log(log: ChunkLog, first_episode: int, limit: int) -> list[tuple]:
@@ -49,6 +51,21 @@ def rows_from_log(log: ChunkLog, first_episode: int, limit: int) -> list[tuple]:
             int(cols[3][i]), int(cols[4][i]), int(cols[5][i]), round(float(end[i, 0]), 3), round(float(end[i, 1]), 3),
         ))
     return rows
+
+
+def visits_per_episode(visit, done, running: np.ndarray | None) -> tuple[list[int], np.ndarray]:
+    """A Büchi task's accepting visits per episode that ends in a chunk, in ``rows_from_log``'s
+    (step, env) order, and each env's count so far in its unfinished episode. ``visit`` and ``done``
+    are [chunk_steps, num_envs]; ``running`` the counts the previous chunk left (None: zeros)."""
+    visit, done = np.asarray(visit, np.int64), np.asarray(done)
+    running = np.zeros(visit.shape[1], np.int64) if running is None else running.copy()
+    counts = []
+    for t in range(visit.shape[0]):
+        running += visit[t]
+        for e in np.flatnonzero(done[t]):
+            counts.append(int(running[e]))
+            running[e] = 0
+    return counts, running
 
 
 class NaNGuard:
@@ -107,6 +124,8 @@ class RunRecord:
             self.next_validation = (self.meta["episodes"] // cfg.validate_every + 1) * cfg.validate_every
         self.t_start = time.perf_counter() - self.meta["wall_seconds"]
         self.guard = NaNGuard(cfg.chunk_steps)
+        self.visits: list[int] = []  # a Büchi task's accepting visits per episode (this session's)
+        self.visit_run: np.ndarray | None = None  # per env, in its unfinished episode
 
     @property
     def done(self) -> bool:
@@ -124,6 +143,9 @@ class RunRecord:
             raise NaNError(f"training stopped at episode {len(writer)}: {problem}; episodes.csv holds the "
                            f"episodes before it and {where}")
         writer.append(rows)
+        if log.accepting_visit is not None:  # a Büchi task (``ltl.buchi_task``)
+            counts, self.visit_run = visits_per_episode(log.accepting_visit, log.done, self.visit_run)
+            self.visits += counts[:len(rows)]
         meta["chunks"] += 1
         meta["env_steps"] += cfg.chunk_steps * cfg.num_envs
         meta["episodes"] = len(writer)
@@ -132,6 +154,9 @@ class RunRecord:
             v = np.asarray(v, dtype=np.float64)
             if np.any(np.isfinite(v)):
                 self.tb.add_scalar(k, float(np.nanmean(v)), meta["env_steps"])
+        for row in rows:  # per finished episode, at its index (about 0.1 ms each)
+            for tag, col in EPISODE_SCALARS.items():
+                self.tb.add_scalar(tag, row[col], row[0])
         if rows:
             rates = window_rates(writer.rows, 100)
             self.tb.add_scalar("charts/safety_rate_100", rates["safety_rate"], meta["env_steps"])
@@ -140,7 +165,8 @@ class RunRecord:
                                meta["env_steps"])
         if progress is not None:
             progress({"episodes": len(writer), "total": cfg.episodes, "env_steps": meta["env_steps"],
-                      "wall_seconds": meta["wall_seconds"], **window_rates(writer.rows, 200)})
+                      "wall_seconds": meta["wall_seconds"], **window_rates(writer.rows, 200),
+                      **({"accepting_visits": float(np.mean(self.visits[-200:]))} if self.visits else {})})
 
     def save(self, learner, carry, force: bool = False) -> bool:
         """Snapshots that are due, and the checkpoint every ``checkpoint_every`` episodes (or now).
@@ -196,6 +222,8 @@ class RunRecord:
             "window": cfg.window, **window_rates(self.writer.rows, cfg.window),
             "device": jax.devices()[0].platform,
         }
+        if params.aut.visit is not None:  # a Büchi task: mean over the window (of this session's episodes)
+            summary["accepting_visits_per_episode"] = float(np.mean(self.visits[-cfg.window:])) if self.visits else None
         t_eval = time.perf_counter()
         if cfg.eval_episodes > 0:
             if progress is not None:

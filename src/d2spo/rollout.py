@@ -29,7 +29,8 @@ def acting_on(learner: Learner, params) -> Learner:
 def make_rollout(learner: Learner, env, episodes: int, max_steps: int):
     """A jitted ``(params, policy, key) -> (collided, completed, return, length, poses)``: ``episodes``
     envs in parallel, one deterministic episode each; poses are [E, T + 1, 3]. The env params are an
-    argument, so one compilation serves every layout with the same array shapes."""
+    argument, so one compilation serves every layout with the same array shapes. For a Büchi task
+    (``params.aut.visit`` set) the tuple ends with each episode's accepting visits [E] too."""
 
     def one(params, policy, key):
         lrn = acting_on(learner, params)
@@ -37,21 +38,25 @@ def make_rollout(learner: Learner, env, episodes: int, max_steps: int):
         state, obs = env.reset(k0, params)
 
         def body(c, k):
-            state, obs, alive, ret, length, collided, completed = c
+            (state, obs, alive, ret, length, collided, completed), visits = c[:7], c[7:]
             a = lrn.act(policy, obs, state, k)
             state2, obs2, r, _, done, info = env.step(k, state, a, params)
+            if visits:
+                visits = (visits[0] + (alive & info["accepting_visit"]).astype(jnp.int32),)
             ret = ret + jnp.where(alive, r, 0.0)
             length = length + alive.astype(jnp.int32)
             collided = collided | (alive & info["collided"])
             completed = completed | (alive & info["completed"])
             pose = jnp.where(alive, info["next_pose"], jnp.full_like(info["next_pose"], jnp.nan))
-            return (state2, obs2, alive & ~done, ret, length, collided, completed), pose
+            return (state2, obs2, alive & ~done, ret, length, collided, completed, *visits), pose
 
         init = (state, obs, jnp.bool_(True), jnp.float32(0.0), jnp.int32(0), jnp.bool_(False), jnp.bool_(False))
-        (_, _, _, ret, length, collided, completed), poses = jax.lax.scan(
+        if params.aut.visit is not None:
+            init = (*init, jnp.int32(0))
+        (_, _, _, ret, length, collided, completed, *visits), poses = jax.lax.scan(
             body, init, jax.random.split(k1, max_steps))
         start = state.pose
-        return collided, completed, ret, length, jnp.concatenate([start[None], poses], 0)
+        return collided, completed, ret, length, jnp.concatenate([start[None], poses], 0), *visits
 
     @jax.jit
     def run(params, policy, key):
@@ -60,10 +65,10 @@ def make_rollout(learner: Learner, env, episodes: int, max_steps: int):
     return run
 
 
-def rates(collided, completed, ret, length, poses=None) -> dict:
+def rates(collided, completed, ret, length, poses=None, visits=None) -> dict:
     """Safety and completion (true labelling) of finished evaluation episodes; with the [E, T + 1, 3]
     poses of ``make_rollout`` also the mean distance driven (m), which tells a safe policy that
-    moves from one that stands still."""
+    moves from one that stands still; with a Büchi task's ``visits`` [E], their mean per episode."""
     collided, completed = np.asarray(collided), np.asarray(completed)
     out = {
         "episodes": int(collided.shape[0]),
@@ -75,6 +80,8 @@ def rates(collided, completed, ret, length, poses=None) -> dict:
     if poses is not None:
         step = np.linalg.norm(np.diff(np.asarray(poses)[..., :2], axis=1), axis=-1)  # NaN after the end
         out["mean_distance"] = float(np.nansum(step, axis=1).mean())
+    if visits is not None:
+        out["accepting_visits_per_episode"] = float(np.asarray(visits).mean())
     return out
 
 

@@ -36,6 +36,9 @@ class ChunkLog(NamedTuple):
     """Scalars per step, [chunk_steps], namespaced (``losses/qf``, ``charts/lambda``); NaN = no value."""
     nonfinite: jax.Array
     """bool []: some parameter is NaN/inf at the end of the chunk (a NaN loss poisons them)."""
+    accepting_visit: jax.Array | None = None
+    """bool [chunk_steps, num_envs]: the step was an accepting visit of a Büchi task (true labelling;
+    ``info["accepting_visit"]``); None for a monitor task."""
 
 
 def episode_log(done: jax.Array, info: dict[str, jax.Array], metrics: dict[str, jax.Array]) -> ChunkLog:
@@ -51,6 +54,7 @@ def episode_log(done: jax.Array, info: dict[str, jax.Array], metrics: dict[str, 
         ep_end_xy=info["next_pose"][..., :2],
         metrics=metrics,
         nonfinite=jnp.zeros((), bool),
+        accepting_visit=info.get("accepting_visit"),
     )
 
 

@@ -86,7 +86,7 @@ def compile_task(automaton: Any, layout: Layout, label_mode: str, robot_radius: 
     feasible = tuple(layouts.feasible_letters(layout, aps, label_mode))
     bits = np.array([1 << aps.index(a.label) if a.label in aps else 0 for a in layout.areas], np.int32)
     if not isinstance(automaton, Automaton):  # arrays() only
-        arrays = AutomatonArrays(*(jnp.asarray(a) for a in automaton.arrays(list(feasible))))
+        arrays = AutomatonArrays(*(None if a is None else jnp.asarray(a) for a in automaton.arrays(list(feasible))))
         return CompiledTask(automaton, layout, label_mode, robot_radius, feasible, None, arrays, bits, None, None)
     distance = automaton.distances(feasible)
     arrays = automaton.arrays(feasible, distance)

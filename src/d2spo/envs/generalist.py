@@ -278,7 +278,8 @@ def make_generalist_env(cfg: EnvConfig, task: Any, bank: LayoutBank, max_steps: 
     bits = np.array([aut.letter([f"A{i + 1}"]) if f"A{i + 1}" in aut.aps else 0 for i in range(N_AREAS)], np.int32)
     params = GeneralParams(
         **robot_fields(cfg, max_steps), **_layout_fields(bank, jnp.zeros((), jnp.int32)),
-        aut=AutomatonArrays(*(jnp.asarray(x) for x in aut.arrays(singles, distance))), area_bits=jnp.asarray(bits),
+        aut=AutomatonArrays(*(None if x is None else jnp.asarray(x) for x in aut.arrays(singles, distance))),
+        area_bits=jnp.asarray(bits),
         advance=jnp.asarray(target), relax_mask=jnp.ones_like(jnp.asarray(target)),
         geodesic=jnp.zeros((N_AREAS, 1, 1), jnp.float32), state_field=jnp.zeros((aut.n_states, 1, 1), jnp.float32),
         bank=bank, target_areas=jnp.asarray(target), forbidden_areas=jnp.asarray(forbidden),

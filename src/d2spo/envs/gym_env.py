@@ -159,9 +159,11 @@ class NavEnv(gymnasium.Env):
     metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array", "human"] if _has_display() else ["rgb_array"], "render_fps": 10}
 
     def __init__(self, task: Any = "phi1", config: EnvConfig | None = None, render_mode: str | None = None,
-                 **overrides):
+                 max_episode_steps: int | None = None, **overrides):
         _refuse_forked_workers()
         _check_render_mode(render_mode, ["rgb_array", "human"])
+        if max_episode_steps is not None:  # as NavVectorEnv's; gym.make gives its own to TimeLimit
+            overrides["max_steps"] = max_episode_steps
         self._fns = compiled(env_config(config, overrides), task)
         self.env, self.params = self._fns.env, self._fns.params
         self.observation_space, self.action_space = _spaces(self.env)
@@ -328,11 +330,19 @@ class VectorCostTuple(VectorWrapper):
 
 
 def register() -> None:
-    """Register ``d2spo/Nav-v0`` with gymnasium (done on ``import d2spo.envs``; idempotent)."""
+    """Register ``d2spo/Nav-v0`` with gymnasium (done on ``import d2spo.envs``; idempotent).
+
+    The spec's ``max_episode_steps`` is the default config's step limit (``EnvConfig.base_max_steps``,
+    what the default task on the default layout gets), so ``gym.make`` adds ``TimeLimit`` with it; the
+    env also truncates itself at its own ``max_steps``, which a long route raises (docs/env.md). The
+    kwarg ``max_episode_steps=None`` keeps ``make_vec`` from passing the spec's limit on as ``max_steps``:
+    a vector env keeps its own limit unless the caller gives one."""
     if ENV_ID in gymnasium.registry:
         return
     gymnasium.register(
         id=ENV_ID,
         entry_point="d2spo.envs.gym_env:NavEnv",
         vector_entry_point="d2spo.envs.gym_env:NavVectorEnv",
+        max_episode_steps=EnvConfig().base_max_steps,
+        kwargs={"max_episode_steps": None},
     )

@@ -37,9 +37,10 @@ from d2spo.envs.compiled_task import CompiledTask, compile_task
 from d2spo.envs.env_config import EnvConfig
 from d2spo.envs.params import EnvParams, env_params
 from d2spo.envs.workspace import Layout
-from d2spo.ltl import task_formula, translate
+from d2spo.errors import ConfigError
+from d2spo.ltl import BuchiTask, task_automaton, task_formula
 from d2spo.ltl.automaton import Automaton
-from d2spo.ltl.labelling import next_state
+from d2spo.ltl.labelling import accepting_visit, next_state
 from d2spo.ltl.reward import PER_STATE, distance_to_progress, step_reward
 
 
@@ -253,7 +254,8 @@ class Env:
             return (self.shaping_distance(state.pose[:2], state.q, params),
                     self.shaping_distance(pose[:2], q_next, params), diag)
 
-        reward = step_reward(aut, state.q, q_next, collided, params.reward, shaping_distances)
+        visit = accepting_visit(aut, state.q, letter, state.letter, params.event)  # None for a monitor
+        reward = step_reward(aut, state.q, q_next, collided, params.reward, shaping_distances, visit)
 
         completed = aut.accepting[q_true_next]
         completed_relaxed = aut.accepting[q_next]
@@ -301,6 +303,8 @@ class Env:
             "ep_completed": completed,
             "ep_completed_relaxed": completed_relaxed,
         }
+        if aut.visit is not None:  # a Büchi task: its accepting visits under the true labelling
+            info["accepting_visit"] = accepting_visit(aut, state.q_true, letter_true, state.letter_true, params.event)
         return new_state, obs, reward, cost, done, info
 
     # ---------------------------------------------------------------------------------- batch
@@ -342,9 +346,13 @@ def make_env(cfg: EnvConfig, task: Any = "phi1") -> tuple[Env, EnvParams]:
     (``preflight.default_max_steps``).
     """
     cfg, layout = checked_layout(cfg)
-    automaton = translate(task_formula(task)) if isinstance(task, str) else task
+    automaton = task_automaton(task_formula(task)) if isinstance(task, str) else task
     name = task if isinstance(task, str) else "the task"
     per_state = cfg.reward.shaping_metric == PER_STATE
+    if per_state and isinstance(automaton, BuchiTask) and not automaton.accepting:
+        raise ConfigError("reward.shaping_metric", f"{name!r} is a recurrence task (no finite run completes it; it "
+                          f"is scored by its accepting visits): the per-state shaping ({PER_STATE}, the default) "
+                          "is not built for it; use --shaping-metric geodesic")
     compiled = compile_task(automaton, layout, cfg.label_mode, cfg.robot_radius,
                             cfg.reward.field_costs(cfg.robot_radius) if per_state else None)
     preflight.check_letters(compiled, name)

@@ -130,10 +130,11 @@ def preflight(env, params, name: str, margin: float = 0.0, episode_time: bool = 
     has checked it, so this reads its result); with ``margin`` over the robot's radius, a route keeps
     it (``check_margin``: D²SPO's and SL's barrier d); with ``episode_time``, the task fits in
     ``params.max_steps`` (``check_time``; evaluating a trained run skips it: nothing can be done about
-    its episodes then). Nothing to check without one task on one layout (the generalist's bank) or
-    with an automaton given by its arrays only."""
+    its episodes then). Nothing to check without one task on one layout (the generalist's bank),
+    with an automaton given by its arrays only, or for a recurrence task (no state completes it: it
+    runs to the step limit, scored by its accepting visits; ``ltl.buchi_task``)."""
     task = env.task
-    if task is None or task.distance is None:
+    if task is None or task.distance is None or not task.automaton.accepting:
         return
     cfg = env.config
     if task.fields is not None:

@@ -44,6 +44,7 @@ from d2spo.envs.layouts import letters_at
 from d2spo.envs.workspace import Layout
 from d2spo.errors import ConfigError
 from d2spo.ltl.automaton import UNREACHABLE, Automaton
+from d2spo.ltl.buchi_task import BuchiTask
 
 NEUTRAL, TARGET, FORBIDDEN = 0, 1, 2
 """Roles of a letter read in a state."""
@@ -74,7 +75,8 @@ def letter_roles(aut: Automaton, distance: list[int | None], event: bool) -> np.
 
     ``distance`` is ``aut.distances(feasible_letters)``. States that are accepting, rejecting or
     cannot reach acceptance give every letter NEUTRAL. Under event labelling the empty letter is
-    never read, so it is NEUTRAL.
+    never read, so it is NEUTRAL. A Büchi task's accepting visit (``BuchiTask.visits``) is a TARGET,
+    although the distance restarts after it.
     """
     d = np.array([UNREACHABLE if x is None else x for x in distance], np.int64)
     delta = np.asarray(aut.delta, np.int64).reshape(aut.n_states, aut.n_letters)
@@ -82,6 +84,8 @@ def letter_roles(aut: Automaton, distance: list[int | None], event: bool) -> np.
     rejecting[sorted(aut.rejecting)] = True
     live = (d < UNREACHABLE) & (d > 0)
     target = (d[delta] < d[:, None]) & live[:, None]
+    if isinstance(aut, BuchiTask):
+        target = target | np.asarray(aut.visits, bool).reshape(delta.shape)
     forbidden = (rejecting[delta] | (d[delta] > d[:, None])) & live[:, None]
     roles = np.where(target, TARGET, np.where(forbidden, FORBIDDEN, NEUTRAL)).astype(np.int8)
     if event:

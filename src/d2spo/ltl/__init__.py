@@ -2,6 +2,7 @@
 
 from d2spo.ltl.automaton import UNREACHABLE, Automaton, AutomatonArrays, AutomatonTooLarge
 from d2spo.ltl.buchi import BuchiAutomaton, NoDeterministicBuchi, to_dba
+from d2spo.ltl.buchi_task import BuchiTask, task_automaton
 from d2spo.ltl.parser import parse
 from d2spo.ltl.tasks import TASKS, task_formula
 from d2spo.ltl.translate import NeverCompletedWarning, translate
@@ -13,9 +14,11 @@ __all__ = [
     "AutomatonArrays",
     "AutomatonTooLarge",
     "BuchiAutomaton",
+    "BuchiTask",
     "NeverCompletedWarning",
     "NoDeterministicBuchi",
     "parse",
+    "task_automaton",
     "task_formula",
     "to_dba",
     "translate",

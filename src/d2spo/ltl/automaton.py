@@ -39,6 +39,10 @@ class AutomatonArrays(NamedTuple):
     """int32 [Q]: fewest feasible letters to reach acceptance (UNREACHABLE if impossible)."""
     initial: jnp.ndarray
     """int32 []: initial state."""
+    visit: jnp.ndarray | None = None
+    """bool [Q, 2**n_aps]: reading the letter in the state takes an accepting transition of a
+    deterministic Büchi automaton, an *accepting visit* (``ltl.buchi_task.BuchiTask``); None for a
+    monitor (``translate``), whose episodes end at acceptance."""
 
 
 @dataclass(frozen=True, eq=False)

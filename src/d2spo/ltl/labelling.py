@@ -28,3 +28,16 @@ def next_state(
         return moved
     emitted = (letter != prev_letter) & (letter != 0)
     return jnp.where(emitted, moved, q)
+
+
+def accepting_visit(
+    aut: AutomatonArrays, q: jnp.ndarray, letter: jnp.ndarray, prev_letter: jnp.ndarray, event: bool
+) -> jnp.ndarray | None:
+    """Whether the step that ``next_state`` takes reads an accepting transition of a Büchi task
+    (``AutomatonArrays.visit``); None for a monitor, which has none."""
+    if aut.visit is None:
+        return None
+    visit = aut.visit[q, letter]
+    if not event:
+        return visit
+    return visit & (letter != prev_letter) & (letter != 0)

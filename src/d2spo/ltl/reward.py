@@ -101,15 +101,20 @@ class RewardConfig:
 
 
 def progress_reward(
-    aut: AutomatonArrays, q: jnp.ndarray, q_next: jnp.ndarray, cfg: RewardConfig, collided: jnp.ndarray | bool = False
+    aut: AutomatonArrays, q: jnp.ndarray, q_next: jnp.ndarray, cfg: RewardConfig, collided: jnp.ndarray | bool = False,
+    visit: jnp.ndarray | None = None
 ) -> jnp.ndarray:
     """Eq. (8): -c_n if q' = q; +c_p if q' is closer to acceptance; r_goal if q' is accepting.
 
     Entering a rejecting state costs r_reject; any other change of state that does not get closer
     costs c_regress. Accepting and rejecting states are absorbing, so reaching them is counted once
-    (the step on which q' first becomes accepting/rejecting).
+    (the step on which q' first becomes accepting/rejecting). ``visit`` (a Büchi task's step, else
+    None: ``labelling.accepting_visit``): an accepting visit gets r_goal too, and the distance
+    jumping back up after it costs nothing.
     """
     newly_accepting = aut.accepting[q_next] & ~aut.accepting[q]
+    if visit is not None:
+        newly_accepting = newly_accepting | visit
     crash = jnp.where(collided, -cfg.c_collision, 0.0)
     if cfg.mode == "sparse":
         return (jnp.where(newly_accepting, cfg.r_goal, 0.0) + crash).astype(jnp.float32)
@@ -164,16 +169,20 @@ from q before the step and from q' after it, and the arena's diagonal."""
 
 
 def step_reward(aut: AutomatonArrays, q: jnp.ndarray, q_next: jnp.ndarray, collided: jnp.ndarray,
-                cfg: RewardConfig, distances: ShapingDistances) -> jnp.ndarray:
+                cfg: RewardConfig, distances: ShapingDistances, visit: jnp.ndarray | None = None) -> jnp.ndarray:
     """The reward of one step as trained: Eq. (8) (``progress_reward``, with the collision
     penalty), plus ``shaping_term`` of the potentials before and after the step when ``cfg.shaped``.
 
     ``distances`` is called only then; the environment measures them with ``cfg.shaping_metric``.
+    ``visit``: whether a Büchi task's step is an accepting visit (None for a monitor); the potential
+    after a visit counts as 0, as at acceptance, and the next step starts from the state's own.
     """
-    reward = progress_reward(aut, q, q_next, cfg, collided)
+    reward = progress_reward(aut, q, q_next, cfg, collided, visit)
     if not cfg.shaped:
         return reward
     near, near_next, scale = distances()
     phi = potential(aut, q, near, scale)
     phi_next = potential(aut, q_next, near_next, scale)
+    if visit is not None:
+        phi_next = jnp.where(visit, 0.0, phi_next)
     return reward + shaping_term(phi, phi_next, cfg)

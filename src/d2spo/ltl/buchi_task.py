@@ -1,0 +1,91 @@
+"""The automaton a task formula trains with: the monitor when a finite run completes it, else its DBA.
+
+``task_automaton(formula)`` keeps ``translate``'s monitor for every formula with a good prefix (an
+accepting state). A formula without one (``G !A4 & F A1``, ``G F A1 & G F A3``) gets its
+deterministic Büchi automaton (``to_dba``; a formula with none raises ``NoDeterministicBuchi``) as a
+``BuchiTask``: an ``Automaton`` whose accepting states are the DBA's *completed* states (only a
+"never" part left, ``BuchiAutomaton.completed_states``; made absorbing, as the episode ends there),
+and whose ``visits`` are the DBA's accepting transitions out of the other live states. A recurrence
+task, with no completed state, runs to the episode limit and is scored by its accepting visits
+(docs/ltl.md, "Tasks no finite run completes").
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections import deque
+from collections.abc import Collection
+from dataclasses import dataclass
+
+import jax.numpy as jnp
+
+from d2spo.ltl.automaton import Automaton, AutomatonArrays
+from d2spo.ltl.buchi import BuchiAutomaton, to_dba
+from d2spo.ltl.formula import Formula
+from d2spo.ltl.translate import NeverCompletedWarning, translate
+
+
+@dataclass(frozen=True, eq=False)
+class BuchiTask(Automaton):
+    """A DBA as the environment runs it: ``accepting`` = its completed states (absorbing),
+    ``rejecting`` = its rejecting sink, ``visits`` = its accepting transitions between live states
+    that are not completed."""
+
+    visits: tuple[tuple[bool, ...], ...] = ()
+    """visits[q][letter]: reading ``letter`` in ``q`` is an accepting visit."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        object.__setattr__(self, "visits", tuple(tuple(bool(v) for v in row) for row in self.visits))
+        if len(self.visits) != self.n_states or any(len(row) != self.n_letters for row in self.visits):
+            raise ValueError(f"visits must be {self.n_states} rows of {self.n_letters} booleans")
+
+    def distances(self, feasible_letters: Collection[int] | None = None) -> list[int | None]:
+        """Per state, the fewest letters from ``feasible_letters`` to a completed state where one can
+        be reached, else to the next accepting visit (at least 1); None when neither can."""
+        letters = self._letters(feasible_letters)
+        to_done = super().distances(feasible_letters)
+        pred: list[set[int]] = [set() for _ in range(self.n_states)]
+        to_visit: list[int | None] = [None] * self.n_states
+        frontier: deque[int] = deque()
+        for q, row in enumerate(self.delta):
+            for a in letters:
+                pred[row[a]].add(q)
+            if any(self.visits[q][a] for a in letters):
+                to_visit[q] = 1
+                frontier.append(q)
+        while frontier:
+            t = frontier.popleft()
+            for q in sorted(pred[t]):
+                if to_visit[q] is None:
+                    to_visit[q] = to_visit[t] + 1  # type: ignore[operator]
+                    frontier.append(q)
+        return [d if d is not None else v for d, v in zip(to_done, to_visit, strict=True)]
+
+    def arrays(self, feasible_letters: Collection[int] | None = None,
+               distance: list[int | None] | None = None) -> AutomatonArrays:
+        """``Automaton.arrays`` with the accepting visits (``AutomatonArrays.visit``)."""
+        arrays = super().arrays(feasible_letters, distance)
+        return arrays._replace(visit=jnp.asarray(self.visits, dtype=jnp.bool_).reshape(self.n_states, self.n_letters))
+
+
+def buchi_task(dba: BuchiAutomaton) -> BuchiTask:
+    """``dba`` as the environment runs it (``BuchiTask``); its completed states over every letter."""
+    done = dba.completed_states()
+    width = dba.n_letters
+    delta = [(q,) * width if q in done else row for q, row in enumerate(dba.delta)]
+    live = set(range(dba.n_states)) - done - dba.rejecting
+    visits = [[bool(dba.accepting[q][a]) and q in live and delta[q][a] in live for a in range(width)]
+              for q in range(dba.n_states)]
+    return BuchiTask(dba.aps, dba.initial, done, dba.rejecting, delta, dba.state_formulas, visits)
+
+
+def task_automaton(formula: Formula | str) -> Automaton:
+    """``translate(formula)`` when it has an accepting state (a finite run completes the task), else
+    ``buchi_task(to_dba(formula))``. Raises ``NoDeterministicBuchi`` for a formula with neither."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NeverCompletedWarning)
+        monitor = translate(formula)
+    if monitor.accepting:
+        return monitor
+    return buchi_task(to_dba(formula))

@@ -1,0 +1,113 @@
+"""Tasks no finite run completes (issue #34): a "never" part ends the episode at its completed
+state; a recurrence is scored by its accepting visits (docs/ltl.md, "Tasks no finite run completes")."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from functools import cache
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from d2spo.envs import EnvConfig, make_env
+from d2spo.errors import ConfigError
+from d2spo.ltl import Automaton, BuchiTask, NoDeterministicBuchi, task_automaton
+from d2spo.ltl.reward import RewardConfig
+from d2spo.record import visits_per_episode
+
+NEVER = "G !A4 & F A1"
+PATROL = "G F A1 & G F A3 & G !A4"
+STOP = jnp.zeros(2)
+
+
+@cache
+def scripted(task: str, shaping: float = 0.0):
+    """Layout paper, no unmodelled effects, no start jitter, straight-line shaping (or none)."""
+    cfg = EnvConfig(preset="ideal", start_jitter_xy=0.0, start_jitter_theta=0.0, max_steps=300,
+                    reward=RewardConfig(shaping=shaping, shaping_metric="euclidean"))
+    env, params = make_env(cfg, task)
+    return env, params, jax.jit(env.step)
+
+
+def visit_areas(task: str, names: list[str], shaping: float = 0.0):
+    """Teleport the robot into each named area of `paper` in turn; one step each."""
+    env, params, step = scripted(task, shaping)
+    state, _ = jax.jit(env.reset)(jax.random.key(0), params)
+    centre = {a.name: a.center for a in env.layout.areas}
+    out = []
+    for name in names:
+        state = state.replace(pose=state.pose.at[:2].set(jnp.asarray(centre[name], jnp.float32)))
+        state, _, reward, _, done, info = step(jax.random.key(0), state, STOP, params)
+        out.append((float(reward), bool(done), info))
+    return params, out
+
+
+def test_the_monitor_stays_for_tasks_with_a_good_prefix_and_the_dba_serves_the_others():
+    assert type(task_automaton("F (A1 & F A2)")) is Automaton
+    never, patrol = task_automaton(NEVER), task_automaton(PATROL)
+    assert isinstance(never, BuchiTask) and len(never.accepting) == 1  # A1 reached, A4 never entered
+    assert isinstance(patrol, BuchiTask) and not patrol.accepting and any(map(any, patrol.visits))
+    with pytest.raises(NoDeterministicBuchi):
+        task_automaton("F G A1")
+
+
+def test_a_never_part_completes_when_its_target_is_reached_and_is_rejected_by_the_forbidden_area():
+    params, [(reward, done, info)] = visit_areas(NEVER, ["A1"])
+    assert done and bool(info["terminated"]) and bool(info["completed"])
+    assert reward == pytest.approx(params.reward.r_goal) and not bool(info["accepting_visit"])
+    params, [(reward, done, info)] = visit_areas(NEVER, ["A4"])
+    assert done and bool(params.aut.rejecting[info["q_next"]]) and not bool(info["completed"])
+    assert reward == pytest.approx(-params.reward.r_reject)
+
+
+def test_a_patrol_counts_its_accepting_visits_and_runs_on():
+    params, steps = visit_areas(PATROL, ["A1", "A3", "A1", "A3"])
+    cfg, dist = params.reward, params.aut.distance
+    assert [r for r, _, _ in steps] == pytest.approx([cfg.c_p, cfg.r_goal, cfg.c_p, cfg.r_goal])
+    assert [bool(i["accepting_visit"]) for _, _, i in steps] == [False, True, False, True]
+    assert not any(done for _, done, _ in steps) and not any(bool(i["completed"]) for _, _, i in steps)
+    # after each visit the distance to the next one restarts: waiting for A1 again, 2 areas away
+    assert [int(dist[i["q_next"]]) for _, _, i in steps] == [1, 2, 1, 2]
+
+
+def test_the_visit_is_rewarded_with_shaping_on_although_the_distance_jumps_back_up():
+    _, steps = visit_areas(PATROL, ["A1", "A3"], shaping=10.0)
+    assert all(r > 0 for r, _, _ in steps)
+    _, [(entering_a4, done, _)] = visit_areas(PATROL, ["A4"], shaping=10.0)
+    assert entering_a4 < 0 and done
+
+
+def test_a_recurrence_refuses_the_per_state_shaping_in_one_line():
+    with pytest.raises(ConfigError, match="use --shaping-metric geodesic$"):
+        make_env(EnvConfig(), PATROL)
+
+
+def test_a_formula_without_a_dba_is_refused_in_one_line_at_the_cli():
+    res = subprocess.run([sys.executable, "-m", "d2spo.cli", "env", "check", "--task", "F G A1"],
+                         capture_output=True, text=True)
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert res.returncode == 2 and len(lines) == 1 and "no deterministic Büchi automaton" in lines[0], res.stderr
+
+
+def test_a_tiny_training_on_a_never_part_writes_the_visits(tmp_path):
+    out = tmp_path / "run"
+    res = subprocess.run([sys.executable, "-m", "d2spo.cli", "train", "--algo", "tlgrl", "--task", NEVER,
+                          "--layout", "paper", "--episodes", "8", "--num-envs", "2", "--eval-episodes", "2",
+                          "--no-progress", "--out", str(out)], capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["episodes"] == 8 and summary["accepting_visits_per_episode"] == 0.0  # a never part has none
+    assert summary["eval"]["accepting_visits_per_episode"] == 0.0
+
+
+def test_visits_are_counted_per_episode_across_chunks():
+    # two envs; env 0 ends at step 1, env 1 at step 2; env 0 carries 2 visits from the chunk before
+    visit = [[1, 0], [0, 1], [1, 0]]
+    done = [[0, 0], [1, 0], [0, 1]]
+    assert visits_per_episode(visit, done, None)[0] == [1, 1]
+    counts, running = visits_per_episode(visit, done, np.array([2, 0]))
+    assert counts == [3, 1] and running.tolist() == [1, 0]

@@ -1,0 +1,127 @@
+"""Ecosystem conventions (issue #35): the module-prefixed Gymnasium id and its spec's step limit,
+Safety-Gym-style episodes, ``d2spo train --config``, per-episode TensorBoard scalars and the
+optional Weights & Biases logging."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import struct
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+gym = pytest.importorskip("gymnasium")
+
+from d2spo import cli  # noqa: E402
+from d2spo.algos.base import ChunkLog  # noqa: E402
+from d2spo.config import TrainConfig, config_to_dict  # noqa: E402
+from d2spo.envs import EnvConfig, make_env  # noqa: E402
+from d2spo.record import EPISODE_SCALARS, RunRecord  # noqa: E402
+
+# ------------------------------------------------------------------------------------ Gymnasium
+
+
+def test_module_prefixed_id_needs_no_prior_import():
+    code = textwrap.dedent("""
+        import sys, gymnasium
+        assert "d2spo" not in sys.modules
+        env = gymnasium.make("d2spo.envs:d2spo/Nav-v0", task="relaxed", layout="relaxed")
+        obs, _ = env.reset(seed=0)
+        assert env.observation_space.contains(obs)
+        print(env.spec.id, env.spec.max_episode_steps)
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["d2spo/Nav-v0", "300"]
+
+
+def test_spec_step_limit_is_the_default_configs_and_leaves_the_vector_envs_own():
+    assert gym.spec("d2spo/Nav-v0").max_episode_steps == int(make_env(EnvConfig(), "phi1")[1].max_steps) == 300
+    envs = gym.make_vec("d2spo/Nav-v0", num_envs=2, task="relaxed", layout="relaxed", max_steps=7)
+    assert int(envs.unwrapped.params.max_steps) == 7  # not the spec's 300
+
+
+def test_safety_gym_style_episode_goes_on_through_collisions():
+    env = gym.make("d2spo/Nav-v0", task="phi1", preset="ideal", start_jitter_xy=0.0, start_jitter_theta=0.0,
+                   collision_terminates=False, max_steps=30)
+    env.reset(seed=0)
+    costs = []
+    for t in range(30):  # straight ahead, into the obstacle in front of the start
+        _, _, terminated, truncated, info = env.step(np.array([1.0, 0.0], np.float32))
+        costs.append(info["cost"])
+        assert not terminated and truncated == (t == 29)
+    assert sum(costs) >= 5 and costs[-1] == 1.0  # it kept colliding, and kept paying
+    assert info["episode_stats"]["ep_cost"] == sum(costs) and info["episode_stats"]["ep_length"] == 30
+
+
+# ---------------------------------------------------------------------------- train --config
+
+TINY = TrainConfig(algo="tlgrl", task="relaxed", env=EnvConfig(layout="relaxed", collision_terminates=False),
+                   episodes=4, seed=3, num_envs=2, chunk_steps=10, eval_episodes=2)
+
+
+def test_train_config_file_is_parsed_and_flags_override_it(tmp_path):
+    path = tmp_path / "config.json"
+    path.write_text(json.dumps(config_to_dict(TINY)))
+    assert cli.parse(["train", "--config", str(path)]).config() == TINY
+    given = cli.parse(["train", "--config", str(path), "--seed", "0", "--layout", "paper"]).config()
+    assert given == dataclasses.replace(TINY, seed=0, env=dataclasses.replace(TINY.env, layout="paper"))
+
+
+@pytest.mark.parametrize("content, says", [
+    (None, "cannot read"), ("{not json", "not valid JSON"), ('{"algo": "tlgrl", "colour": 1}', "colour: unknown field"),
+    ('{"episodes": -1}', "episodes"),
+])
+def test_train_config_file_errors_are_one_line(tmp_path, capsys, content, says):
+    path = tmp_path / "config.json"
+    if content is not None:
+        path.write_text(content)
+    assert cli.main(["train", "--config", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and says in err and str(path) in err
+
+
+# -------------------------------------------------------------------------------- TensorBoard
+
+
+def _scalars(tb_dir) -> dict[str, list[tuple[int, float]]]:
+    """Every scalar of the TensorBoard event files in ``tb_dir``: tag -> [(step, value)]."""
+    from tensorboardX.proto import event_pb2
+
+    out: dict[str, list[tuple[int, float]]] = {}
+    for f in sorted(tb_dir.glob("events.out.tfevents.*")):
+        data = f.read_bytes()
+        i = 0
+        while i < len(data):  # TFRecord: length (u64), its crc (u32), the record, its crc (u32)
+            (n,) = struct.unpack("<Q", data[i:i + 8])
+            event = event_pb2.Event.FromString(data[i + 12:i + 12 + n])
+            i += 16 + n
+            for v in event.summary.value:
+                out.setdefault(v.tag, []).append((event.step, v.simple_value))
+    return out
+
+
+def _chunk_log(done: np.ndarray, ret: np.ndarray, cost: np.ndarray, completed: np.ndarray) -> ChunkLog:
+    z = np.zeros(done.shape)
+    return ChunkLog(done=done, ep_return=ret, ep_cost=cost, ep_length=z + 5, ep_collided=cost > 0,
+                    ep_completed=completed, ep_completed_relaxed=completed, ep_end_xy=np.zeros(done.shape + (2,)),
+                    metrics={}, nonfinite=np.array(False))
+
+
+def test_tensorboard_holds_one_value_per_episode_at_its_index(tmp_path):
+    cfg = dataclasses.replace(TINY, episodes=5)
+    run = RunRecord(cfg, tmp_path, None, checkpoints=None)
+    done = np.array([[True, False], [False, False], [True, True]] + [[False, False]] * 7)  # [chunk_steps, envs]
+    ret, cost = np.arange(20.0).reshape(10, 2), (np.arange(20) % 3 == 0).reshape(10, 2) * 1.0
+    run.record(_chunk_log(done, ret, cost, np.arange(20).reshape(10, 2) % 2 == 1), None)  # episodes 0, 1, 2
+    run.record(_chunk_log(done, ret + 100, cost, done), None)  # episodes 3, 4 (cfg.episodes caps it)
+    run.tb.close()
+    got = _scalars(tmp_path / "tb")
+    assert got["episode/return"] == [(0, 0.0), (1, 4.0), (2, 5.0), (3, 100.0), (4, 104.0)]
+    assert got["episode/cost"] == [(0, 1.0), (1, 0.0), (2, 0.0), (3, 1.0), (4, 0.0)]
+    assert got["episode/completed"] == [(0, 0.0), (1, 0.0), (2, 1.0), (3, 1.0), (4, 1.0)]
+    assert set(EPISODE_SCALARS) <= set(got)
