@@ -111,3 +111,51 @@ def test_visits_are_counted_per_episode_across_chunks():
     assert visits_per_episode(visit, done, None)[0] == [1, 1]
     counts, running = visits_per_episode(visit, done, np.array([2, 0]))
     assert counts == [3, 1] and running.tolist() == [1, 0]
+
+
+def _visit_log(done: np.ndarray, visit: np.ndarray):
+    from d2spo.algos.base import ChunkLog
+
+    z = np.zeros(done.shape)
+    return ChunkLog(done=done, ep_return=z, ep_cost=z, ep_length=z + 5, ep_collided=z > 0, ep_completed=z > 0,
+                    ep_completed_relaxed=z > 0, ep_end_xy=np.zeros(done.shape + (2,)), metrics={},
+                    nonfinite=np.array(False), accepting_visit=visit)
+
+
+def test_accepting_visits_survive_a_resume_and_reach_tensorboard(tmp_path):
+    """The visits of an episode that spans a checkpoint are counted on after a resume (the counts
+    travel in the checkpoint's meta), and every finished episode's count is a TensorBoard scalar."""
+    from d2spo.config import TrainConfig
+    from d2spo.record import RunRecord
+
+    cfg = TrainConfig(algo="tlgrl", task="G F A1 & G F A3", episodes=10, num_envs=2, chunk_steps=4,
+                      env=EnvConfig(layout="paper", reward=RewardConfig(shaping_metric="geodesic")))
+    done = np.array([[False, False], [True, False], [False, False], [False, True]])
+    visit = np.array([[True, True], [True, False], [False, True], [True, True]])
+    logs = [_visit_log(done, visit), _visit_log(done, visit[::-1])]
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    whole = RunRecord(cfg, tmp_path / "a", None, checkpoints=None)
+    for log in logs:
+        whole.record(log, None)
+    first = RunRecord(cfg, tmp_path / "b", None, checkpoints=None)
+    first.record(logs[0], None)
+    meta = json.loads(json.dumps(first.meta))  # as a checkpoint keeps it
+    resumed = RunRecord(cfg, tmp_path / "b", meta, checkpoints=None)
+    resumed.record(logs[1], None)
+    # first chunk: env 0 ends at step 1 after 2 visits, env 1 at step 3 after 3, env 0 has 1 more
+    # in its unfinished episode; second chunk: env 0 ends at step 1 after that 1 + 1, env 1 at step 3
+    # after 3 (without the carried count the resumed run would say 1 for episode 2)
+    assert whole.visits == resumed.visits == [2, 3, 2, 3]
+    whole.tb.close()
+    from tensorboardX.proto import event_pb2
+
+    values = []
+    for f in sorted((tmp_path / "a" / "tb").glob("events.out.tfevents.*")):
+        data, pos = f.read_bytes(), 0
+        while pos < len(data):
+            n = int.from_bytes(data[pos:pos + 8], "little")
+            event = event_pb2.Event.FromString(data[pos + 12:pos + 12 + n])
+            pos += 12 + n + 4
+            values += [(event.step, v.simple_value) for v in event.summary.value if v.tag == "episode/accepting_visits"]
+    assert values == [(0, 2.0), (1, 3.0), (2, 2.0), (3, 3.0)]

@@ -124,8 +124,12 @@ class RunRecord:
             self.next_validation = (self.meta["episodes"] // cfg.validate_every + 1) * cfg.validate_every
         self.t_start = time.perf_counter() - self.meta["wall_seconds"]
         self.guard = NaNGuard(cfg.chunk_steps)
-        self.visits: list[int] = []  # a Büchi task's accepting visits per episode (this session's)
-        self.visit_run: np.ndarray | None = None  # per env, in its unfinished episode
+        # a Büchi task's accepting visits: per episode (the last ``visits_kept``), and per env in its
+        # unfinished episode; kept in the checkpoint's meta, so a resumed run counts on exactly
+        self.visits: list[int] = list(self.meta.get("visits", []))
+        self.visit_run: np.ndarray | None = (None if self.meta.get("visit_run") is None
+                                             else np.asarray(self.meta["visit_run"], np.int64))
+        self.visits_kept = max(cfg.window, 200)
 
     @property
     def done(self) -> bool:
@@ -143,9 +147,12 @@ class RunRecord:
             raise NaNError(f"training stopped at episode {len(writer)}: {problem}; episodes.csv holds the "
                            f"episodes before it and {where}")
         writer.append(rows)
+        counts = None
         if log.accepting_visit is not None:  # a Büchi task (``ltl.buchi_task``)
             counts, self.visit_run = visits_per_episode(log.accepting_visit, log.done, self.visit_run)
-            self.visits += counts[:len(rows)]
+            counts = counts[:len(rows)]
+            self.visits = (self.visits + counts)[-self.visits_kept:]
+            meta["visits"], meta["visit_run"] = list(self.visits), self.visit_run.tolist()
         meta["chunks"] += 1
         meta["env_steps"] += cfg.chunk_steps * cfg.num_envs
         meta["episodes"] = len(writer)
@@ -154,9 +161,11 @@ class RunRecord:
             v = np.asarray(v, dtype=np.float64)
             if np.any(np.isfinite(v)):
                 self.tb.add_scalar(k, float(np.nanmean(v)), meta["env_steps"])
-        for row in rows:  # per finished episode, at its index (about 0.1 ms each)
+        for i, row in enumerate(rows):  # per finished episode, at its index (about 0.1 ms each)
             for tag, col in EPISODE_SCALARS.items():
                 self.tb.add_scalar(tag, row[col], row[0])
+            if counts is not None:
+                self.tb.add_scalar("episode/accepting_visits", counts[i], row[0])
         if rows:
             rates = window_rates(writer.rows, 100)
             self.tb.add_scalar("charts/safety_rate_100", rates["safety_rate"], meta["env_steps"])
@@ -222,7 +231,7 @@ class RunRecord:
             "window": cfg.window, **window_rates(self.writer.rows, cfg.window),
             "device": jax.devices()[0].platform,
         }
-        if params.aut.visit is not None:  # a Büchi task: mean over the window (of this session's episodes)
+        if params.aut.visit is not None:  # a Büchi task: mean over the window
             summary["accepting_visits_per_episode"] = float(np.mean(self.visits[-cfg.window:])) if self.visits else None
         t_eval = time.perf_counter()
         if cfg.eval_episodes > 0:
