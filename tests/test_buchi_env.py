@@ -159,3 +159,9 @@ def test_accepting_visits_survive_a_resume_and_reach_tensorboard(tmp_path):
             pos += 12 + n + 4
             values += [(event.step, v.simple_value) for v in event.summary.value if v.tag == "episode/accepting_visits"]
     assert values == [(0, 2.0), (1, 3.0), (2, 2.0), (3, 3.0)]
+
+
+def test_the_printed_automaton_names_the_accepting_visits():
+    text = task_automaton("GF A1 & GF A3 & G !A4").pretty()
+    assert text.splitlines()[-3:] == ["accepting visits:", "  in 0: A1 & A3 & !A4", "  in 1: A3 & !A4"]
+    assert task_automaton("G !A4 & F A1").pretty().endswith("accepting visits: none")

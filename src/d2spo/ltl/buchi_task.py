@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import jax.numpy as jnp
 
-from d2spo.ltl.automaton import Automaton, AutomatonArrays
+from d2spo.ltl.automaton import Automaton, AutomatonArrays, letters_to_guard
 from d2spo.ltl.buchi import BuchiAutomaton, to_dba
 from d2spo.ltl.formula import Formula
 from d2spo.ltl.translate import NeverCompletedWarning, translate
@@ -61,6 +61,16 @@ class BuchiTask(Automaton):
                     to_visit[q] = to_visit[t] + 1  # type: ignore[operator]
                     frontier.append(q)
         return [d if d is not None else v for d, v in zip(to_done, to_visit, strict=True)]
+
+    def pretty(self, feasible_letters: Collection[int] | None = None) -> str:
+        """``Automaton.pretty``, then the accepting visits: per state, the guard of the letters whose
+        reading is one (what a patrol is scored by)."""
+        lines = [super().pretty(feasible_letters), "accepting visits:"]
+        for q, row in enumerate(self.visits):
+            letters = [a for a, v in enumerate(row) if v]
+            if letters:
+                lines.append(f"  in {q}: {letters_to_guard(letters, self.aps)}")
+        return "\n".join(lines if len(lines) > 2 else lines[:1] + ["accepting visits: none"])
 
     def arrays(self, feasible_letters: Collection[int] | None = None,
                distance: list[int | None] | None = None) -> AutomatonArrays:
