@@ -74,8 +74,11 @@ class BuchiTask(Automaton):
 
     def arrays(self, feasible_letters: Collection[int] | None = None,
                distance: list[int | None] | None = None) -> AutomatonArrays:
-        """``Automaton.arrays`` with the accepting visits (``AutomatonArrays.visit``)."""
+        """``Automaton.arrays`` with the accepting visits (``AutomatonArrays.visit``); None when the
+        task has none (a never part only: it runs as a monitor does, and reports no visits)."""
         arrays = super().arrays(feasible_letters, distance)
+        if not any(any(row) for row in self.visits):
+            return arrays
         return arrays._replace(visit=jnp.asarray(self.visits, dtype=jnp.bool_).reshape(self.n_states, self.n_letters))
 
 
