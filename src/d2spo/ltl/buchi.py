@@ -127,33 +127,12 @@ class BuchiAutomaton:
         never entered; a co-safe task in its accepting sink). Exactly the live states from which
         no cycle of non-accepting transitions between live states can be reached."""
         letters = range(self.n_letters) if feasible_letters is None else sorted({int(a) for a in feasible_letters})
-        live = [q for q in range(self.n_states) if q not in self.rejecting]
-        moves = {q: {self.delta[q][a] for a in letters} - self.rejecting for q in live}
-        plain = {q: {self.delta[q][a] for a in letters if not self.accepting[q][a]} - self.rejecting for q in live}
-        # the states on a cycle of non-accepting transitions: those that reach themselves in ``plain``
-        on_cycle = set()
-        for q in live:
-            seen, stack = set(), list(plain[q])
-            while stack:
-                t = stack.pop()
-                if t == q:
-                    on_cycle.add(q)
-                    break
-                if t not in seen:
-                    seen.add(t)
-                    stack.extend(plain[t])
-        # the live states that can reach one of them, by any transitions between live states
-        pred: dict[int, set[int]] = {q: set() for q in live}
-        for q in live:
-            for t in moves[q]:
-                pred[t].add(q)
-        bad, stack = set(on_cycle), list(on_cycle)
-        while stack:
-            for q in pred[stack.pop()]:
-                if q not in bad:
-                    bad.add(q)
-                    stack.append(q)
-        return frozenset(q for q in live if q not in bad)
+        # ``universal_states`` on the automaton over ``letters`` with each rejecting sink made an
+        # accepting self-loop: a run that enters one no longer counts against a state
+        rej = self.rejecting
+        delta = [[q if q in rej else self.delta[q][a] for a in letters] for q in range(self.n_states)]
+        accepting = [[q in rej or self.accepting[q][a] for a in letters] for q in range(self.n_states)]
+        return frozenset(universal_states(delta, accepting) - rej)
 
     def is_accepting_sink(self, q: int) -> bool:
         """Every continuation from q is accepted: the task is done (a co-safe task may end here)."""
@@ -204,22 +183,7 @@ class BuchiAutomaton:
         letters = range(self.n_letters) if feasible_letters is None else sorted({int(a) for a in feasible_letters})
         if any(not 0 <= a < self.n_letters for a in letters):
             raise ValueError(f"feasible letters must be in [0, {self.n_letters})")
-        pred: list[set[int]] = [set() for _ in range(self.n_states)]
-        dist = [UNREACHABLE] * self.n_states
-        frontier: deque[int] = deque()
-        for q in range(self.n_states):
-            for a in letters:
-                pred[self.delta[q][a]].add(q)
-            if any(self.accepting[q][a] for a in letters):
-                dist[q] = 1
-                frontier.append(q)
-        while frontier:
-            t = frontier.popleft()
-            for q in sorted(pred[t]):
-                if dist[q] == UNREACHABLE:
-                    dist[q] = dist[t] + 1
-                    frontier.append(q)
-        return dist
+        return [UNREACHABLE if d is None else d for d in letters_to_marked(self.delta, self.accepting, letters)]
 
     def edges(self) -> list[tuple[int, int, bool, str]]:
         """(source, target, accepting, guard) per group of letters with the same target and
@@ -263,6 +227,28 @@ class BuchiAutomaton:
         for q, t, acc, guard in self.edges():
             lines.append(f"  {q} -> {t}: {guard}{' (accepting)' if acc else ''}")
         return "\n".join(lines)
+
+
+def letters_to_marked(delta: Sequence[Sequence[int]], marked: Sequence[Sequence[bool]],
+                      letters: Collection[int]) -> list[int | None]:
+    """Per state, the fewest ``letters`` after which a run has taken a marked transition
+    (``marked[q][a]``: at least 1); None when none can be. Breadth-first search backwards."""
+    pred: list[set[int]] = [set() for _ in delta]
+    dist: list[int | None] = [None] * len(delta)
+    frontier: deque[int] = deque()
+    for q, row in enumerate(delta):
+        for a in letters:
+            pred[row[a]].add(q)
+        if any(marked[q][a] for a in letters):
+            dist[q] = 1
+            frontier.append(q)
+    while frontier:
+        t = frontier.popleft()
+        for q in sorted(pred[t]):
+            if dist[q] is None:
+                dist[q] = dist[t] + 1  # type: ignore[operator]
+                frontier.append(q)
+    return dist
 
 
 def to_dba(formula: Formula | str, max_states: int = 1000) -> BuchiAutomaton:

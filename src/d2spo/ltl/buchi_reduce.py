@@ -123,17 +123,8 @@ def _not_included(d1: list[list[int]], a1: list[list[bool]], d2: list[list[int]]
                     succ_plain[v].append((w, a1[p][a]))
     comp = sccs(n1 * n2, [sorted({w for w, _ in edges}) for edges in succ_plain])
     bad = {v for v in range(n1 * n2) for w, acc in succ_plain[v] if acc and comp[w] == comp[v]}
-    pred: list[list[int]] = [[] for _ in range(n1 * n2)]
-    for v, ws in enumerate(succ_all):
-        for w in ws:
-            pred[w].append(v)
-    seen, frontier = set(bad), list(bad)
-    while frontier:
-        for v in pred[frontier.pop()]:
-            if v not in seen:
-                seen.add(v)
-                frontier.append(v)
-    return {(v // n2, v % n2) for v in seen}
+    reach_bad = set(range(n1 * n2)) - co_reach(succ_all, bad)
+    return {(v // n2, v % n2) for v in reach_bad}
 
 
 def _same_language_after_merge(delta: list[list[int]], accepting: list[list[bool]], start: int, q: int, p: int

@@ -13,14 +13,13 @@ task, with no completed state, runs to the episode limit and is scored by its ac
 from __future__ import annotations
 
 import warnings
-from collections import deque
 from collections.abc import Collection
 from dataclasses import dataclass
 
 import jax.numpy as jnp
 
 from d2spo.ltl.automaton import Automaton, AutomatonArrays, letters_to_guard
-from d2spo.ltl.buchi import BuchiAutomaton, to_dba
+from d2spo.ltl.buchi import BuchiAutomaton, letters_to_marked, to_dba
 from d2spo.ltl.formula import Formula
 from d2spo.ltl.translate import NeverCompletedWarning, translate
 
@@ -45,21 +44,7 @@ class BuchiTask(Automaton):
         be reached, else to the next accepting visit (at least 1); None when neither can."""
         letters = self._letters(feasible_letters)
         to_done = super().distances(feasible_letters)
-        pred: list[set[int]] = [set() for _ in range(self.n_states)]
-        to_visit: list[int | None] = [None] * self.n_states
-        frontier: deque[int] = deque()
-        for q, row in enumerate(self.delta):
-            for a in letters:
-                pred[row[a]].add(q)
-            if any(self.visits[q][a] for a in letters):
-                to_visit[q] = 1
-                frontier.append(q)
-        while frontier:
-            t = frontier.popleft()
-            for q in sorted(pred[t]):
-                if to_visit[q] is None:
-                    to_visit[q] = to_visit[t] + 1  # type: ignore[operator]
-                    frontier.append(q)
+        to_visit = letters_to_marked(self.delta, self.visits, letters)
         return [d if d is not None else v for d, v in zip(to_done, to_visit, strict=True)]
 
     def pretty(self, feasible_letters: Collection[int] | None = None) -> str:
