@@ -81,9 +81,47 @@ def test_the_visit_is_rewarded_with_shaping_on_although_the_distance_jumps_back_
     assert entering_a4 < 0 and done
 
 
-def test_a_recurrence_refuses_the_per_state_shaping_in_one_line():
-    with pytest.raises(ConfigError, match="use --shaping-metric geodesic$"):
-        make_env(EnvConfig(), PATROL)
+def test_a_recurrence_trains_with_the_per_state_fields_toward_its_next_visit():
+    env, params = make_env(EnvConfig(), PATROL)  # the default shaping: one field per automaton state
+    task, aut = env.task, env.task.automaton
+    assert task.recurrence and np.isfinite(task.route_length)
+    waiting_a3 = aut.delta[aut.initial][aut.letter(["A1"])]  # A1 entered: A3 is the next visit
+    assert aut.visits[waiting_a3][aut.letter(["A3"])] and task.fields.targets[waiting_a3] == ("A3",)
+    # the visit's area counts as progress: annealed early in training, the 'geodesic' metric's target
+    assert np.asarray(params.advance)[waiting_a3].tolist() == [a.name == "A3" for a in env.layout.areas]
+    a3 = next(a for a in env.layout.areas if a.name == "A3")
+    # in the state that waits for A3 the field leads to A3 (the visit), and is 0 at its rim
+    iy, ix = (int(round(c / 0.05)) for c in (a3.center[1], a3.center[0] + a3.radius + 0.1))
+    far = task.fields.field[waiting_a3]
+    assert task.fields.target_cells[waiting_a3][int(a3.center[1] / 0.05), int(a3.center[0] / 0.05)]
+    assert 0.0 < far[iy, ix] < 0.3 < far[int(0.6 / 0.05), int(0.6 / 0.05)]
+
+
+def test_the_route_optimal_visits_follow_the_lap_between_two_areas(tmp_path):
+    """On an open 6 m arena with A1 at x=1 and A2 at x=5 (radius 0.4, the robot's 0.15 m aside), a lap
+    A1 -> A2 -> A1 is twice the gap between the areas' rims, about 2 * (4 - 0.8) = 6.4 m."""
+    from d2spo.envs import routes
+    from d2spo.envs.workspace import Area, Layout
+
+    layout = Layout("lap", (6.0, 2.0), (1.0, 1.0, 0.0), (), (Area("A1", (1.0, 1.0), 0.4), Area("A2", (5.0, 1.0), 0.4)))
+    aut = task_automaton("GF A1 & GF A2")
+    lengths = routes.visit_lengths(aut, layout, "event", 0.15, 40.0)
+    laps = np.diff(lengths)
+    assert len(lengths) >= 6 and np.all(laps > 0)
+    assert laps[1:] == pytest.approx(2 * 3.2, abs=0.15)
+    assert lengths[0] == pytest.approx(4.6 - 1.0, abs=0.15)  # A1 is read at the start: from its centre to A2
+    assert routes.visit_lengths(aut, layout, "event", 0.15, lengths[2] - 0.01) == lengths[:2]
+
+
+def test_an_episode_too_short_for_one_visit_is_refused_before_training():
+    from d2spo.envs.preflight import preflight
+
+    env, params = make_env(EnvConfig(max_steps=40), PATROL)
+    with pytest.raises(ConfigError, match="too short for one accepting visit"):
+        preflight(env, params, repr(PATROL))
+    env, params = make_env(EnvConfig(), PATROL)
+    preflight(env, params, repr(PATROL))  # the step limit that follows the task fits a visit
+    assert env.task.optimal_visits(int(params.max_steps), 0.1, 0.95) >= 2
 
 
 def test_a_formula_without_a_dba_is_refused_in_one_line_at_the_cli():

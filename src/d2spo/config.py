@@ -44,6 +44,8 @@ FAST_SETTINGS: dict[str, Any] = {"num_envs": 32, "td3.hidden": (64, 64)}
 transition, with a quarter of their arithmetic; docs/config.md gives its gain and its price."""
 DEFAULT_SETTINGS: dict[str, Any] = {"num_envs": 16, "td3.hidden": DEFAULT_WIDTHS}
 """The same settings without ``--fast``, for every learner and the generalist."""
+WANDB_FORBIDDEN = "/\\#?%:"
+"""Characters a W&B project name may not hold (``--wandb-project``)."""
 VALIDATION_SEED = 50_000
 """First seed of the generalist's validation layouts (training uses random:0 .., the benchmark
 random:100000 ..)."""
@@ -90,6 +92,11 @@ class TrainConfig:
     """With --generalist: validate every N training episodes."""
     eval_untrained: bool = False
     """Also evaluate the untrained policy (summary.json's eval_untrained); not with --resume."""
+    wandb: bool = False
+    """Also log the TensorBoard scalars to Weights & Biases (pip install 'd2spo[wandb]'; WANDB_MODE=offline
+    logs without an account); a resume continues the same W&B run."""
+    wandb_project: str = "d2spo"
+    """With --wandb: the W&B project (its entity: WANDB_ENTITY, or your account's default)."""
     env: Annotated[EnvConfig, tyro.conf.OmitArgPrefixes] = field(default_factory=EnvConfig)
     """Environment (its flags carry no prefix: --layout, --preset, --dt, ...)."""
     td3: TD3Config = field(default_factory=TD3Config)
@@ -133,7 +140,11 @@ class TrainConfig:
         check_fields(self, count=("episodes", "num_envs", "chunk_steps", "checkpoint_every", "window",
                                   "generalist_layouts", "validation_episodes", "validate_every"),
                      seed=("seed",), counts=("snapshots",),
-                     natural=("eval_episodes", "generalist_tasks", "validation_layouts"), flag=("fast",))
+                     natural=("eval_episodes", "generalist_tasks", "validation_layouts"), flag=("fast", "wandb"))
+        project = self.wandb_project
+        if not (isinstance(project, str) and 0 < len(project) <= 128) or set(project) & set(WANDB_FORBIDDEN):
+            raise ConfigError("wandb_project", f"a W&B project name is 1 to 128 characters without "
+                              f"{' '.join(WANDB_FORBIDDEN)}, got {self.wandb_project!r}")
         if self.generalist and self.generalist_layouts > VALIDATION_SEED:
             raise ConfigError("generalist_layouts", f"at most {VALIDATION_SEED}: the layouts from random:"
                               f"{VALIDATION_SEED} on are the validation set")

@@ -110,7 +110,8 @@ def print_evaluation(res: dict, path: Path, filter_asked: bool | None) -> None:
         row(per[0]["layout"], res)
     Console().print(t)
     if "accepting_visits_per_episode" in res:  # a Büchi task: scored by its accepting visits too
-        print(f"accepting visits per episode: {res['accepting_visits_per_episode']:.2f}")
+        optimum = "" if res.get("visit_fraction") is None else f" ({100 * res['visit_fraction']:.1f}% of the route-optimal count)"
+        print(f"accepting visits per episode: {res['accepting_visits_per_episode']:.2f}{optimum}")
     print(f"wrote {path}")
 
 

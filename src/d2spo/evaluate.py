@@ -27,7 +27,7 @@ from d2spo.envs.layouts import layout_file, random_seed
 from d2spo.errors import ConfigError, NaNError
 from d2spo.fields import check_choice, check_fields, field_docstring
 from d2spo.inputs import sha256_of
-from d2spo.rollout import make_rollout, rates
+from d2spo.rollout import make_rollout, rates, visit_optimum
 from d2spo.run import POLICY_CHOICES, build, check_layout_unchanged, load_policy, load_run_config, preflight_checks
 from d2spo.runio import atomic_write_json
 
@@ -202,6 +202,8 @@ def evaluate_run(run_dir: Path, ecfg: EvalConfig = EvalConfig(), keep_paths: int
     }
     if results and all("accepting_visits_per_episode" in r for r in results):  # a Büchi task (``ltl.buchi_task``)
         out["accepting_visits_per_episode"] = float(np.mean([r["accepting_visits_per_episode"] for r in results]))
+        if all(r.get("visit_fraction") is not None for r in results):  # a recurrence, against its optimum
+            out["visit_fraction"] = float(np.mean([r["visit_fraction"] for r in results]))
     if paths is not None:
         out["paths"] = paths
     return out
@@ -229,6 +231,7 @@ def _specialist_rollouts(cfg: TrainConfig, learner, policy, ecfg: EvalConfig, ov
             compiled[shape] = make_rollout(other, env, ecfg.episodes, int(params.max_steps))
         res = compiled[shape](params, policy, jax.random.PRNGKey(ecfg.seed))
         results.append(rates(*res))
+        results[-1].update(visit_optimum(env, params, results[-1].get("accepting_visits_per_episode")))
         if keep_paths:
             poses, collided, completed = (np.asarray(a[:keep_paths]) for a in (res[4], res[0], res[1]))
             results[-1]["paths"] = (env.layout, poses, collided, completed)

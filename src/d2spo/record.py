@@ -1,5 +1,6 @@
-"""The record of a run as it trains: episodes.csv, TensorBoard, the counters, the NaN guard, policy
-snapshots, checkpoints, a generalist's validation, and summary.json with the final evaluation.
+"""The record of a run as it trains: episodes.csv, TensorBoard (and W&B with ``--wandb``), the
+counters, the NaN guard, policy snapshots, checkpoints, a generalist's validation, and summary.json
+with the final evaluation.
 
 ``d2spo.train``'s loops hand every chunk's ``ChunkLog`` to a ``RunRecord`` (one per run directory;
 ``train_seeds`` has one per seed); the run directory's files are ``d2spo.run``'s and ``runio``'s.
@@ -24,14 +25,17 @@ from d2spo.config import VALIDATION_SEED, TrainConfig
 from d2spo.envs import layout_bank
 from d2spo.envs.generalist import view
 from d2spo.errors import NaNError
-from d2spo.rollout import make_rollout, rates
+from d2spo.rollout import make_rollout, rates, visit_optimum
 from d2spo.run import best_policy_path, load_best_policy, save_snapshot, snapshot_path
 from d2spo.runio import EpisodeWriter, atomic_write_bytes, atomic_write_json, window_rates
+from d2spo.wandb_log import WandbRun
 
 ProgressFn = Callable[[dict], None]
 """What a run reports its progress to: one dict per event (``d2spo.progress`` draws them)."""
 EPISODE_SCALARS = {"episode/return": 1, "episode/cost": 2, "episode/completed": 4}
 """TensorBoard's per-episode scalars (x: the episode's index) and their columns in ``rows_from_log``'s rows."""
+ENV_STEPS, EPISODE = "env_steps", "episode"
+"""The two x axes of the scalars: the vectorised env steps so far, and the episode's index."""
 
 
 def rows_from_log(log: ChunkLog, first_episode: int, limit: int) -> list[tuple]:
@@ -105,12 +109,14 @@ class NaNGuard:
 
 
 class RunRecord:
-    """The host-side bookkeeping of one run directory: episodes.csv, TensorBoard, counters,
-    snapshots, checkpoints and the summary. ``train`` has one; ``train_seeds`` one per seed."""
+    """The host-side bookkeeping of one run directory: episodes.csv, TensorBoard (and ``wandb``,
+    the run's W&B run with ``--wandb``), counters, snapshots, checkpoints and the summary. ``train``
+    has one; ``train_seeds`` one per seed."""
 
     def __init__(self, cfg: TrainConfig, out: Path, meta: dict | None, checkpoints: Checkpoints,
-                 overhead: dict | None = None, validation: Validation | None = None):
+                 overhead: dict | None = None, validation: Validation | None = None, wandb: WandbRun | None = None):
         self.cfg, self.out, self.checkpoints, self.validation = cfg, Path(out), checkpoints, validation
+        self.wandb = wandb
         self.meta = dict(meta or {"episodes": 0, "env_steps": 0, "chunks": 0, "wall_seconds": 0.0})
         # Time outside the training loop, summed over the sessions of a resumed run (0 in checkpoints
         # written before these were counted): compiling the learner, and the rest (building the env).
@@ -136,7 +142,7 @@ class RunRecord:
         return len(self.writer) >= self.cfg.episodes
 
     def record(self, log: ChunkLog, progress: ProgressFn | None) -> None:
-        """Take in one chunk's log (NaN check, episodes, counters, TensorBoard, progress)."""
+        """Take in one chunk's log (NaN check, episodes, counters, TensorBoard and W&B, progress)."""
         cfg, writer, meta = self.cfg, self.writer, self.meta
         rows = rows_from_log(log, len(writer), cfg.episodes - len(writer))
         problem = self.guard.problem(log, rows, meta["chunks"] * cfg.chunk_steps)
@@ -157,21 +163,22 @@ class RunRecord:
         meta["env_steps"] += cfg.chunk_steps * cfg.num_envs
         meta["episodes"] = len(writer)
         meta["wall_seconds"] = time.perf_counter() - self.t_start
+        scalars = {}
         for k, v in log.metrics.items():
             v = np.asarray(v, dtype=np.float64)
             if np.any(np.isfinite(v)):
-                self.tb.add_scalar(k, float(np.nanmean(v)), meta["env_steps"])
-        for i, row in enumerate(rows):  # per finished episode, at its index (about 0.1 ms each)
-            for tag, col in EPISODE_SCALARS.items():
-                self.tb.add_scalar(tag, row[col], row[0])
-            if counts is not None:
-                self.tb.add_scalar("episode/accepting_visits", counts[i], row[0])
+                scalars[k] = float(np.nanmean(v))
         if rows:
             rates = window_rates(writer.rows, 100)
-            self.tb.add_scalar("charts/safety_rate_100", rates["safety_rate"], meta["env_steps"])
-            self.tb.add_scalar("charts/completion_rate_100", rates["completion_rate"], meta["env_steps"])
-            self.tb.add_scalar("charts/completion_rate_relaxed_100", rates["completion_rate_relaxed"],
-                               meta["env_steps"])
+            scalars.update({"charts/safety_rate_100": rates["safety_rate"],
+                            "charts/completion_rate_100": rates["completion_rate"],
+                            "charts/completion_rate_relaxed_100": rates["completion_rate_relaxed"]})
+        self.scalars(scalars, ENV_STEPS, meta["env_steps"])
+        for i, row in enumerate(rows):  # per finished episode, at its index (about 0.1 ms each)
+            episode = {tag: row[col] for tag, col in EPISODE_SCALARS.items()}
+            if counts is not None:
+                episode["episode/accepting_visits"] = counts[i]
+            self.scalars(episode, EPISODE, row[0])
         if progress is not None:
             progress({"episodes": len(writer), "total": cfg.episodes, "env_steps": meta["env_steps"],
                       "wall_seconds": meta["wall_seconds"], **window_rates(writer.rows, 200),
@@ -212,7 +219,15 @@ class RunRecord:
         self.meta["validation_seconds"] = self.meta.get("validation_seconds", 0.0) + time.perf_counter() - t
         every = self.cfg.validate_every
         self.next_validation = (n_done // every + 1) * every
-        self.tb.add_scalar("charts/validation_success", entry["success_rate"], self.meta["env_steps"])
+        self.scalars({"charts/validation_success": entry["success_rate"]}, ENV_STEPS, self.meta["env_steps"])
+
+    def scalars(self, scalars: dict[str, float], axis: str, step: int) -> None:
+        """Scalars at ``step`` of the x axis ``axis`` (``ENV_STEPS`` or ``EPISODE``): to TensorBoard,
+        and to W&B with ``--wandb``."""
+        for tag, value in scalars.items():
+            self.tb.add_scalar(tag, value, step)
+        if self.wandb is not None and scalars:
+            self.wandb.log(scalars, axis, step)
 
     def finish(self, learner, carry, env, params, progress: ProgressFn | None = None, untrained=None) -> dict:
         """summary.json. Wall times: ``wall_seconds`` is the training loop alone (no compilation; the
@@ -233,6 +248,7 @@ class RunRecord:
         }
         if params.aut.visit is not None:  # a Büchi task: mean over the window
             summary["accepting_visits_per_episode"] = float(np.mean(self.visits[-cfg.window:])) if self.visits else None
+            summary.update(visit_optimum(env, params, summary["accepting_visits_per_episode"]))
         t_eval = time.perf_counter()
         if cfg.eval_episodes > 0:
             if progress is not None:
@@ -252,6 +268,9 @@ class RunRecord:
                  + time.perf_counter() - t_eval)
         summary["wall_seconds_total"] = round(total, 2)
         atomic_write_json(self.out / "summary.json", summary)
+        if self.wandb is not None:
+            self.wandb.summary(summary)
+            self.wandb.close()
         return summary
 
 

@@ -43,6 +43,7 @@ from d2spo.safety import certify as cert
 from d2spo.safety import datasets as sd
 from d2spo.safety.joint_policy import update
 from d2spo.safety.nominal import nominal_next
+from d2spo.wandb_log import RUN_ID
 
 
 def _figures(s: dict) -> tuple[float, float, int]:
@@ -152,7 +153,9 @@ def _row(r: int, s: dict, **extra) -> dict:
 def _save(run_dir: Path, out: Path, carry, meta: dict, note: dict) -> None:
     if out.exists():
         shutil.rmtree(out)
-    shutil.copytree(run_dir, out, ignore=shutil.ignore_patterns("checkpoint*", "certify.*", "eval-*.json", ".*"))
+    # not the W&B run's id (wandb_log.RUN_ID): the repaired run is not the W&B run of the one it repairs
+    shutil.copytree(run_dir, out, ignore=shutil.ignore_patterns("checkpoint*", "certify.*", "eval-*.json", ".*",
+                                                                RUN_ID))
     Checkpoints(out, run_fingerprint(out)).save(carry, meta)
     if (out / "summary.json").is_file():  # training figures stay true; the final evaluation does not
         s = read_json(out / "summary.json", "summary")

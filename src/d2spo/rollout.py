@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from d2spo.algos.base import Learner
+from d2spo.envs import preflight
 
 
 def acting_on(learner: Learner, params) -> Learner:
@@ -83,6 +84,15 @@ def rates(collided, completed, ret, length, poses=None, visits=None) -> dict:
     if visits is not None:
         out["accepting_visits_per_episode"] = float(np.asarray(visits).mean())
     return out
+
+
+def visit_optimum(env, params, visits: float | None) -> dict:
+    """For a recurrence on one layout: its route-optimal visits per episode (``preflight.optimal_visits``)
+    and ``visits`` (the mean per episode) as a fraction of it; {} for any other task."""
+    best = preflight.optimal_visits(env, params)
+    if best is None:
+        return {}
+    return {"route_optimal_visits": best, "visit_fraction": None if visits is None or best == 0 else visits / best}
 
 
 def random_proposal_safety(learner, carry, env, params, shielded: bool, episodes: int = 64, seed: int = 3) -> float:

@@ -25,6 +25,7 @@ from d2spo.record import ProgressFn, RunRecord, Validation
 from d2spo.rollout import acting_on
 from d2spo.run import RESUME_REMEDY, build, check_layout_unchanged, group_dir, preflight_checks, prepare_dir
 from d2spo.runio import RunLock, read_json, remove_tmp_files
+from d2spo.wandb_log import require_wandb, wandb_run
 
 
 def train(
@@ -40,6 +41,8 @@ def train(
     t_enter = time.perf_counter()
     out = Path(out)
     cfg.check()  # the memory it needs (config.TrainConfig.check), before anything is built
+    if cfg.wandb:
+        require_wandb()
     if resume:  # before the build reads the layout file
         check_layout_unchanged(out, cfg, RESUME_REMEDY)
     built = build(cfg)  # a config that cannot be built is refused before anything is written
@@ -63,28 +66,29 @@ def _train_locked(cfg: TrainConfig, out: Path, built, resume: bool, progress: Pr
         carry, meta = checkpoints.load(jax.eval_shape(learner.init, key))
         checkpoints.tidy()
         carry = jax.tree_util.tree_map(jnp.asarray, carry)
-    t_compile = _compiling([progress], [meta], cfg)
-    if not (resume and meta is not None):
-        if resume:
-            warnings.warn(f"{out}: no checkpoint was written before it stopped; training from the first episode",
-                          RunDirWarning, stacklevel=3)
-        carry = learner_program(learner, "init")(key)
-    untrained = None
-    if cfg.eval_untrained and cfg.eval_episodes > 0 and meta is None:
-        untrained = jax.tree_util.tree_map(jnp.copy, learner.policy(carry))  # ``chunk`` donates the carry
-    overhead = _compiled(chunk, carry, t_enter, t_compile, [progress], [meta], cfg)
-    validation = Validation(cfg, env, params, learner) if cfg.generalist and cfg.validation_layouts else None
-    run = RunRecord(cfg, out, meta, checkpoints, overhead, validation)
-    chunks_this_call = 0
-    while not run.done:
-        carry, log = chunk(carry)
-        run.record(log, progress)
-        run.save(learner, carry)
-        chunks_this_call += 1
-        if stop_after_chunks is not None and chunks_this_call >= stop_after_chunks:
-            run.save(learner, carry, force=True)
-            return None
-    return run.finish(learner, carry, env, params, progress, untrained)
+    with wandb_run(cfg, out, continuing=meta is not None) as wandb:  # None without --wandb
+        t_compile = _compiling([progress], [meta], cfg)
+        if not (resume and meta is not None):
+            if resume:
+                warnings.warn(f"{out}: no checkpoint was written before it stopped; training from the first episode",
+                              RunDirWarning, stacklevel=3)
+            carry = learner_program(learner, "init")(key)
+        untrained = None
+        if cfg.eval_untrained and cfg.eval_episodes > 0 and meta is None:
+            untrained = jax.tree_util.tree_map(jnp.copy, learner.policy(carry))  # ``chunk`` donates the carry
+        overhead = _compiled(chunk, carry, t_enter, t_compile, [progress], [meta], cfg)
+        validation = Validation(cfg, env, params, learner) if cfg.generalist and cfg.validation_layouts else None
+        run = RunRecord(cfg, out, meta, checkpoints, overhead, validation, wandb)
+        chunks_this_call = 0
+        while not run.done:
+            carry, log = chunk(carry)
+            run.record(log, progress)
+            run.save(learner, carry)
+            chunks_this_call += 1
+            if stop_after_chunks is not None and chunks_this_call >= stop_after_chunks:
+                run.save(learner, carry, force=True)
+                return None
+        return run.finish(learner, carry, env, params, progress, untrained)
 
 
 
@@ -175,6 +179,8 @@ def train_seeds(
     t_enter = time.perf_counter()
     outs = [Path(o) for o in outs]
     cfgs[0].check(seeds=len(cfgs))
+    if cfgs[0].wandb:
+        require_wandb()
     built = build(cfgs[0])
     preflight_checks(cfgs[0], *built[:2])
     with contextlib.ExitStack() as locks:
@@ -209,32 +215,35 @@ def _train_seeds_locked(cfgs: list[TrainConfig], outs: list[Path], built, progre
         metas = [None] * len(cfgs)
         t_compile = _compiling(progress, metas, cfgs[0])
         carry = learner_program(learner, "init", vmapped=True)(keys)
-    overhead = _compiled(chunk, carry, t_enter, t_compile, progress, metas, cfgs[0])
     summaries: list[dict | None] = [read_json(o / "summary.json", "summary") if (o / "summary.json").is_file()
                                     else None for o in outs]
-    runs = [None if s_ is not None else RunRecord(c, o, m, Checkpoints(o, p), overhead)
-            for c, o, m, s_, p in zip(cfgs, outs, metas, summaries, prints)]
-    chunks_this_call = 0
-    while any(s_ is None for s_ in summaries):
-        carry, log = chunk(carry)
-        carry = jax.block_until_ready(carry)
-        log = jax.device_get(log)
-        saved = False
-        for i, run in enumerate(runs):
-            if summaries[i] is not None:
-                continue
-            run.record(_seed_slice(log, i), progress[i])
-            mine = _take_seed(carry, jnp.int32(i))
-            saved |= run.save(learner, mine)
-            if run.done:
-                summaries[i] = run.finish(learner, mine, env, params, progress[i])
-        chunks_this_call += 1
-        interrupted = stop_after_chunks is not None and chunks_this_call >= stop_after_chunks
-        if saved or interrupted:
-            metas = [r.meta if r is not None else m for r, m in zip(runs, metas)]
-            checkpoints.save(carry, {"runs": metas})
-        if interrupted and any(s_ is None for s_ in summaries):
-            return None
+    with contextlib.ExitStack() as stack:  # each unfinished seed's W&B run (None without --wandb)
+        sinks = [None if s_ is not None else stack.enter_context(wandb_run(c, o, continuing=m is not None))
+                 for c, o, m, s_ in zip(cfgs, outs, metas, summaries)]
+        overhead = _compiled(chunk, carry, t_enter, t_compile, progress, metas, cfgs[0])
+        runs = [None if s_ is not None else RunRecord(c, o, m, Checkpoints(o, p), overhead, wandb=w)
+                for c, o, m, s_, p, w in zip(cfgs, outs, metas, summaries, prints, sinks)]
+        chunks_this_call = 0
+        while any(s_ is None for s_ in summaries):
+            carry, log = chunk(carry)
+            carry = jax.block_until_ready(carry)
+            log = jax.device_get(log)
+            saved = False
+            for i, run in enumerate(runs):
+                if summaries[i] is not None:
+                    continue
+                run.record(_seed_slice(log, i), progress[i])
+                mine = _take_seed(carry, jnp.int32(i))
+                saved |= run.save(learner, mine)
+                if run.done:
+                    summaries[i] = run.finish(learner, mine, env, params, progress[i])
+            chunks_this_call += 1
+            interrupted = stop_after_chunks is not None and chunks_this_call >= stop_after_chunks
+            if saved or interrupted:
+                metas = [r.meta if r is not None else m for r, m in zip(runs, metas)]
+                checkpoints.save(carry, {"runs": metas})
+            if interrupted and any(s_ is None for s_ in summaries):
+                return None
     shutil.rmtree(group, ignore_errors=True)
     return summaries
 

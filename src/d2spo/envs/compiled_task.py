@@ -11,6 +11,7 @@ route (``route_length``) and the automaton states the robot can reach (``reached
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Any
@@ -23,6 +24,7 @@ from d2spo.envs.env_config import EnvConfig
 from d2spo.envs.state_fields import StateFields, letter_roles, state_fields
 from d2spo.envs.workspace import Layout
 from d2spo.ltl.automaton import Automaton, AutomatonArrays
+from d2spo.ltl.buchi_task import BuchiTask
 
 
 @dataclass(frozen=True, eq=False)
@@ -65,10 +67,27 @@ class CompiledTask:
             return None
         return state_fields(self.automaton, self.layout, self.roles, self.label_mode, **self.field_costs)
 
+    @property
+    def recurrence(self) -> bool:
+        """Whether the task is a recurrence (``ltl.buchi_task``): no state completes it, it is scored by
+        its accepting visits."""
+        return isinstance(self.automaton, BuchiTask) and not self.automaton.accepting and self.arrays.visit is not None
+
     @cached_property
     def route_length(self) -> float:
-        """Length (m) of the shortest route that completes the task (``routes.route_length``; inf: none)."""
+        """Length (m) of the shortest route that completes the task (``routes.route_length``), or for a
+        recurrence that makes its first accepting visit (``routes.visit_lengths``); inf: none."""
+        if self.recurrence:
+            first = routes.visit_lengths(self.automaton, self.layout, self.label_mode, self.robot_radius, math.inf, 1)
+            return first[0] if first else math.inf
         return routes.route_length(self.automaton, self.layout, self.label_mode, self.robot_radius)
+
+    def optimal_visits(self, max_steps: int, dt: float, v_max: float) -> int:
+        """A recurrence's route-optimal visit count: the accepting visits of the shortest routes that fit
+        in ``max_steps`` steps of ``dt`` at ``v_max`` (``routes.visit_lengths``; turning and braking
+        ignored, and the grid's 8 directions allowed for: an upper bound on what a robot can score)."""
+        reach = max_steps * dt * v_max * routes.OCTILE_EXCESS
+        return len(routes.visit_lengths(self.automaton, self.layout, self.label_mode, self.robot_radius, reach))
 
     @cached_property
     def reached(self) -> tuple[bool, ...]:

@@ -37,8 +37,7 @@ from d2spo.envs.compiled_task import CompiledTask, compile_task
 from d2spo.envs.env_config import EnvConfig
 from d2spo.envs.params import EnvParams, env_params
 from d2spo.envs.workspace import Layout
-from d2spo.errors import ConfigError
-from d2spo.ltl import BuchiTask, task_automaton, task_formula
+from d2spo.ltl import task_automaton, task_formula
 from d2spo.ltl.automaton import Automaton
 from d2spo.ltl.labelling import accepting_visit, next_state
 from d2spo.ltl.reward import PER_STATE, distance_to_progress, step_reward
@@ -349,10 +348,6 @@ def make_env(cfg: EnvConfig, task: Any = "phi1") -> tuple[Env, EnvParams]:
     automaton = task_automaton(task_formula(task)) if isinstance(task, str) else task
     name = task if isinstance(task, str) else "the task"
     per_state = cfg.reward.shaping_metric == PER_STATE
-    if per_state and isinstance(automaton, BuchiTask) and not automaton.accepting:
-        raise ConfigError("reward.shaping_metric", f"{name!r} is a recurrence task (no finite run completes it; it "
-                          f"is scored by its accepting visits): the per-state shaping ({PER_STATE}, the default) "
-                          "is not built for it; use --shaping-metric geodesic")
     compiled = compile_task(automaton, layout, cfg.label_mode, cfg.robot_radius,
                             cfg.reward.field_costs(cfg.robot_radius) if per_state else None)
     preflight.check_letters(compiled, name)

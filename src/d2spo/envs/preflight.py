@@ -61,7 +61,14 @@ def check_feasible(task: CompiledTask, name: str, radius: float | None = None, r
         radius, reached = task.robot_radius, task.reached
     else:
         reached = routes.reachable_states(aut, layout, task.label_mode, radius)
-    if any(reached[q] for q in aut.accepting):
+    if task.recurrence:  # no accepting state: a route must make an accepting visit
+        if radius == task.robot_radius:
+            visits = [task.route_length] if math.isfinite(task.route_length) else []
+        else:
+            visits = routes.visit_lengths(aut, layout, task.label_mode, radius, math.inf, 1)
+        if visits:
+            return
+    elif any(reached[q] for q in aut.accepting):
         return
     ends = aut.accepting | aut.rejecting
     live = [q for q in range(aut.n_states) if reached[q] and q not in ends and distance[q] is not None]
@@ -134,12 +141,37 @@ def preflight(env, params, name: str, margin: float = 0.0, episode_time: bool = 
     with an automaton given by its arrays only, or for a recurrence task (no state completes it: it
     runs to the step limit, scored by its accepting visits; ``ltl.buchi_task``)."""
     task = env.task
-    if task is None or task.distance is None or not task.automaton.accepting:
+    if task is None or task.distance is None or not (task.automaton.accepting or task.recurrence):
         return
     cfg = env.config
     if task.fields is not None:
         check_feasible(task, name)
     if margin > cfg.robot_radius:
         check_margin(task, margin, name)
-    if episode_time:
+    if episode_time and task.recurrence:
+        check_cycle(task, int(params.max_steps), cfg.dt, cfg.v_max * cfg.v_gain, name)
+    elif episode_time:
         check_time(task, int(params.max_steps), cfg.dt, cfg.v_max * cfg.v_gain, name)
+
+
+def check_cycle(task: CompiledTask, max_steps: int, dt: float, v_max: float, name: str) -> None:
+    """ConfigError when a recurrence's first accepting visit (one lap of its cycle) cannot be made
+    within ``max_steps`` steps at ``v_max`` by any route: every episode would score 0 visits."""
+    length = task.route_length
+    need = length / (v_max * dt)
+    if need / routes.OCTILE_EXCESS > max_steps:
+        raise ConfigError("env.max_steps", f"{name}: an episode of {max_steps} steps of {dt:g} s at {v_max:g} m/s is "
+                          f"too short for one accepting visit on layout {task.layout.name!r}: the shortest route to "
+                          f"the first is {length:.1f} m ({math.ceil(need)} steps at full speed); raise --max-steps "
+                          "(unset, it follows the task)")
+
+
+def optimal_visits(env, params) -> int | None:
+    """A recurrence's route-optimal visits per episode on ``env``'s layout within ``params.max_steps``
+    (``CompiledTask.optimal_visits``), what the visit fraction is measured against; None for any other
+    task and without one task on one layout (the generalist's bank)."""
+    task = env.task
+    if task is None or task.distance is None or not task.recurrence:
+        return None
+    cfg = env.config
+    return task.optimal_visits(int(params.max_steps), cfg.dt, cfg.v_max * cfg.v_gain)

@@ -118,6 +118,50 @@ def route_length(aut: Automaton, layout: Layout, label_mode: str, robot_radius: 
     ``workspace.free_grid`` (a diagonal move also needs its two 4-neighbours free), letters read as the
     environment reads them, rejecting states excluded. ``inf`` when no route exists.
     """
+    rows, cols, weights, _, n, start, cells = _product_edges(aut, layout, label_mode, robot_radius)
+    if start // cells in aut.accepting:
+        return 0.0
+    if not aut.accepting:
+        return math.inf
+    graph = sparse.csr_matrix((weights, (rows, cols)), shape=(n, n))
+    dist = csgraph.dijkstra(graph, indices=start)
+    return float(min(dist[q * cells:(q + 1) * cells].min() for q in aut.accepting))
+
+
+def visit_lengths(aut: Automaton, layout: Layout, label_mode: str, robot_radius: float, max_length: float,
+                  max_visits: int = 10_000) -> list[float]:
+    """Lengths (m) of the shortest grid routes from the start that make 1, 2, ... accepting visits of a
+    Büchi task (``BuchiTask.visits``), as many as fit within ``max_length`` (at most ``max_visits``):
+    what a perfect robot driving ``max_length`` could score. Empty when no visit can be made within it.
+
+    A search by layers over ``route_length``'s graph: layer k holds the shortest length to each
+    (automaton state, grid cell) with k visits made; layer k + 1 starts where a visit move leaves layer
+    k (one Dijkstra per layer from a node joined to those starts by their lengths). The difference of
+    consecutive lengths tends to the shortest cycle through the accepting set.
+    """
+    rows, cols, weights, visit, n, start, _ = _product_edges(aut, layout, label_mode, robot_radius)
+    plain = sparse.csr_matrix((weights[~visit], (rows[~visit], cols[~visit])), shape=(n + 1, n + 1))
+    v_src, v_dst, v_w = rows[visit], cols[visit], weights[visit]
+    dist = csgraph.dijkstra(plain, indices=start)[:n]
+    out: list[float] = []
+    while len(out) < max_visits:
+        arrive = np.full(n, np.inf)
+        np.minimum.at(arrive, v_dst, dist[v_src] + v_w)
+        best = float(arrive.min()) if arrive.size else math.inf
+        if not best <= max_length:
+            break
+        out.append(best)
+        ends = np.flatnonzero(arrive <= max_length)
+        seed = sparse.csr_matrix((arrive[ends], (np.full(ends.shape, n), ends)), shape=(n + 1, n + 1))
+        dist = csgraph.dijkstra(plain + seed, indices=n)[:n]
+    return out
+
+
+def _product_edges(aut: Automaton, layout: Layout, label_mode: str, robot_radius: float):
+    """The (automaton state, grid cell) graph ``route_length`` and ``visit_lengths`` search: (rows, cols,
+    weights, visit, n, start node, resolution), one entry per move of a live state (not accepting, not
+    rejecting) that does not reject; ``visit`` marks the moves that are a Büchi task's accepting visit
+    (``BuchiTask.visits``; none for a monitor)."""
     event = label_mode == "event"
     free, letters, delta, resolution, (q0, iy, ix) = _task_grid(aut, layout, label_mode, robot_radius)
     ny, nx = free.shape
@@ -126,8 +170,9 @@ def route_length(aut: Automaton, layout: Layout, label_mode: str, robot_radius: 
     rejecting[sorted(aut.rejecting)] = True
     live = ~rejecting
     live[sorted(aut.accepting)] = False
+    visits = np.asarray(getattr(aut, "visits", None) or np.zeros(delta.shape, bool), bool).reshape(delta.shape)
     cell = np.arange(ny * nx).reshape(ny, nx)
-    rows, cols, weights = [], [], []
+    rows, cols, weights, marks = [], [], [], []
     for dy, dx in _SHIFTS8:
         ys, xs = np.nonzero(free)
         ty, tx = ys + dy, xs + dx
@@ -145,10 +190,7 @@ def route_length(aut: Automaton, layout: Layout, label_mode: str, robot_radius: 
             rows.append(q * ny * nx + cell[ys[keep], xs[keep]])
             cols.append(t[keep] * ny * nx + cell[ty[keep], tx[keep]])
             weights.append(np.full(int(keep.sum()), resolution * math.hypot(dy, dx)))
+            marks.append((reads & visits[q, b])[keep])
     n = n_states * ny * nx
-    graph = sparse.csr_matrix((np.concatenate(weights), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n))
-    if q0 in aut.accepting:
-        return 0.0
-    dist = csgraph.dijkstra(graph, indices=q0 * ny * nx + cell[iy, ix])
-    return float(min(dist[q * ny * nx:(q + 1) * ny * nx].min() for q in aut.accepting)) if aut.accepting else math.inf
-
+    return (np.concatenate(rows), np.concatenate(cols), np.concatenate(weights), np.concatenate(marks), n,
+            q0 * ny * nx + cell[iy, ix], ny * nx)

@@ -128,10 +128,14 @@ def progress_reward(
 
 
 def progress_areas(aut: AutomatonArrays, area_bits) -> jnp.ndarray:
-    """bool [Q, N]: entering area i alone from state q gets strictly closer to acceptance."""
+    """bool [Q, N]: entering area i alone from state q gets strictly closer to acceptance, or is a
+    Büchi task's accepting visit (after which the distance restarts)."""
     area_bits = jnp.asarray(area_bits)
     nxt = aut.delta[:, area_bits]  # [Q, N]
-    return (aut.distance[nxt] < aut.distance[:, None]) & (area_bits[None, :] != 0)
+    closer = aut.distance[nxt] < aut.distance[:, None]
+    if aut.visit is not None:
+        closer = closer | aut.visit[:, area_bits]
+    return closer & (area_bits[None, :] != 0)
 
 
 def distance_to_progress(advance: jnp.ndarray, q: jnp.ndarray, center_dist: jnp.ndarray, radius: jnp.ndarray

@@ -38,12 +38,26 @@ TASKS: dict[str, str] = {
     "return": "F (A1 & F (A4 & F A1))",
     # A1 and A2 at the same time: impossible where the two areas do not overlap (rejected before training).
     "a1-and-a2": "F (A1 & A2)",
+    # --- tasks no finite run completes (BUCHI_SUITE below; docs/ltl.md, "Tasks no finite run completes") ---
+    # A3, never entering A4: done when A3 is reached with A4 never entered (the episode ends there).
+    "reach-never": "G !A4 & F A3",
+    # A1 and A3 again and again, never A4: scored by its accepting visits, one per A1 -> A3 round.
+    "patrol2": "G F A1 & G F A3 & G !A4",
+    # A1, A2 and A3 again and again, never A4.
+    "patrol3": "G F A1 & G F A2 & G F A3 & G !A4",
+    # every A1 answered by a later A2, and A1 again and again.
+    "respond": "G (A1 -> F A2) & G F A1",
+    # A2 from some time on, for good: no deterministic Büchi automaton (refused in one line).
+    "persist": "F G A2",
 }
 """Task name -> formula in the syntax of ``d2spo.ltl.parse``."""
 
 SUITE: tuple[str, ...] = ("tour3", "tour4", "strict4", "any-order3", "avoid-until", "never-a4", "either-then",
                           "next-pair", "next-chain", "return", "a1-and-a2")
 """The example tasks (bench/task_suite.py trains each on ``paper``); ``a1-and-a2`` cannot be done there."""
+BUCHI_SUITE: tuple[str, ...] = ("reach-never", "patrol2", "patrol3", "respond", "persist")
+"""Tasks no finite run completes (bench/buchi_suite.py trains each on ``paper``); ``persist`` has no
+deterministic Büchi automaton and is refused."""
 
 
 def task_formula(name_or_formula: str) -> str:
