@@ -14,6 +14,13 @@ from d2spo import plots
 from d2spo import reproduce as rp
 
 
+def png_dpi(path) -> int:
+    """The resolution a PNG records (its pHYs chunk), in dots per inch."""
+    from PIL import Image
+
+    return round(Image.open(path).info["dpi"][0])
+
+
 def test_reward_curves_are_moving_averages_with_a_band_over_seeds(tmp_path):
     """Fig. 2 reads episodes.csv of the table runs: the curve is the moving-average return, mean over
     seeds, with a ± 1 std band. Run directories with known returns stand in for trained runs."""
@@ -28,18 +35,20 @@ def test_reward_curves_are_moving_averages_with_a_band_over_seeds(tmp_path):
         with open(d / "episodes.csv", "w", newline="") as f:
             csv.writer(f).writerows([EPISODE_FIELDS, *rows])
     dirs = [rp.run_dir(out, s) for s in specs]
-    x, mean, std = plots.reward_curves({"LPPO": dirs}, smooth=5)["LPPO"]
+    x, mean, std, seeds = plots.reward_curves({"LPPO": dirs}, smooth=5)["LPPO"]
+    assert seeds == 2
     assert len(x) == len(mean) == 46 and x[0] == 5
     np.testing.assert_allclose(mean, np.arange(46) + 2.0 + 1.0)  # mean of i..i+4, plus the mean offset 1
     np.testing.assert_allclose(std, 1.0)  # the two seeds differ by 2 everywhere
-    _, _, one_std = plots.reward_curves({"LPPO": dirs[:1]}, smooth=5)["LPPO"]
+    _, _, one_std, _ = plots.reward_curves({"LPPO": dirs[:1]}, smooth=5)["LPPO"]
     assert np.all(one_std == 0)  # one seed: no spread
     assert plots.reward_curves({"LPPO": [tmp_path / "missing"], "x": []}) == {}  # no episodes: no curve
     path = rp.render("fig2", out, 2, 50, ["ppo-lag"])
-    assert path == out / "fig2.png" and imread(path).shape == (495, 990, 4)  # two panels of 4.5 in at 110 dpi
+    assert path == out / "fig2.png" and png_dpi(path) == 300
+    assert imread(path).shape[1] > 0.9 * 9.0 * 300  # two panels of 4.5 in, cropped to what is drawn
     # a run shorter than the default width of 200 still gets a curve: a fifth of it per window,
     # each point placed at the end of its window (not at 200 + i)
-    x, mean, _ = plots.reward_curves({"LPPO": dirs})["LPPO"]
+    x, mean, _, _ = plots.reward_curves({"LPPO": dirs})["LPPO"]
     assert len(x) == 41 and x[0] == 10 and x[-1] == 50
     np.testing.assert_allclose(mean[0], np.mean(np.arange(10)) + 1.0)
 
@@ -56,11 +65,13 @@ def test_figs_4_and_5_render_from_one_short_d2spo_run(tmp_path, monkeypatch):
     for n in f5.snapshots:
         assert (rp.run_dir(out, f5) / f"policy-{n}.msgpack").is_file()
     fig5 = rp.render("fig5", out, 1, FIG5_EPISODES)
-    assert imread(fig5).shape == (400, 1600, 4)  # the layout and three snapshots, 4 in each at 100 dpi
+    height, width, _ = imread(fig5).shape  # the layout and three snapshots, 4 in each at 300 dpi, a legend below
+    assert png_dpi(fig5) == 300 and width > 0.9 * 16 * 300 and 0.9 * 4 * 300 < height < width / 2
     assert fig5.stat().st_size > 20_000
     f4 = rp.runs_for("fig4", 1, 200)
     assert f4[0].episodes == 20 and f4[0].layout == "physical-1"
     shutil.copytree(rp.run_dir(out, f5), rp.run_dir(out, f4[0]))
     fig4 = rp.render("fig4", out, 1, 200)
-    assert imread(fig4).shape == (800, 1600, 4)  # surfaces over level sets, four layouts
+    height, width, _ = imread(fig4).shape  # surfaces over level sets, four layouts, one colourbar
+    assert png_dpi(fig4) == 300 and width > 0.9 * 16 * 300 and height > 0.9 * 8 * 300
     assert fig4.stat().st_size > 20_000

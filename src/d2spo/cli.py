@@ -46,7 +46,8 @@ from d2spo.errors import ConfigError, D2SPOWarning, LTLSyntaxError, NaNError, Us
 from d2spo.evaluate import EvalConfig, evaluate_run, write_evaluation
 from d2spo.fields import check_fields
 from d2spo.ltl import task_automaton, task_formula
-from d2spo.plots import check_picture_path, evaluation_figure, state_fields_figure
+from d2spo.plots import evaluation_figure, state_fields_figure
+from d2spo.plotstyle import check_picture_path
 from d2spo.progress import train_with_progress
 from d2spo.repair import RepairConfig, repair_run
 
@@ -69,7 +70,8 @@ class LtlCmd:
     """Labelling the distances assume: 'event' (no empty letter) or 'step'."""
     plot: Path | None = None
     """With --layout: draw per automaton state its shaping distance field (--shaping-metric
-    geodesic-per-state) with its target and forbidden areas into this PNG, then check the task can be done."""
+    geodesic-per-state) with its target and forbidden areas into this picture (.png at 300 dpi, .pdf or .svg),
+    then check the task can be done."""
 
     def run(self) -> int:
         if self.json and self.dot:
@@ -100,7 +102,7 @@ class LtlCmd:
             print(f"distance: area visits (letters) still needed to accept, over {letters}")
         if self.plot is not None:
             task = default_task(aut, self.layout, self.label_mode)
-            state_fields_figure(task.layout, aut, task.fields, self.plot, list(task.distance))
+            state_fields_figure(task, self.plot)
             check_feasible(task, repr(self.formula))  # after the picture, which shows why
             print(f"wrote {self.plot}")
         return 0
@@ -114,7 +116,7 @@ class EnvShowCmd:
     """Built-in layout name (paper, relaxed, open, physical-1..4), random[:SEED] (5-10 m, three styles),
     random5[:SEED] (the earlier 5 m generator) or a JSON file."""
     out: Path = Path("layout.png")
-    """Where to write the PNG."""
+    """Where to write the picture: .png (300 dpi), .pdf or .svg."""
     rollout_steps: int = 0
     """If > 0, also draw a random-action rollout of this many steps."""
     seed: int = 0
@@ -194,7 +196,7 @@ class EvalCmd:
     cfg: Annotated[EvalConfig, tyro.conf.arg(name="")]
     plot: Path | None = None
     """Also draw the trajectories of the first --plot-episodes episodes on each layout (the first 6
-    layouts of --layout-seeds), coloured by outcome, into this PNG file."""
+    layouts of --layout-seeds), coloured by outcome, into this picture (.png at 300 dpi, .pdf or .svg)."""
     plot_episodes: int = 8
     """With --plot: episodes drawn per layout."""
 

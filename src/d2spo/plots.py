@@ -10,8 +10,9 @@
 
 Each thing is drawn by one function (``draw_trajectories``, ``draw_cbf``, ``draw_reward_curves``)
 that the figures share. ``d2spo.reproduce`` only chooses which run directories go into which
-figure. Matplotlib only, with Figure objects (no pyplot global state), so it is safe in tests and
-servers.
+figure. Colours, colour maps and the file writer come from ``d2spo.plotstyle`` (Okabe–Ito colours,
+one colour scale per figure, PNG at 300 dpi or PDF/SVG by the suffix). Matplotlib only, with
+Figure objects (no pyplot global state), so it is safe in tests and servers.
 """
 
 from __future__ import annotations
@@ -23,34 +24,35 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.colors import ListedColormap
+from matplotlib.colors import ListedColormap, Normalize
 from matplotlib.figure import Figure
+from matplotlib.gridspec import GridSpec
 from matplotlib.lines import Line2D
-from matplotlib.patches import Circle
+from matplotlib.patches import Circle, Patch
+from matplotlib.ticker import MaxNLocator
 
-from d2spo.envs import geometry
+from d2spo.envs import geodesic, geometry
 from d2spo.envs.render import OBSTACLE_COLOR, START_COLOR, add_legend, draw_layout, draw_trajectory, obstacle_patch
-from d2spo.errors import ConfigError
+from d2spo.plotstyle import (
+    BLACK,
+    BLUISH_GREEN,
+    FIELD_CMAP,
+    GREY,
+    ORANGE,
+    REDDISH_PURPLE,
+    SIGNED_CMAP,
+    SKY_BLUE,
+    VERMILLION,
+    save_figure,
+)
 from d2spo.rollout import make_rollout
 from d2spo.run import load_policy, load_snapshot
 from d2spo.runio import read_episodes
 
-OUTCOME_COLORS = {"completed": "tab:purple", "collided": "tab:red", "neither": "tab:orange"}
+OUTCOME_COLORS = {"completed": BLUISH_GREEN, "collided": VERMILLION, "neither": REDDISH_PURPLE}
 """Trajectory colours: the task completed (true labelling), a collision, or the episode ran out."""
 OUTCOME_NAMES = {"completed": "task completed", "collided": "collision", "neither": "out of time"}
 """How the legends name each outcome of ``OUTCOME_COLORS``."""
-
-
-def check_picture_path(path: Path, field: str) -> None:
-    """ConfigError unless matplotlib can write a picture to ``path`` (flag ``field``): a format it
-    knows by the suffix, in a folder that exists. Checked before the work that draws it."""
-    path = Path(path)
-    formats = FigureCanvasAgg(Figure()).get_supported_filetypes()
-    if path.suffix[1:].lower() not in formats:
-        raise ConfigError(field, f"{path}: not a picture format; end the name in one of "
-                          f"{', '.join('.' + f for f in sorted(formats))}")
-    if not path.parent.is_dir():
-        raise ConfigError(field, f"{path}: the folder {path.parent} does not exist")
 
 
 def policy_trajectories(learner, policy, env, params, episodes: int, seed: int, rollout=None):
@@ -82,14 +84,27 @@ def cbf_grid(learner, safety, heading: float = 0.0, resolution: int = 80):
     return xs, ys, np.asarray(h).reshape(gx.shape), np.asarray(inside).reshape(gx.shape)
 
 
-def draw_cbf(ax, xs, ys, h, layout, levels: int = 15, zero_color: str = "white", zero_width: float = 1.5):
-    """Filled contours of h (a ``cbf_grid``) over the workspace, its zero level set as a line, the
-    layout on top; returns the filled contours (for a colorbar). The caller titles the axes."""
-    lim = float(np.nanmax(np.abs(h))) or 1.0
-    cs = ax.contourf(xs, ys, h, levels=levels, cmap="RdYlGn", vmin=-lim, vmax=lim)
-    ax.contour(xs, ys, h, levels=[0.0], colors=zero_color, linewidths=zero_width)
+def signed_norm(*hs) -> Normalize:
+    """One colour scale, symmetric about h = 0, for every grid of h in ``hs``."""
+    lim = max((float(np.nanmax(np.abs(h))) for h in hs), default=0.0) or 1.0
+    return Normalize(-lim, lim)
+
+
+def draw_cbf(ax, xs, ys, h, layout, norm: Normalize | None = None, levels: int = 15):
+    """Filled contours of h (a ``cbf_grid``) over the workspace on ``norm`` (default: this grid's
+    ``signed_norm``), its zero level set as a black line, the layout on top; returns the filled
+    contours (for a colourbar). The caller titles the axes."""
+    norm = norm or signed_norm(h)
+    cs = ax.contourf(xs, ys, h, levels=np.linspace(norm.vmin, norm.vmax, levels + 1), cmap=SIGNED_CMAP, norm=norm)
+    ax.contour(xs, ys, h, levels=[0.0], colors=BLACK, linewidths=1.5)
     draw_layout(layout, ax, show_sensing=False)
     return cs
+
+
+CBF_LABEL = "h, the learned CBF (h ≥ 0: safe set)"
+"""The colourbar label of every picture of h."""
+ZERO_LINE = Line2D([], [], color=BLACK, linewidth=1.5, label="h = 0 (edge of the safe set)")
+"""The legend entry of ``draw_cbf``'s zero level set."""
 
 
 def draw_trajectories(ax, poses, collided, completed) -> None:
@@ -101,11 +116,17 @@ def draw_trajectories(ax, poses, collided, completed) -> None:
         draw_trajectory(ax, xy, color=OUTCOME_COLORS[outcome])
 
 
+def outcome_handles() -> list[Line2D]:
+    """Legend entries of ``draw_trajectories``' colours."""
+    return [Line2D([], [], color=c, marker="x", markevery=[1], label=f"trajectory: {OUTCOME_NAMES[k]} (x: end)")
+            for k, c in OUTCOME_COLORS.items()]
+
+
 def policy_figure(path: Path, learner, policy, env, params, episodes: int = 8, seed: int = 0,
                   title: str = "", suptitle: str = "") -> dict:
     """Write ``draw_policy_figure`` to ``path``; returns the safety and completion rates it shows."""
     fig, rates = draw_policy_figure(learner, policy, env, params, episodes, seed, title, suptitle)
-    fig.savefig(str(path), dpi=100)
+    save_figure(fig, path)
     return rates
 
 
@@ -122,15 +143,15 @@ def draw_policy_figure(learner, policy, env, params, episodes: int = 8, seed: in
     draw_trajectories(ax, poses, collided, completed)
     ax.set_title(title or f"{completed.mean():.0%} completed, {1 - collided.mean():.0%} safe "
                           f"({poses.shape[0]} episodes)")
-    add_legend(ax, [Line2D([], [], color=c, label=f"trajectory: {OUTCOME_NAMES[k]} (x: end)")
-                    for k, c in OUTCOME_COLORS.items()])
+    add_legend(ax, outcome_handles())
     if has_cbf:
         ax = fig.add_subplot(1, 2, 2)
         xs, ys, h, _ = cbf_grid(learner, policy[1], heading=0.0)
         filled = draw_cbf(ax, xs, ys, h, env.layout)
-        ax.set_title("learned CBF h at heading 0° (white: h = 0)")
-        cb = fig.colorbar(filled, ax=ax, shrink=0.8)
-        cb.set_label("h, the learned CBF (h ≥ 0: safe set)")
+        ax.set_title("learned CBF h at heading 0°")
+        cb = fig.colorbar(filled, ax=ax, shrink=0.8, ticks=MaxNLocator(8))
+        cb.set_label(CBF_LABEL)
+        add_legend(ax, [ZERO_LINE])
     fig.suptitle(suptitle or f"layout {env.layout.name!r}")
     return fig, {"safety_rate": float(1 - collided.mean()), "completion_rate": float(completed.mean())}
 
@@ -139,26 +160,46 @@ EVAL_PLOT_LAYOUTS = 6
 """``d2spo eval --plot`` draws at most this many layouts (the first ones of ``--layout-seeds``)."""
 
 
+def panel_grid(fig: Figure, n: int, ncols: int) -> list:
+    """``n`` axes in rows of ``ncols`` (fewer when ``n`` is smaller), the last row centred: no empty
+    panel and no hole."""
+    ncols = max(1, min(ncols, n))
+    nrows = -(-n // ncols)
+    grid = GridSpec(nrows, 2 * ncols, figure=fig)
+    axes = []
+    for k in range(n):
+        row, col = divmod(k, ncols)
+        shift = ncols - (n - row * ncols) if row == nrows - 1 else 0  # half-panels the last row is moved right
+        axes.append(fig.add_subplot(grid[row, 2 * col + shift:2 * col + shift + 2]))
+    return axes
+
+
 def evaluation_figure(path: Path, paths: Sequence[tuple], per_layout: Sequence[dict], suptitle: str) -> Path:
-    """``d2spo eval --plot``: for each of the first ``EVAL_PLOT_LAYOUTS`` layouts, the layout and the
-    trajectories of its first episodes (``paths``: (Layout, poses, collided, completed) per layout,
-    from ``evaluate_run(keep_paths=k)``), titled with that layout's rates over all its episodes."""
+    """``d2spo eval --plot``: write ``draw_evaluation_figure`` to ``path`` (``plotstyle.save_figure``)."""
+    return save_figure(draw_evaluation_figure(paths, per_layout, suptitle), path, "plot")
+
+
+def draw_evaluation_figure(paths: Sequence[tuple], per_layout: Sequence[dict], suptitle: str) -> Figure:
+    """For each of the first ``EVAL_PLOT_LAYOUTS`` layouts, the layout and the trajectories of its
+    first episodes (``paths``: (Layout, poses, collided, completed) per layout, from
+    ``evaluate_run(keep_paths=k)``), titled with that layout's rates over all its episodes; one
+    panel per layout (``panel_grid``) and one legend under the panels that names every mark."""
     shown = list(zip(paths, per_layout, strict=True))[:EVAL_PLOT_LAYOUTS]
-    ncols = min(3, len(shown))
-    nrows = -(-len(shown) // ncols)
-    fig = _figure(ncols, nrows, size=4.6, min_width=7.0)  # one panel: room for the title
-    for k, ((layout, poses, collided, completed), rates) in enumerate(shown):
-        ax = fig.add_subplot(nrows, ncols, k + 1)
+    ncols = 2 if len(shown) == 4 else 3
+    nrows = -(-len(shown) // min(ncols, len(shown)))
+    fig = Figure(figsize=(max(4.6 * min(ncols, len(shown)), 7.0), 4.6 * nrows + 0.8), layout="constrained")
+    FigureCanvasAgg(fig)
+    handles = {}
+    for ax, ((layout, poses, collided, completed), rates) in zip(panel_grid(fig, len(shown), ncols), shown):
         draw_layout(layout, ax, show_sensing=False)
         draw_trajectories(ax, poses, collided, completed)
         ax.set_title(f"{layout.name}: {rates['completion_rate']:.0%} completed, {rates['safety_rate']:.0%} safe\n"
                      f"({rates['episodes']} episodes; {poses.shape[0]} drawn)", fontsize=9)
-        if k == 0:
-            add_legend(ax, [Line2D([], [], color=c, label=f"{OUTCOME_NAMES[o]} (x: end)") for o, c in OUTCOME_COLORS.items()])
+        handles.update(zip(*reversed(ax.get_legend_handles_labels())))
+    handles.update({h.get_label(): h for h in outcome_handles()})
+    fig.legend(handles=list(handles.values()), loc="outside lower center", ncol=2, fontsize=8, frameon=False)
     fig.suptitle(suptitle, fontsize=11)
-    fig.tight_layout()
-    fig.savefig(str(path), dpi=90)
-    return Path(path)
+    return fig
 
 
 # ---------------------------------------------------------------------- Figs. 2-3: reward curves
@@ -169,10 +210,10 @@ def smoothing_window(n_episodes: int, smooth: int = 200) -> int:
 
 
 def reward_curves(runs: Mapping[str, Iterable[Path]], smooth: int = 200) -> dict[str, tuple]:
-    """Per label (its run directories, one per seed): (episode index, mean return over seeds, std)
-    of the moving-average return over ``smoothing_window`` episodes (seeds cut to the shortest);
-    the index is the episode count at the end of each window. Runs without episodes are skipped,
-    and so is a label without any."""
+    """Per label (its run directories, one per seed): (episode index, mean return over seeds, std,
+    seeds) of the moving-average return over ``smoothing_window`` episodes (seeds cut to the
+    shortest); the index is the episode count at the end of each window. Runs without episodes
+    are skipped, and so is a label without any."""
     result = {}
     for label, dirs in runs.items():
         rs = []
@@ -186,67 +227,92 @@ def reward_curves(runs: Mapping[str, Iterable[Path]], smooth: int = 200) -> dict
         n = min(len(r) for r in rs)
         k = smoothing_window(n, smooth)
         a = np.stack([np.convolve(r[:n], np.ones(k) / k, mode="valid") for r in rs])
-        result[label] = (np.arange(a.shape[1]) + k, a.mean(0), a.std(0))
+        result[label] = (np.arange(a.shape[1]) + k, a.mean(0), a.std(0), len(rs))
     return result
 
 
 def draw_reward_curves(ax, curves: Mapping[str, tuple], title: str) -> None:
-    """``reward_curves`` as lines with a ± 1 std band, labelled with their keys."""
-    for label, (x, mean, std) in curves.items():
-        line = ax.plot(x, mean, label=label, marker="o" if len(x) == 1 else None)[0]
-        ax.fill_between(x, mean - std, mean + std, color=line.get_color(), alpha=0.2)
-    ax.set_xlabel("episode")
-    widths = sorted({int(x[0]) for x, _, _ in curves.values()})  # a curve's first point ends its first window
-    ax.set_ylabel(f"return (moving average over {'/'.join(map(str, widths))} episodes)" if widths
-                  else "return (moving average)")
+    """``reward_curves`` as lines in the palette's order, each with its ± 1 std band, both named in
+    the legend (with the number of seeds); 'no runs' when there is no curve."""
+    for label, (x, mean, std, seeds) in curves.items():
+        line = ax.plot(x, mean, label=f"{label}: mean over {seeds} seed{'s' * (seeds != 1)}",
+                       marker="o" if len(x) == 1 else None)[0]
+        ax.fill_between(x, mean - std, mean + std, color=line.get_color(), alpha=0.2, label=f"{label}: ± 1 std")
+    ax.set_xlabel("training episodes")
+    widths = sorted({int(x[0]) for x, *_ in curves.values()})  # a curve's first point ends its first window
+    ax.set_ylabel(f"episode return (moving average over {'/'.join(map(str, widths))} episodes)" if widths
+                  else "episode return (moving average)")
     ax.set_title(title)
     if curves:
-        ax.legend(fontsize=8)
+        ax.legend(fontsize=7)
+    else:
+        ax.text(0.5, 0.5, "no runs", ha="center", transform=ax.transAxes)
 
 
 def reward_figure(path: Path, panels: Sequence[tuple[str, Mapping[str, Iterable[Path]]]], smooth: int = 200) -> Path:
     """Figs. 2–3: one panel per (title, {label: run directories}), side by side."""
     fig = _figure(len(panels))
     for i, (title, runs) in enumerate(panels):
-        draw_reward_curves(fig.add_subplot(1, len(panels), i + 1), reward_curves(runs, smooth), title)
-    fig.tight_layout()
-    fig.savefig(str(path), dpi=110)
-    return Path(path)
+        ax = fig.add_subplot(1, len(panels), i + 1)
+        ax.set_prop_cycle(color=[SKY_BLUE, ORANGE, BLUISH_GREEN, REDDISH_PURPLE, VERMILLION, BLACK])
+        draw_reward_curves(ax, reward_curves(runs, smooth), title)
+    return save_figure(fig, path)
 
 
 # ------------------------------------------------------------------ Fig. 4: the CBF on each layout
 def cbf_figure(path: Path, runs: Sequence[tuple[str, Path]], heading: float = 0.0) -> Path:
     """Fig. 4: per (name, run directory), the learned h at a fixed heading as a surface (top row)
-    and as level sets with h = 0 in black (bottom row); a run without a checkpoint is 'not run'."""
+    and as level sets with h = 0 in black (bottom row), on one colour scale with one colourbar; a
+    run without a checkpoint is 'not run' in both rows."""
+    grids = {}
+    for name, d in runs:
+        if (Path(d) / "checkpoint.json").is_file():
+            _, learner, policy, _ = load_policy(d)
+            grids[name] = (*cbf_grid(learner, policy[1], heading, resolution=60)[:3], learner.env.layout)
+    norm = signed_norm(*(g[2] for g in grids.values()))
     n = len(runs)
     fig = _figure(n, 2, size=4.0)
-    for i, (name, d) in enumerate(runs):
+    filled = None
+    for i, (name, _) in enumerate(runs):
         ax3 = fig.add_subplot(2, n, i + 1, projection="3d")
         ax2 = fig.add_subplot(2, n, i + n + 1)
         ax3.set_title(f"({chr(ord('a') + i)}) {name}")
-        level_title = f"({chr(ord('a') + n + i)}) {name}: level sets, h = 0 in black"
-        if not (Path(d) / "checkpoint.json").is_file():
-            ax2.set_title(level_title)
-            ax2.text(0.5, 0.5, "not run", ha="center", transform=ax2.transAxes)
-            continue
-        _, learner, policy, _ = load_policy(d)
-        xs, ys, h, _ = cbf_grid(learner, policy[1], heading, resolution=60)
-        gx, gy = np.meshgrid(xs, ys)
-        ax3.plot_surface(gx, gy, h, cmap="RdYlGn", linewidth=0, antialiased=False)
         ax3.set_xlabel("x (m)")
         ax3.set_ylabel("y (m)")
         ax3.set_zlabel("h")
-        draw_cbf(ax2, xs, ys, h, learner.env.layout, zero_color="black", zero_width=1.2)
+        level_title = f"({chr(ord('a') + n + i)}) {name}: level sets"
+        if name not in grids:  # said in words on both panels
+            ax2.set_title(level_title)
+            ax2.set_xlabel("x (m)")
+            ax2.set_ylabel("y (m)")
+            ax2.text(0.5, 0.5, "not run", ha="center", transform=ax2.transAxes)
+            ax3.text2D(0.5, 0.5, "not run", ha="center", transform=ax3.transAxes)
+            continue
+        xs, ys, h, layout = grids[name]
+        gx, gy = np.meshgrid(xs, ys)
+        ax3.plot_surface(gx, gy, h, cmap=SIGNED_CMAP, norm=norm, linewidth=0, antialiased=False)
+        filled = draw_cbf(ax2, xs, ys, h, layout, norm)
         ax2.set_title(level_title)  # after draw_layout, which titles the axes with the layout's name
-    fig.tight_layout()
-    fig.savefig(str(path), dpi=100)
-    return Path(path)
+    if filled is not None:
+        fig.colorbar(filled, ax=fig.axes, shrink=0.6, label=CBF_LABEL, ticks=MaxNLocator(8))
+        fig.legend(handles=[ZERO_LINE, *_layout_handles(fig.axes)], loc="outside lower center", ncol=4,
+                   fontsize=8, frameon=False)
+    return save_figure(fig, path)
+
+
+def _layout_handles(axes) -> list:
+    """The legend entries ``draw_layout`` left on ``axes``, each label once."""
+    handles = {}
+    for ax in axes:
+        handles.update(zip(*reversed(ax.get_legend_handles_labels())))
+    return list(handles.values())
 
 
 # ------------------------------------------------------- Fig. 5: trajectories during training
 def snapshot_figure(path: Path, run_dir: Path, trajectories: int = 8) -> Path:
     """Fig. 5: the layout, then the executed policy's trajectories at each of the run's policy
-    snapshots (``TrainConfig.snapshots``), ``trajectories`` episodes each (seed: the panel's index)."""
+    snapshots (``TrainConfig.snapshots``), ``trajectories`` episodes each (seed: the panel's index);
+    one legend under the panels names every mark."""
     cfg, learner, _, _ = load_policy(run_dir)
     snapshots = tuple(cfg.snapshots)
     env, params = learner.env, learner.params
@@ -264,83 +330,143 @@ def snapshot_figure(path: Path, run_dir: Path, trajectories: int = 8) -> Path:
         draw_trajectories(ax, poses, collided, completed)
         ax.set_title(f"({chr(ord('b') + i)}) after {n} episodes\n{completed.mean():.0%} complete, "
                      f"{1 - collided.mean():.0%} safe ({poses.shape[0]} runs)")
-    fig.set_layout_engine("constrained")  # tight_layout clips two-line titles over equal-aspect axes
-    fig.savefig(str(path), dpi=100)
-    return Path(path)
+    fig.legend(handles=_layout_handles(fig.axes) + outcome_handles(), loc="outside lower center", ncol=3,
+               fontsize=8, frameon=False)
+    return save_figure(fig, path)
 
 
-def _figure(ncols: int, nrows: int = 1, size: float = 4.5, min_width: float = 0.0) -> Figure:
-    fig = Figure(figsize=(max(size * ncols, min_width), size * nrows))
+def _figure(ncols: int, nrows: int = 1, size: float = 4.5) -> Figure:
+    """A figure of ``ncols`` x ``nrows`` panels of ``size`` inches, laid out by the constrained engine
+    (``tight_layout`` clips two-line titles over equal-aspect axes)."""
+    fig = Figure(figsize=(size * ncols, size * nrows), layout="constrained")
     FigureCanvasAgg(fig)
     return fig
+
+
+CERTIFY_COLORS = {"outside the set": "white", "certified": BLUISH_GREEN, "not certified": ORANGE,
+                  "violated": VERMILLION}
+"""``certify_figure``'s colours of the status maps' values -1, 0, 1, 2, named as its legend names them."""
 
 
 def certify_figure(layout, maps: list[np.ndarray], extent: tuple, summary: dict, eps_unsafe: float,
                    eps_safe: float, path: str | Path) -> None:
     """``d2spo certify``'s picture (RUN/certify.png) from its status maps (``certify.status_maps``):
     where Proposition 1 (ℒ and contact) and Proposition 2 (the grid's explored part; then the whole
-    free space, if checked) are certified (green), not certified (orange) or violated (red), worst
-    over θ and states; the search's worst points as x."""
-    cmap = ListedColormap(["white", "tab:green", "orange", "tab:red"])
+    free space, if checked) are certified, not certified or violated, worst over θ and states; the
+    search's worst points as x. One legend names every colour and mark."""
+    cmap = ListedColormap(list(CERTIFY_COLORS.values()))
     rho = summary["residual"]["rho_h"]
     titles = (f"Prop. 1: h < 0 in the ring and contact (ε̄ = {eps_unsafe:g} m)",
               f"Prop. 2: e ≥ 0 on explored cells (D; ε = {eps_safe:g} m, ρ_h = {rho:.3g})",
               "Prop. 2 beyond D: every free pose, every live state")
-    fig = Figure(figsize=(5.5 * len(maps), 5.2))
+    fig = Figure(figsize=(5.5 * len(maps), 5.6), layout="constrained")
+    FigureCanvasAgg(fig)
     for i, m in enumerate(maps):
         ax = fig.add_subplot(1, len(maps), i + 1)
-        ax.imshow(m + 1, origin="lower", extent=extent, cmap=cmap, vmin=0, vmax=3, interpolation="nearest")
+        ax.imshow(m + 1, origin="lower", extent=extent, cmap=cmap, vmin=-0.5, vmax=3.5, interpolation="nearest")
         draw_layout(layout, ax, show_sensing=False)
         key = "L" if i == 0 else "D"
         if i < 2:
             for c in summary["counterexamples"][key]:
-                ax.plot(c["pose"][0], c["pose"][1], "x", color="black" if c["counterexample"] else "grey", markersize=7)
+                ax.plot(c["pose"][0], c["pose"][1], "x", color=BLACK if c["counterexample"] else GREY, markersize=7)
         ax.set_title(titles[i], fontsize=9)
-    fig.suptitle(f"{summary['run']}: green certified, orange not certified, red violated (worst over θ and "
-                 "automaton state), white outside the set; x = worst found by the search (black: a counterexample)",
-                 fontsize=8)
-    FigureCanvasAgg(fig).print_png(str(path))
+    marks = [Patch(facecolor=c, edgecolor=GREY, label=f"{k} (worst over θ and automaton state)" if k == "violated" else k)
+             for k, c in CERTIFY_COLORS.items()]
+    marks += [Line2D([], [], color=c, marker="x", linestyle="", label=lab) for c, lab in
+              ((BLACK, "worst point found by the search: a counterexample"), (GREY, "worst point found: no counterexample"))]
+    fig.legend(handles=_layout_handles(fig.axes) + marks, loc="outside lower center", ncol=3, fontsize=8, frameon=False)
+    fig.suptitle(str(summary["run"]), fontsize=10)
+    save_figure(fig, path)
 
 
-def state_fields_figure(layout, aut, fields, path: str | Path, distance=None, dpi: int = 90) -> None:
-    """One panel per automaton state that still has a target: the shaping distance field
-    (``envs.state_fields.StateFields``) with its target nodes (green) and forbidden nodes (red).
+# ------------------------------------------------ d2spo ltl --plot: the shaping field per state
+def field_regions(task) -> tuple[np.ndarray, float]:
+    """Where ``task``'s fields (``envs.state_fields``) leave the useful range: bool [ny, nx] of the
+    nodes where the robot would touch an obstacle or a wall (step cost × ``collide_cost``), and the
+    penalty of a forbidden read (``BLOCKED_COST`` arena diagonals): a node whose d_q reaches it
+    has no route to a target without one."""
+    f, layout = task.fields.field, task.layout
+    xs, ys = np.linspace(0.0, layout.arena[0], f.shape[2]), np.linspace(0.0, layout.arena[1], f.shape[1])
+    box_lo = np.array([o.lo for o in layout.boxes], float).reshape(-1, 2)
+    box_hi = np.array([o.hi for o in layout.boxes], float).reshape(-1, 2)
+    clear = geodesic.clearance(xs, ys, box_lo, box_hi, layout.arena, [(*d.center, d.radius) for d in layout.disks])
+    return clear < task.field_costs["robot_radius"], geodesic.BLOCKED_COST * float(np.hypot(*layout.arena))
 
-    ``aut`` is the ``Automaton``; ``distance`` its distances on this layout (shown in the titles).
-    """
+
+def state_fields_figure(task, path: str | Path) -> Path:
+    """``d2spo ltl TASK --layout L --plot``: write ``draw_state_fields_figure`` to ``path``
+    (``plotstyle.save_figure``: PNG at 300 dpi, or PDF/SVG by the suffix)."""
+    return save_figure(draw_state_fields_figure(task), path, "plot")
+
+
+def draw_state_fields_figure(task) -> Figure:
+    """One panel per automaton state of ``task`` (an ``envs.compiled_task.CompiledTask`` with
+    fields) that still has a target: its shaping field d_q on one colour scale with one colourbar,
+    its target and forbidden nodes; the nodes where the robot would touch an obstacle or wall, and
+    those past the forbidden-read penalty, are drawn apart (grey, hatched) so that they do not
+    stretch the scale."""
+    aut, fields, layout, costs = task.automaton, task.fields, task.layout, task.field_costs
     states = [q for q in range(aut.n_states) if fields.target_cells[q].any()]
+    contact, penalty = field_regions(task)
+    apart = {q: contact | (fields.field[q] >= penalty) for q in states}
+    top = max((float(fields.field[q][~apart[q]].max(initial=0.0)) for q in states), default=0.0)
+    norm = Normalize(0.0, top or 1.0)
     cols = min(len(states), 3) or 1
     rows = max(1, -(-len(states) // cols))
-    fig = Figure(figsize=(4.2 * cols, 4.4 * rows))
+    fig = Figure(figsize=(4.0 * cols + 1.2, 4.3 * rows + 1.3), layout="constrained")
     FigureCanvasAgg(fig)
     w, h = layout.arena
-    for k, q in enumerate(states):
-        ax = fig.add_subplot(rows, cols, k + 1)
+    axes = panel_grid(fig, len(states), cols) if states else [fig.add_subplot()]
+    step = 0.5 if top <= 10 else 1.0
+    past_penalty = False
+    for ax, q in zip(axes, states):
         f = fields.field[q]
-        vmax = float(np.percentile(f, 90))
-        im = ax.imshow(f, origin="lower", extent=(0, w, 0, h), cmap="viridis", vmin=0.0, vmax=vmax)
-        ax.contour(np.linspace(0, w, f.shape[1]), np.linspace(0, h, f.shape[0]), f,
-                   levels=np.arange(0.5, vmax, 0.5), colors="white", linewidths=0.4, alpha=0.6)
-        for mask, color in ((fields.target_cells[q], "tab:green"), (fields.forbidden_cells[q], "tab:red")):
+        gx, gy = np.linspace(0, w, f.shape[1]), np.linspace(0, h, f.shape[0])
+        shown = np.ma.masked_where(apart[q], f)
+        im = ax.imshow(shown, origin="lower", extent=(0, w, 0, h), cmap=FIELD_CMAP, norm=norm, interpolation="nearest")
+        ax.contour(gx, gy, shown, levels=np.arange(step, top, step), colors="white", linewidths=0.4, alpha=0.6)
+        past_penalty |= bool((f[~contact] >= penalty).any())
+        for mask, style in ((apart[q], {"colors": [GREY], "hatches": ["//"]}),
+                            (fields.target_cells[q], {"colors": [SKY_BLUE], "hatches": [None]}),
+                            (fields.forbidden_cells[q], {"colors": [VERMILLION], "hatches": ["xx"]})):
             if mask.any():
-                ax.contourf(np.linspace(0, w, mask.shape[1]), np.linspace(0, h, mask.shape[0]), mask.astype(float),
-                            levels=[0.5, 1.5], colors=[color], alpha=0.75)
+                ax.contourf(gx, gy, mask.astype(float), levels=[0.5, 1.5], alpha=0.9, **style)
         for o in layout.obstacles:
             ax.add_patch(obstacle_patch(o, color=OBSTACLE_COLOR))
         for a in layout.areas:
             ax.add_patch(Circle(a.center, a.radius, fill=False, edgecolor="white", linewidth=0.8))
             ax.annotate(a.name, a.center, ha="center", va="center", fontsize=8, weight="bold", color="white")
-        ax.plot([layout.start[0]], [layout.start[1]], "o", color=START_COLOR, markersize=5)
-        d = "" if distance is None else f", {distance[q]} to go"
+        ax.plot([layout.start[0]], [layout.start[1]], "o", color=START_COLOR, markeredgecolor="white", markersize=6)
+        d = "" if task.distance is None else f", {task.distance[q]} to go"
         formula = aut.state_formulas[q]
-        formula = formula if len(formula) <= 42 else formula[:40] + "…"
+        formula = formula if len(formula) <= 38 else formula[:36] + "…"
         ax.set_title(f"state {q}{d}: to {' '.join(fields.targets[q]) or '-'}, "
                      f"not {' '.join(fields.forbidden[q]) or '-'}\n{formula}", fontsize=8)
         ax.set_xlim(0, w)
         ax.set_ylim(0, h)
         ax.set_aspect("equal")
-        fig.colorbar(im, ax=ax, fraction=0.046, pad=0.02, label="distance (m)")
-    fig.suptitle(f"shaping distance per automaton state on {layout.name} (green: target, red: forbidden)",
-                 fontsize=9)
-    fig.tight_layout()
-    fig.savefig(str(path), dpi=dpi)
+        ax.set_xlabel("x (m)")
+        ax.set_ylabel("y (m)")
+    if not states:  # no state has a target: say so rather than leave the panel empty
+        axes[0].text(0.5, 0.5, "no automaton state has a target on this layout", ha="center",
+                     transform=axes[0].transAxes)
+        axes[0].set_xlabel("x (m)")
+        axes[0].set_ylabel("y (m)")
+    else:
+        fig.colorbar(im, ax=axes, shrink=0.8,
+                     label=f"d_q: path length to a target, weighted (m; × {costs['clearance_cost']:g} "
+                           f"within {costs['clearance']:g} m of an obstacle or wall)")
+    apart_name = f"robot touches an obstacle or wall (step cost × {costs['collide_cost']:g})"
+    if past_penalty:
+        apart_name += f", or every route enters a forbidden area (d_q ≥ {penalty:.0f} m)"
+    marks = [Patch(facecolor=SKY_BLUE, label="target: entering makes progress"),
+             Patch(facecolor=VERMILLION, hatch="xx", label="forbidden: entering rejects or sets back"),
+             Patch(facecolor=GREY, hatch="//", label=apart_name),
+             Patch(facecolor=OBSTACLE_COLOR, label="obstacle"),
+             Line2D([], [], marker="o", markerfacecolor="none", markeredgecolor=GREY, linestyle="", markersize=9,
+                    label="area (white outline)"),
+             Line2D([], [], color=START_COLOR, marker="o", linestyle="", label="start"),
+             Line2D([], [], color=GREY, linewidth=0.8, label=f"white lines: d_q every {step:g} m")]
+    fig.legend(handles=marks, loc="outside lower center", ncol=3, fontsize=7, frameon=False)
+    fig.suptitle(f"shaping field d_q per automaton state on layout {layout.name!r}", fontsize=10)
+    return fig

@@ -15,13 +15,15 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Circle, Rectangle
 
 from d2spo.envs.workspace import DiskObstacle, Layout, Obstacle
+from d2spo.plotstyle import BLACK, BLUE, PALETTE, SKY_BLUE, VERMILLION, save_figure
 
-OBSTACLE_COLOR = "black"
-AREA_COLOR = "tab:green"
-LABEL_COLORS = ("tab:green", "tab:orange", "tab:purple", "tab:cyan", "tab:olive", "tab:pink", "tab:brown", "tab:gray")
-"""Area colours by label, in order of first use, when some label is shared by several areas."""
-START_COLOR = "tab:blue"
-ROBOT_COLOR = "tab:red"
+OBSTACLE_COLOR = BLACK
+AREA_COLOR = SKY_BLUE
+LABEL_COLORS = PALETTE[:-1]
+"""Area colours by label, in order of first use, when some label is shared by several areas
+(the Okabe–Ito colours but black, the obstacles' colour)."""
+START_COLOR = BLUE
+ROBOT_COLOR = VERMILLION
 
 
 def obstacle_patch(o: Obstacle | DiskObstacle, **style):
@@ -46,9 +48,10 @@ def area_colors(layout: Layout) -> list[str]:
 def draw_layout(
     layout: Layout, ax, show_sensing: bool = True, sensing_radius: float = 1.2, robot_radius: float | None = None
 ) -> None:
-    """Draw the arena, obstacles (black boxes and disks), named areas (green; coloured by label when
-    several areas share one, the label written beside each area whose label is not its name), start
-    (blue) and the sensing disk, with axes in metres and the layout's name as the title.
+    """Draw the arena, obstacles (black boxes and disks), named areas (sky blue; coloured by label when
+    several areas share one, one legend entry per label, the label written beside each area whose
+    label is not its name), start (blue) and the sensing disk, with axes in metres and the layout's
+    name as the title.
 
     ``sensing_radius`` (H) is drawn as a dashed circle around the start when ``show_sensing``;
     ``robot_radius``, when given, draws the robot's footprint at the start. The artists carry
@@ -61,14 +64,18 @@ def draw_layout(
                                     label="obstacle" if i == 0 else None))
     labelled = any(a.label != a.name for a in layout.areas)
     legend = f"area of interest (its {'label' if labelled else 'name'} is the LTL proposition)"
-    for i, (a, color) in enumerate(zip(layout.areas, area_colors(layout), strict=True)):
+    colors = area_colors(layout)
+    named = set()  # one legend entry per colour: each label's when areas share labels
+    for a, color in zip(layout.areas, colors, strict=True):
+        entry = legend if len(set(colors)) == 1 else f"area labelled {a.label!r}"
         ax.add_patch(Circle(a.center, a.radius, facecolor=color, alpha=0.35, edgecolor=color,
-                            label=legend if i == 0 else None))
+                            label=None if entry in named else entry))
+        named.add(entry)
         ax.annotate(a.name, a.center, ha="center", va="center", fontsize=9, weight="bold")
         if a.label != a.name:  # the proposition, beside the area (on the side towards the arena's middle)
             left = a.center[0] > w / 2
             ax.annotate(a.label, (a.center[0] + (-a.radius if left else a.radius), a.center[1] + a.radius),
-                        ha="right" if left else "left", va="bottom", fontsize=8, style="italic", color=color)
+                        ha="right" if left else "left", va="bottom", fontsize=8, style="italic")
     sx, sy, st = layout.start
     ax.plot([sx], [sy], "o", color=START_COLOR, markersize=6, zorder=3, label="start; arrow: initial heading")
     ax.annotate("", (sx + 0.25 * np.cos(st) * max(w, h) / 5, sy + 0.25 * np.sin(st) * max(w, h) / 5), (sx, sy),
@@ -94,7 +101,7 @@ def add_legend(ax, extra=()) -> None:
     ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2, fontsize=7, frameon=False)
 
 
-def draw_trajectory(ax, xy, color: str = "tab:red", label: str | None = None) -> None:
+def draw_trajectory(ax, xy, color: str = VERMILLION, label: str | None = None) -> None:
     """Draw a path xy [T, 2] with a marker at its end."""
     xy = np.asarray(xy)
     ax.plot(xy[:, 0], xy[:, 1], "-", color=color, linewidth=1.2, label=label)
@@ -102,11 +109,12 @@ def draw_trajectory(ax, xy, color: str = "tab:red", label: str | None = None) ->
 
 
 def save_layout_png(
-    layout: Layout, path: str | Path, trajectories=None, sensing_radius: float = 1.2, dpi: int = 100,
+    layout: Layout, path: str | Path, trajectories=None, sensing_radius: float = 1.2,
     title: str | None = None, trajectory_label: str = "trajectory",
-) -> None:
-    """Write a PNG of ``layout`` with optional trajectories (a list of [T, 2] arrays), a legend, and
-    ``title`` (default: the layout's name and size)."""
+) -> Path:
+    """Write a picture of ``layout`` (PNG at 300 dpi, or PDF/SVG by the suffix: ``plotstyle.save_figure``)
+    with optional trajectories (a list of [T, 2] arrays), a legend, and ``title`` (default: the
+    layout's name and size)."""
     fig = Figure(figsize=(5.5, 6.0), layout="constrained")
     FigureCanvasAgg(fig)
     ax = fig.add_subplot()
@@ -117,11 +125,7 @@ def save_layout_png(
     ax.set_title(title or f"layout {layout.name!r}: {layout.arena[0]:g} m x {layout.arena[1]:g} m, "
                           f"{n} obstacle{'s' * (n != 1)}, {len(layout.areas)} areas", fontsize=10)
     add_legend(ax)
-    fig.savefig(str(path), dpi=dpi)
-
-    for xy in trajectories or ():
-        draw_trajectory(ax, xy)
-    fig.savefig(str(path), dpi=dpi, bbox_inches="tight")
+    return save_figure(fig, path, "out")
 
 
 class FrameRenderer:
