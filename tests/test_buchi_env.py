@@ -121,7 +121,10 @@ def test_an_episode_too_short_for_one_visit_is_refused_before_training():
         preflight(env, params, repr(PATROL))
     env, params = make_env(EnvConfig(), PATROL)
     preflight(env, params, repr(PATROL))  # the step limit that follows the task fits a visit
-    assert env.task.optimal_visits(int(params.max_steps), 0.1, 0.95) >= 2
+    # ... room for three visits (the first and two laps) at half speed, in steps of 50
+    three = env.task.visits_length(3) / (0.1 * 0.95)
+    assert 2 * three <= int(params.max_steps) < 2 * three + 50
+    assert env.task.optimal_visits(int(params.max_steps), 0.1, 0.95) >= 5
 
 
 def test_a_formula_without_a_dba_is_refused_in_one_line_at_the_cli():

@@ -198,3 +198,21 @@ def test_the_generalists_cbf_input_is_layout_free(built):
     x = learner.features(pose, sensed)
     np.testing.assert_allclose(np.asarray(learner.features(pose.at[:2].add(shift), moved)), np.asarray(x), atol=1e-4)
     assert float(jnp.min(x)) < params.sensing_radius  # the scene is not empty: something is in range
+
+
+def test_the_generalist_takes_tasks_no_finite_run_completes(built):
+    """A "never" part completes as a monitor does; a recurrence runs alone with its accepting visits
+    (the subgoal after a visit is the next one); a recurrence in a task mixture is refused."""
+    bank, _, _ = built
+    _, never = make_generalist_env(EnvConfig(preset="ideal"), "G !A4 & F A1", bank)
+    assert never.aut.visit is None and bool(never.aut.accepting.any())
+    env, patrol = make_generalist_env(EnvConfig(preset="ideal"), "patrol2", bank)
+    aut = env.automaton
+    assert patrol.aut.visit is not None and not bool(patrol.aut.accepting.any())
+    waiting_a3 = aut.delta[aut.initial][aut.letter(["A1"])]
+    # in each live state the visit's area is the target, A4 forbidden: A1 first, then A3
+    assert np.asarray(patrol.target_areas)[[aut.initial, waiting_a3]].tolist() == [
+        [True, False, False, False], [False, False, True, False]]
+    assert np.asarray(patrol.forbidden_areas)[[aut.initial, waiting_a3], 3].all()
+    with pytest.raises(ConfigError, match="scored by accepting visits"):
+        make_generalist_env(EnvConfig(), ["phi1", "patrol2"], bank)

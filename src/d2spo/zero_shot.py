@@ -29,11 +29,13 @@ import numpy as np
 from d2spo.algos.generalist import build_generalist
 from d2spo.config import TrainConfig
 from d2spo.envs import layout_bank
+from d2spo.envs.compiled_task import compile_task
 from d2spo.envs.generalist import GENERALIST_MAX_STEPS, view
 from d2spo.envs.nav import make_env
 from d2spo.envs.preflight import preflight
 from d2spo.envs.workspace import Layout
 from d2spo.errors import ConfigError
+from d2spo.ltl.automaton import Automaton
 from d2spo.ltl.reward import PER_STATE
 from d2spo.ltl.tasks import TASKS
 from d2spo.rollout import make_rollout, rates
@@ -114,6 +116,12 @@ def rollouts(env, params, learner, policy, checked: list[tuple[Layout, int]], ep
             params = view(params.replace(bank=layout_bank.bank_of([lay])), jnp.zeros((), jnp.int32))
         res = run(params, policy, jax.random.PRNGKey(seed))
         results.append(rates(*res))
+        if params.aut.visit is not None and isinstance(env.automaton, Automaton):  # a Büchi task's visits
+            task = compile_task(env.automaton, lay, env.config.label_mode, env.config.robot_radius)
+            if task.recurrence:  # against what a perfect robot would make on this layout in ``limit`` steps
+                best = task.optimal_visits(limit, env.config.dt, env.config.v_max * env.config.v_gain)
+                visits = results[-1]["accepting_visits_per_episode"]
+                results[-1].update(route_optimal_visits=best, visit_fraction=visits / best if best else None)
         if keep_paths:
             poses, collided, completed = (np.asarray(a[:keep_paths]) for a in (res[4], res[0], res[1]))
             results[-1]["paths"] = (lay, poses, collided, completed)

@@ -82,6 +82,13 @@ class CompiledTask:
             return first[0] if first else math.inf
         return routes.route_length(self.automaton, self.layout, self.label_mode, self.robot_radius)
 
+    def visits_length(self, visits: int) -> float:
+        """A recurrence's shortest route (m) that makes ``visits`` accepting visits (``routes.visit_lengths``;
+        inf: none)."""
+        lengths = routes.visit_lengths(self.automaton, self.layout, self.label_mode, self.robot_radius, math.inf,
+                                       visits)
+        return lengths[-1] if len(lengths) == visits else math.inf
+
     def optimal_visits(self, max_steps: int, dt: float, v_max: float) -> int:
         """A recurrence's route-optimal visit count: the accepting visits of the shortest routes that fit
         in ``max_steps`` steps of ``dt`` at ``v_max`` (``routes.visit_lengths``; turning and braking

@@ -54,8 +54,9 @@ from d2spo.envs.layout_bank import LayoutBank
 from d2spo.envs.nav import Env, EnvState
 from d2spo.envs.params import EnvParams, robot_fields
 from d2spo.errors import ConfigError
-from d2spo.ltl import task_formula, translate
+from d2spo.ltl import task_automaton, task_formula
 from d2spo.ltl.automaton import UNREACHABLE, Automaton, AutomatonArrays, union
+from d2spo.ltl.buchi_task import BuchiTask
 
 N_AREAS = layout_bank.N_AREAS
 """Areas per layout (A1 .. A4)."""
@@ -249,9 +250,12 @@ def make_generalist_env(cfg: EnvConfig, task: Any, bank: LayoutBank, max_steps: 
         raise ConfigError("task", "the generalist needs at least one task")
     automata = []
     for t in tasks:
-        a = translate(task_formula(t)) if isinstance(t, str) else t
+        a = task_automaton(task_formula(t)) if isinstance(t, str) else t
         if not isinstance(a, Automaton):
             raise ConfigError("task", "the generalist needs task names, formulas or Automaton objects")
+        if len(tasks) > 1 and isinstance(a, BuchiTask) and any(map(any, a.visits)):
+            raise ConfigError("task", f"{t if isinstance(t, str) else 'a task'} is scored by accepting visits; "
+                              "a task mixture holds tasks that complete only (train or evaluate it alone)")
         unknown = sorted(set(a.aps) - {f"A{i + 1}" for i in range(N_AREAS)})
         if unknown:
             raise ConfigError("task", f"the generalist's layouts have areas A1..A4; the task names {unknown}")

@@ -22,6 +22,9 @@ at full speed. A trained policy drives more than the shortest route: on `paper` 
 episodes take a median of 123 steps for a 10.1 m route (1.22x)."""
 ROOM = 2.0
 """``default_max_steps`` gives a longer task this many times its shortest route at full speed."""
+RECURRENCE_VISITS = 3
+"""``default_max_steps`` gives a recurrence room for this many accepting visits: the first and two
+laps of its cycle (so that its visits per episode measure the patrol, not only the way to it)."""
 
 
 def check_letters(task: CompiledTask, what: str) -> None:
@@ -104,8 +107,10 @@ def default_max_steps(task: CompiledTask, dt: float, v_max: float, base: int) ->
     """The step limit of ``EnvConfig.max_steps=None``: ``base`` (``EnvConfig.base_max_steps``), or,
     when the task's shortest route at ``v_max`` needs more than ``TIGHT_FRACTION`` of those steps,
     ``ROOM`` times the route's steps rounded up to a multiple of 50 (then over ``base``). ``base``
-    too when no route exists (``check_time`` then says so)."""
-    need = task.route_length / (v_max * dt)
+    too when no route exists (``check_time`` then says so). A recurrence's route is the shortest
+    that makes ``RECURRENCE_VISITS`` accepting visits."""
+    length = task.visits_length(RECURRENCE_VISITS) if task.recurrence else task.route_length
+    need = length / (v_max * dt)
     if not math.isfinite(need) or need <= TIGHT_FRACTION * base:
         return int(base)
     return int(50 * math.ceil(ROOM * need / 50))

@@ -56,7 +56,7 @@ SUITE: tuple[str, ...] = ("tour3", "tour4", "strict4", "any-order3", "avoid-unti
                           "next-pair", "next-chain", "return", "a1-and-a2")
 """The example tasks (bench/task_suite.py trains each on ``paper``); ``a1-and-a2`` cannot be done there."""
 BUCHI_SUITE: tuple[str, ...] = ("reach-never", "patrol2", "patrol3", "respond", "persist")
-"""Tasks no finite run completes (bench/buchi_suite.py trains each on ``paper``); ``persist`` has no
+"""Tasks no finite run completes (``bench/task_suite.py --suite buchi`` trains each on ``paper``); ``persist`` has no
 deterministic Büchi automaton and is refused."""
 
 
