@@ -41,6 +41,7 @@ from d2spo.ltl.formula import (
     WeakUntil,
 )
 from d2spo.ltl.parser import parse
+from d2spo.ltl.tasks import BUCHI_SUITE, TASKS
 
 # --- The reference: LTL on lasso words --------------------------------------------------------------
 
@@ -351,3 +352,14 @@ def test_limits():
         to_dba("G F a & G F b & G F c & F G d | G F e", max_states=3)
     with pytest.raises(UserError, match="propositions"):
         to_dba(" & ".join(f"G F p{i}" for i in range(13)))
+
+
+@pytest.mark.parametrize("name", BUCHI_SUITE)
+def test_the_buchi_suite_is_exact_or_refused(name):
+    """Each task of ``tasks.BUCHI_SUITE`` is exact on lassos, or (``persist``, F G) refused in one line."""
+    text = TASKS[name]
+    if name == "persist":
+        with pytest.raises(NoDeterministicBuchi):
+            to_dba(text)
+        return
+    check_exact(text, count=400)
