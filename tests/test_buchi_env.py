@@ -206,3 +206,20 @@ def test_the_printed_automaton_names_the_accepting_visits():
     text = task_automaton("GF A1 & GF A3 & G !A4").pretty()
     assert text.splitlines()[-3:] == ["accepting visits:", "  in 0: A1 & A3 & !A4", "  in 1: A3 & !A4"]
     assert task_automaton("G !A4 & F A1").pretty().endswith("accepting visits: none")
+
+
+def test_the_summary_table_scores_a_recurrence_by_its_visits_not_completion():
+    from rich.console import Console
+
+    from d2spo.progress import summary_table
+
+    base = {"episodes": 10, "env_steps": 3000, "wall_seconds": 1.0, "env_steps_per_second": 3000.0,
+            "window_episodes": 10, "safety_rate": 1.0, "completion_rate": 0.0, "completion_rate_relaxed": 0.0,
+            "accepting_visits_per_episode": 2.5, "eval": {"episodes": 5, "safety_rate": 1.0, "completion_rate": 0.0,
+                                                         "accepting_visits_per_episode": 3.0}}
+    console = Console(width=200, record=True)
+    console.print(summary_table({**base, "route_optimal_visits": 5, "visit_fraction": 0.5}, "patrol"))
+    text = console.export_text()
+    assert "completion" not in text and "5 (50.0%)" in text and "3.00" in text
+    console.print(summary_table(base, "a Büchi task on a bank of layouts: no optimum, completion shown"))
+    assert "completion rate (last 10)" in console.export_text()
