@@ -189,3 +189,21 @@ def test_a_zero_shot_eval_of_n_layouts_builds_one_generalist_and_n_envs(gen_run,
     res = evaluate_run(gen_run, ecfg)
     assert res["layouts"] == ["random:11", "random:12"]
     assert calls == {"make_env": 2, "build_generalist": 1, "run.build": 0}
+
+
+def test_a_zero_shot_patrol_is_scored_against_each_layouts_route_optimal_visits(gen_run, capsys):
+    """A recurrence evaluated zero-shot: per layout its route-optimal visits in the evaluation's step
+    limit, and the visits as a fraction of them (0 for the standing-still policy of zeros)."""
+    assert _main(["eval", str(gen_run), "--task", "patrol2", "--layout", "random:11", "--episodes", "2",
+                  "--runtime-filter", "False"]) == 0
+    assert "accepting visits per episode: 0.00 (0.0% of the route-optimal count)" in capsys.readouterr().out
+    res = json.loads((gen_run / "eval-random11-ideal-patrol2.json").read_text())
+    (lay,) = res["per_layout"]
+    env_cfg = EnvConfig(preset="ideal").resolved()
+    checked = generalist_layout(EnvConfig(preset="ideal"), "random:11", "patrol2")
+    from d2spo.envs.compiled_task import compile_task
+    from d2spo.ltl import task_automaton, task_formula
+
+    task = compile_task(task_automaton(task_formula("patrol2")), checked[0], "event", env_cfg.robot_radius)
+    best = task.optimal_visits(res["max_steps"], env_cfg.dt, env_cfg.v_max * env_cfg.v_gain)
+    assert lay["route_optimal_visits"] == best >= 2 and lay["visit_fraction"] == 0.0 == res["visit_fraction"]
