@@ -214,7 +214,8 @@ def tiny_run(tmp_path_factory):
 
 @pytest.mark.parametrize("args", [["--episodes", "0"], ["--episodes", "-1"], ["--layout-seeds", "0"],
                                   ["--layout-seeds", "-1"], ["--layout-seeds", "3"], ["--seed", str(2**64)],
-                                  ["--task", "phi2"]])
+                                  ["--task", "phi2"],
+                                  ["--episodes", str(10**10)]])  # terabytes in parallel: once a hang
 def test_eval_refuses_bad_counts_and_keeps_the_earlier_result(args, tiny_run, capsys):
     earlier = tiny_run / "eval-relaxed-default.json"
     earlier.write_text("earlier")
@@ -270,3 +271,21 @@ def test_huge_arena_is_refused_up_front_or_stays_fast():
     make_env(EnvConfig(layout="relaxed", layout_scale=40.0, reward=RewardConfig(shaping_metric="euclidean")),
              task="F A1")
     assert time.perf_counter() - t < 30  # minutes and > 6 GB before
+
+
+@pytest.mark.parametrize("word", ["phi3", "tuor3"])
+def test_a_typo_of_a_task_name_is_one_warning_line(word, capsys):
+    """`d2spo ltl phi3` once printed phi3's automaton as a proposition without a word; now one
+    warning line names the tasks meant (the automaton is still printed: a proposition may be meant)."""
+    import warnings
+
+    from d2spo.console import show_warning
+
+    with warnings.catch_warnings():
+        warnings.showwarning = show_warning  # as d2spo's main installs it
+        assert _exit_code(["ltl", word]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"d2spo: warning: {word!r} is not a task name"), err
+    for quiet in ("phi1", "A1", "a", "(!A2 U A1) & F A2"):
+        assert _exit_code(["ltl", quiet]) == 0
+        assert not capsys.readouterr().err, quiet

@@ -9,9 +9,11 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import difflib
 import io
 import json
 import os
+import re
 import sys
 import warnings
 from pathlib import Path
@@ -42,14 +44,26 @@ from d2spo.envs.dynamics import load_dynamics
 from d2spo.envs.nav import checked_layout
 from d2spo.envs.preflight import check_feasible
 from d2spo.envs.render import save_layout_png
-from d2spo.errors import ConfigError, D2SPOWarning, LTLSyntaxError, NaNError, UserError
+from d2spo.errors import ConfigError, D2SPOWarning, LTLSyntaxError, NaNError, TaskWarning, UserError
 from d2spo.evaluate import EvalConfig, evaluate_run, write_evaluation
 from d2spo.fields import check_fields
 from d2spo.ltl import task_automaton, task_formula
+from d2spo.ltl.tasks import TASKS
 from d2spo.plots import evaluation_figure, state_fields_figure
 from d2spo.plotstyle import check_picture_path
 from d2spo.progress import train_with_progress
 from d2spo.repair import RepairConfig, repair_run
+
+
+def warn_if_task_name_typo(formula: str) -> None:
+    """One warning line when ``formula`` is a single word that is no task name but close to one
+    (``phi3``): it is read as a formula over one proposition of that name, which is rarely meant."""
+    if formula in TASKS or not re.fullmatch(r"[A-Za-z_][\w-]*", formula):
+        return
+    close = difflib.get_close_matches(formula, TASKS, n=3, cutoff=0.6)
+    if close:
+        warnings.warn(f"{formula!r} is not a task name (did you mean {', '.join(close)}?); read as a formula: "
+                      f"the proposition {formula}", TaskWarning, stacklevel=2)
 
 
 @dataclasses.dataclass
@@ -82,6 +96,7 @@ class LtlCmd:
             raise UserError("--plot needs --layout")
         if self.plot is not None:
             check_picture_path(self.plot, "plot")
+        warn_if_task_name_typo(self.formula)
         aut = task_automaton(task_formula(self.formula))  # a Büchi task where no finite run completes it
         if self.all_letters:
             feasible, letters = None, "every letter (all areas may hold at once)"

@@ -27,6 +27,7 @@ from d2spo.envs.layouts import layout_file, random_seed
 from d2spo.errors import ConfigError, NaNError
 from d2spo.fields import check_choice, check_fields, field_docstring
 from d2spo.inputs import sha256_of
+from d2spo.memory import check_eval_memory
 from d2spo.rollout import make_rollout, rates, visit_optimum
 from d2spo.run import POLICY_CHOICES, build, check_layout_unchanged, load_policy, load_run_config, preflight_checks
 from d2spo.runio import atomic_write_json
@@ -179,6 +180,7 @@ def evaluate_run(run_dir: Path, ecfg: EvalConfig = EvalConfig(), keep_paths: int
         check_layout_unchanged(run_dir, cfg, f"to evaluate on it as it is now, pass --layout {cfg.layout}")
     layouts = ecfg.layouts()
     env_cfg = eval_env_config(cfg, ecfg.layout, ecfg.dynamics, overrides)
+    check_eval_memory(env_cfg, ecfg.episodes)  # before anything is built
     if cfg.generalist:
         results, limit, which = _generalist_rollouts(run_dir, cfg, ecfg, env_cfg, layouts, keep_paths)
     else:

@@ -79,10 +79,26 @@ def needs(cfg: TrainConfig, seeds: int = 1) -> list[tuple[int, str, str]]:
     rollouts = [("eval_episodes", cfg.eval_episodes, "the final evaluation")]
     if cfg.generalist and cfg.validation_layouts:
         rollouts.append(("validation_episodes", cfg.validation_episodes, "each validation"))
-    for name, episodes, what in rollouts:  # every episode's poses [T + 1, 3] and observation
-        out.append((episodes * ((steps + 1) * 3 + obs) * FLOAT_BYTES, name,
-                    f"{what} ({episodes:,} episodes of {steps} steps in parallel)"))
+    for name, episodes, what in rollouts:
+        out.append((rollout_bytes(env, episodes), name, f"{what} ({episodes:,} episodes of {steps} steps in parallel)"))
     return out
+
+
+def rollout_bytes(env, episodes: int) -> int:
+    """``episodes`` episodes of the EnvConfig ``env`` run in parallel: every episode's poses [T + 1, 3]
+    and observation."""
+    return episodes * (((env.max_steps or env.base_max_steps) + 1) * 3 + env.n_rays + 7) * FLOAT_BYTES
+
+
+def check_eval_memory(env, episodes: int, limit: int | None = None) -> None:
+    """ConfigError on ``episodes`` when that many evaluation episodes of ``env``, run in parallel (``d2spo
+    eval``), would need more memory than ``limit`` bytes (default: this machine's): refused at once
+    instead of hanging for hours or failing in an allocation."""
+    n, limit = rollout_bytes(env, episodes), machine_memory() if limit is None else limit
+    if limit is not None and n > limit:
+        raise ConfigError("episodes", f"{episodes:,} evaluation episodes of {env.max_steps or env.base_max_steps} "
+                          f"steps in parallel need at least {size_text(n)} of memory, more than this machine's "
+                          f"{size_text(limit)}; make it smaller")
 
 
 def size_text(n: float) -> str:
