@@ -52,6 +52,20 @@ def test_gymnax_order_cost_in_info_and_the_functional_env_underneath():
     assert not np.array_equal(info["final_observation"], obs)
 
 
+def test_reset_and_step_are_jitted_as_gymnaxs_own_and_params_name_the_episode_limit(monkeypatch):
+    """A Python loop over ``step`` traces the functional env once (gymnax's ``step`` is jitted);
+    ``max_steps_in_episode`` is gymnax's name for the step limit."""
+    env, params = GymnaxNav.make(task="relaxed", layout="relaxed", max_steps=6)
+    traces = []
+    inner = env.env.step
+    monkeypatch.setattr(env.env, "step", lambda *a: traces.append(1) or inner(*a))
+    obs, state = env.reset(jax.random.key(0))
+    for t in range(8):  # through an episode end and its reset
+        obs, state, _, terminated, truncated, _ = env.step(jax.random.key(t), state, jnp.ones(2))
+    assert len(traces) == 1 and int(params.max_steps_in_episode) == 6 == int(params.max_steps)
+    assert int(state.t) == 2  # the episode of 6 steps ended and the next is 2 steps in
+
+
 def test_vmap_and_scan_through_gymnax_wrappers():
     base, params = GymnaxNav.make(task="F A1", layout="open", max_steps=10)
     env = LogWrapper(FlattenObservationWrapper(base))

@@ -19,6 +19,7 @@ otherwise an equivalent small ``Box``. gymnax's wrappers (``LogWrapper``,
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 from typing import Any
 
 import jax
@@ -83,20 +84,29 @@ class GymnaxNav:
         return self.env.action_size
 
     def reset(self, key: jax.Array, params: EnvParams | None = None) -> tuple[jnp.ndarray, EnvState]:
-        """(obs, state) of a new episode."""
-        state, obs = self.env.reset(key, self._params if params is None else params)
-        return obs, state
+        """(obs, state) of a new episode; jitted, as gymnax's own ``reset`` is."""
+        return self._reset(key, self._params if params is None else params)
 
     def step(self, key: jax.Array, state: EnvState, action: jnp.ndarray, params: EnvParams | None = None):
         """(obs, state, reward, terminated, truncated, info); a finished episode is reset in the
         same step: ``obs`` is then the next episode's first observation and
-        ``info["final_observation"]`` the finished one's last.
+        ``info["final_observation"]`` the finished one's last. Jitted, as gymnax's own ``step`` is:
+        a Python loop over it runs one compiled program per step (inside ``jax.jit``, ``vmap`` or
+        ``lax.scan`` it is inlined as any jitted function is).
 
         ``info`` holds the functional env's info (``collided``, ``completed``, ``sensed``, ...; see
         docs/env.md) plus ``cost``, ``final_observation`` and ``discount`` (0 where terminated).
         """
-        state, obs, reward, cost, _, info = self.env.step(key, state, action,
-                                                          self._params if params is None else params)
+        return self._step(key, state, action, self._params if params is None else params)
+
+    @partial(jax.jit, static_argnums=0)
+    def _reset(self, key: jax.Array, params: EnvParams) -> tuple[jnp.ndarray, EnvState]:
+        state, obs = self.env.reset(key, params)
+        return obs, state
+
+    @partial(jax.jit, static_argnums=0)
+    def _step(self, key: jax.Array, state: EnvState, action: jnp.ndarray, params: EnvParams):
+        state, obs, reward, cost, _, info = self.env.step(key, state, action, params)
         terminated, truncated = info["terminated"], info["truncated"]
         info = {**info, "cost": cost, "final_observation": info["next_obs"],
                 "discount": 1.0 - terminated.astype(jnp.float32)}

@@ -68,6 +68,11 @@ class EnvParams:
     reward: RewardConfig = struct.field(pytree_node=False, default=RewardConfig())
     """Reward constants of Eq. (8)."""
 
+    @property
+    def max_steps_in_episode(self) -> jnp.ndarray:
+        """``max_steps`` under gymnax's name for it (gymnax's ``EnvParams`` field)."""
+        return self.max_steps
+
 
 def _f32(v) -> jnp.ndarray:
     return jnp.asarray(v, jnp.float32)
