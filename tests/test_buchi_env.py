@@ -189,16 +189,9 @@ def test_accepting_visits_survive_a_resume_and_reach_tensorboard(tmp_path):
     # after 3 (without the carried count the resumed run would say 1 for episode 2)
     assert whole.visits == resumed.visits == [2, 3, 2, 3]
     whole.tb.close()
-    from tensorboardX.proto import event_pb2
+    from _tb import tb_scalars
 
-    values = []
-    for f in sorted((tmp_path / "a" / "tb").glob("events.out.tfevents.*")):
-        data, pos = f.read_bytes(), 0
-        while pos < len(data):
-            n = int.from_bytes(data[pos:pos + 8], "little")
-            event = event_pb2.Event.FromString(data[pos + 12:pos + 12 + n])
-            pos += 12 + n + 4
-            values += [(event.step, v.simple_value) for v in event.summary.value if v.tag == "episode/accepting_visits"]
+    values = tb_scalars(tmp_path / "a" / "tb")["episode/accepting_visits"]
     assert values == [(0, 2.0), (1, 3.0), (2, 2.0), (3, 3.0)]
 
 

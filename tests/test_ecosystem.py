@@ -6,13 +6,13 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import struct
 import subprocess
 import sys
 import textwrap
 
 import numpy as np
 import pytest
+from _tb import tb_scalars
 
 gym = pytest.importorskip("gymnasium")
 
@@ -88,23 +88,6 @@ def test_train_config_file_errors_are_one_line(tmp_path, capsys, content, says):
 # -------------------------------------------------------------------------------- TensorBoard
 
 
-def _scalars(tb_dir) -> dict[str, list[tuple[int, float]]]:
-    """Every scalar of the TensorBoard event files in ``tb_dir``: tag -> [(step, value)]."""
-    from tensorboardX.proto import event_pb2
-
-    out: dict[str, list[tuple[int, float]]] = {}
-    for f in sorted(tb_dir.glob("events.out.tfevents.*")):
-        data = f.read_bytes()
-        i = 0
-        while i < len(data):  # TFRecord: length (u64), its crc (u32), the record, its crc (u32)
-            (n,) = struct.unpack("<Q", data[i:i + 8])
-            event = event_pb2.Event.FromString(data[i + 12:i + 12 + n])
-            i += 16 + n
-            for v in event.summary.value:
-                out.setdefault(v.tag, []).append((event.step, v.simple_value))
-    return out
-
-
 def _chunk_log(done: np.ndarray, ret: np.ndarray, cost: np.ndarray, completed: np.ndarray) -> ChunkLog:
     z = np.zeros(done.shape)
     return ChunkLog(done=done, ep_return=ret, ep_cost=cost, ep_length=z + 5, ep_collided=cost > 0,
@@ -120,7 +103,7 @@ def test_tensorboard_holds_one_value_per_episode_at_its_index(tmp_path):
     run.record(_chunk_log(done, ret, cost, np.arange(20).reshape(10, 2) % 2 == 1), None)  # episodes 0, 1, 2
     run.record(_chunk_log(done, ret + 100, cost, done), None)  # episodes 3, 4 (cfg.episodes caps it)
     run.tb.close()
-    got = _scalars(tmp_path / "tb")
+    got = tb_scalars(tmp_path / "tb")
     assert got["episode/return"] == [(0, 0.0), (1, 4.0), (2, 5.0), (3, 100.0), (4, 104.0)]
     assert got["episode/cost"] == [(0, 1.0), (1, 0.0), (2, 0.0), (3, 1.0), (4, 0.0)]
     assert got["episode/completed"] == [(0, 0.0), (1, 0.0), (2, 1.0), (3, 1.0), (4, 1.0)]

@@ -9,6 +9,7 @@ import struct
 import sys
 
 import pytest
+from _tb import tb_scalars
 from test_train import rows, tiny  # its learner: the compiled chunk of tests/test_train.py is reused
 
 from d2spo.cli import main
@@ -33,23 +34,6 @@ def offline(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path / "cwd")
     yield tmp_path
     wandb.teardown()
-
-
-def tb_scalars(tb_dir) -> dict[str, list[tuple[int, float]]]:
-    """Every scalar of the TensorBoard event files in ``tb_dir``: tag -> [(step, value)] (as
-    tests/test_ecosystem.py reads them)."""
-    from tensorboardX.proto import event_pb2
-
-    out: dict[str, list[tuple[int, float]]] = {}
-    for f in sorted(tb_dir.glob("events.out.tfevents.*")):
-        data, i = f.read_bytes(), 0
-        while i < len(data):  # TFRecord: length (u64), its crc (u32), the record, its crc (u32)
-            (n,) = struct.unpack("<Q", data[i:i + 8])
-            event = event_pb2.Event.FromString(data[i + 12:i + 12 + n])
-            i += 16 + n
-            for v in event.summary.value:
-                out.setdefault(v.tag, []).append((event.step, v.simple_value))
-    return out
 
 
 def wandb_records(path):
