@@ -159,9 +159,9 @@ def visit_lengths(aut: Automaton, layout: Layout, label_mode: str, robot_radius:
 
 def _product_edges(aut: Automaton, layout: Layout, label_mode: str, robot_radius: float):
     """The (automaton state, grid cell) graph ``route_length`` and ``visit_lengths`` search: (rows, cols,
-    weights, visit, n, start node, resolution), one entry per move of a live state (not accepting, not
-    rejecting) that does not reject; ``visit`` marks the moves that are a Büchi task's accepting visit
-    (``BuchiTask.visits``; none for a monitor)."""
+    weights, visit, n nodes, start node, cells per automaton state; node = q * cells + cell), one entry
+    per move of a live state (not accepting, not rejecting) that does not reject; ``visit`` marks the
+    moves that are a Büchi task's accepting visit (``BuchiTask.visits``; none for a monitor)."""
     event = label_mode == "event"
     free, letters, delta, resolution, (q0, iy, ix) = _task_grid(aut, layout, label_mode, robot_radius)
     ny, nx = free.shape
