@@ -72,7 +72,7 @@ def test_state_fields_share_one_colour_scale_that_leaves_out_contact_and_names_w
     panels = _plot_axes(fig)
     assert len(bars) == 1 and len(panels) == 6  # phi2 on paper: six states with a target, one colourbar
     label = bars[0].get_ylabel()
-    assert label.startswith("d_q: path length to a target, weighted (m;") and "× 2 within" in label
+    assert label.startswith("d_q: path length to a target, weighted\n(m;") and "× 2 within" in label
     images = [ax.get_images()[0] for ax in panels]
     assert len({(im.norm.vmin, im.norm.vmax) for im in images}) == 1  # one scale for every panel
     # the scale is set by the nodes the robot can stand on: the contact band (× 100 per step, up to
@@ -153,3 +153,17 @@ def test_certify_figure_is_a_300_dpi_png(tmp_path):
     path = tmp_path / "certify.png"
     plots.certify_figure(lay, maps, (0, 5, 0, 5), summary, 0.05, 0.05, path)
     assert round(Image.open(path).info["dpi"][0]) == 300
+
+
+@pytest.mark.parametrize("task", ["phi2", "patrol2"])
+def test_the_fields_figures_texts_lie_inside_it(task):
+    """Six panels (phi2) or two (a patrol): the colourbar's label, the titles and the legend are
+    inside the figure (a one-line label once ran off a two-panel figure's edge)."""
+    fig = plots.draw_state_fields_figure(default_task(task_automaton(task_formula(task)), "paper", "event"))
+    fig.canvas.draw()
+    box = fig.bbox
+    bar = next(ax for ax in fig.axes if hasattr(ax, "_colorbar"))
+    texts = [bar.yaxis.label, fig._suptitle, *(ax.title for ax in _plot_axes(fig)), *fig.legends]
+    for t in texts:
+        ext = t.get_window_extent()
+        assert box.x0 - 1 <= ext.x0 and ext.x1 <= box.x1 + 1 and box.y0 - 1 <= ext.y0 and ext.y1 <= box.y1 + 1, t

@@ -454,8 +454,8 @@ def draw_state_fields_figure(task) -> Figure:
         axes[0].set_ylabel("y (m)")
     else:
         fig.colorbar(im, ax=axes, shrink=0.8,
-                     label=f"d_q: path length to a target, weighted (m; × {costs['clearance_cost']:g} "
-                           f"within {costs['clearance']:g} m of an obstacle or wall)")
+                     label=f"d_q: path length to a target, weighted\n(m; × {costs['clearance_cost']:g} "
+                           f"within {costs['clearance']:g} m of an obstacle or wall)")  # two lines: fits a 2-panel figure
     apart_name = f"robot touches an obstacle or wall (step cost × {costs['collide_cost']:g})"
     if past_penalty:
         apart_name += f", or every route enters a forbidden area (d_q ≥ {penalty:.0f} m)"
