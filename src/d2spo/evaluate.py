@@ -233,7 +233,8 @@ def _specialist_rollouts(cfg: TrainConfig, learner, policy, ecfg: EvalConfig, ov
             compiled[shape] = make_rollout(other, env, ecfg.episodes, int(params.max_steps))
         res = compiled[shape](params, policy, jax.random.PRNGKey(ecfg.seed))
         results.append(rates(*res))
-        results[-1].update(visit_optimum(env, params, results[-1].get("accepting_visits_per_episode")))
+        results[-1].update(visit_optimum(env.task, params.max_steps, env.config,
+                                          results[-1].get("accepting_visits_per_episode")))
         if keep_paths:
             poses, collided, completed = (np.asarray(a[:keep_paths]) for a in (res[4], res[0], res[1]))
             results[-1]["paths"] = (env.layout, poses, collided, completed)

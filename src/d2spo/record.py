@@ -248,7 +248,7 @@ class RunRecord:
         }
         if params.aut.visit is not None:  # a Büchi task: mean over the window
             summary["accepting_visits_per_episode"] = float(np.mean(self.visits[-cfg.window:])) if self.visits else None
-            summary.update(visit_optimum(env, params, summary["accepting_visits_per_episode"]))
+            summary.update(visit_optimum(env.task, params.max_steps, env.config, summary["accepting_visits_per_episode"]))
         t_eval = time.perf_counter()
         if cfg.eval_episodes > 0:
             if progress is not None:

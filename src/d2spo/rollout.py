@@ -15,7 +15,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from d2spo.algos.base import Learner
-from d2spo.envs import preflight
 
 
 def acting_on(learner: Learner, params) -> Learner:
@@ -86,12 +85,14 @@ def rates(collided, completed, ret, length, poses=None, visits=None) -> dict:
     return out
 
 
-def visit_optimum(env, params, visits: float | None) -> dict:
-    """For a recurrence on one layout: its route-optimal visits per episode (``preflight.optimal_visits``)
-    and ``visits`` (the mean per episode) as a fraction of it; {} for any other task."""
-    best = preflight.optimal_visits(env, params)
-    if best is None:
+def visit_optimum(task, max_steps: int, cfg, visits: float | None) -> dict:
+    """For a recurrence compiled on one layout (``task``, a ``CompiledTask``; None for a bank of
+    layouts): its route-optimal visits per episode of ``max_steps`` steps under the resolved env
+    config ``cfg`` (``CompiledTask.optimal_visits``) and ``visits`` (the mean per episode) as a
+    fraction of it; {} for any other task."""
+    if task is None or task.distance is None or not task.recurrence:
         return {}
+    best = task.optimal_visits(int(max_steps), cfg.dt, cfg.v_max * cfg.v_gain)
     return {"route_optimal_visits": best, "visit_fraction": None if visits is None or best == 0 else visits / best}
 
 

@@ -38,7 +38,7 @@ from d2spo.errors import ConfigError
 from d2spo.ltl.automaton import Automaton
 from d2spo.ltl.reward import PER_STATE
 from d2spo.ltl.tasks import TASKS
-from d2spo.rollout import make_rollout, rates
+from d2spo.rollout import make_rollout, rates, visit_optimum
 
 MAX_SIDE = 10.0
 """Largest arena side (m) a generalist is evaluated on: the training distribution's largest
@@ -117,11 +117,9 @@ def rollouts(env, params, learner, policy, checked: list[tuple[Layout, int]], ep
         res = run(params, policy, jax.random.PRNGKey(seed))
         results.append(rates(*res))
         if params.aut.visit is not None and isinstance(env.automaton, Automaton):  # a Büchi task's visits
+            # against what a perfect robot would make on this layout in ``limit`` steps
             task = compile_task(env.automaton, lay, env.config.label_mode, env.config.robot_radius)
-            if task.recurrence:  # against what a perfect robot would make on this layout in ``limit`` steps
-                best = task.optimal_visits(limit, env.config.dt, env.config.v_max * env.config.v_gain)
-                visits = results[-1]["accepting_visits_per_episode"]
-                results[-1].update(route_optimal_visits=best, visit_fraction=visits / best if best else None)
+            results[-1].update(visit_optimum(task, limit, env.config, results[-1]["accepting_visits_per_episode"]))
         if keep_paths:
             poses, collided, completed = (np.asarray(a[:keep_paths]) for a in (res[4], res[0], res[1]))
             results[-1]["paths"] = (lay, poses, collided, completed)

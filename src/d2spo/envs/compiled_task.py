@@ -78,8 +78,7 @@ class CompiledTask:
         """Length (m) of the shortest route that completes the task (``routes.route_length``), or for a
         recurrence that makes its first accepting visit (``routes.visit_lengths``); inf: none."""
         if self.recurrence:
-            first = routes.visit_lengths(self.automaton, self.layout, self.label_mode, self.robot_radius, math.inf, 1)
-            return first[0] if first else math.inf
+            return self.visits_length(1)
         return routes.route_length(self.automaton, self.layout, self.label_mode, self.robot_radius)
 
     def visits_length(self, visits: int) -> float:

@@ -169,14 +169,3 @@ def check_cycle(task: CompiledTask, max_steps: int, dt: float, v_max: float, nam
                           f"too short for one accepting visit on layout {task.layout.name!r}: the shortest route to "
                           f"the first is {length:.1f} m ({math.ceil(need)} steps at full speed); raise --max-steps "
                           "(unset, it follows the task)")
-
-
-def optimal_visits(env, params) -> int | None:
-    """A recurrence's route-optimal visits per episode on ``env``'s layout within ``params.max_steps``
-    (``CompiledTask.optimal_visits``), what the visit fraction is measured against; None for any other
-    task and without one task on one layout (the generalist's bank)."""
-    task = env.task
-    if task is None or task.distance is None or not task.recurrence:
-        return None
-    cfg = env.config
-    return task.optimal_visits(int(params.max_steps), cfg.dt, cfg.v_max * cfg.v_gain)
