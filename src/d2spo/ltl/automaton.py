@@ -10,7 +10,7 @@ paper's Prog(q) (Sec. IV-C): the fewest letters that lead from q to an accepting
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Collection, Iterable
+from collections.abc import Collection, Iterable, Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -44,6 +44,27 @@ class AutomatonArrays(NamedTuple):
     deterministic Büchi automaton, an *accepting visit* (``ltl.buchi_task.BuchiTask``); None for a
     monitor (``translate``), whose episodes end at acceptance."""
 
+
+
+def backward_distances(delta: Sequence[Sequence[int]], letters: Collection[int], seeds: Sequence[int],
+                       start: int) -> list[int | None]:
+    """Per state, ``start`` at the ``seeds`` and one more per letter (from ``letters``) a run needs to
+    reach one of them; None where none can be reached. Breadth-first search backwards over ``delta``."""
+    predecessors: list[set[int]] = [set() for _ in delta]
+    for q, row in enumerate(delta):
+        for a in letters:
+            predecessors[row[a]].add(q)
+    dist: list[int | None] = [None] * len(delta)
+    frontier = deque(seeds)
+    for q in frontier:
+        dist[q] = start
+    while frontier:
+        t = frontier.popleft()
+        for q in sorted(predecessors[t]):
+            if dist[q] is None:
+                dist[q] = dist[t] + 1  # type: ignore[operator]
+                frontier.append(q)
+    return dist
 
 @dataclass(frozen=True, eq=False)
 class Automaton:
@@ -136,22 +157,7 @@ class Automaton:
         """Prog(q) of Sec. IV-C as a number: per state, the fewest letters, all taken from
         ``feasible_letters`` (all letters when None), that lead to an accepting state; None when
         no such path exists. Breadth-first search backwards from the accepting states."""
-        letters = self._letters(feasible_letters)
-        predecessors: list[set[int]] = [set() for _ in range(self.n_states)]
-        for q, row in enumerate(self.delta):
-            for a in letters:
-                predecessors[row[a]].add(q)
-        dist: list[int | None] = [None] * self.n_states
-        frontier = deque(sorted(self.accepting))
-        for q in frontier:
-            dist[q] = 0
-        while frontier:
-            t = frontier.popleft()
-            for q in sorted(predecessors[t]):
-                if dist[q] is None:
-                    dist[q] = dist[t] + 1  # type: ignore[operator]
-                    frontier.append(q)
-        return dist
+        return backward_distances(self.delta, self._letters(feasible_letters), sorted(self.accepting), 0)
 
     def to_json(self, feasible_letters: Collection[int] | None = None) -> dict:
         """A JSON-serialisable dict: aps, initial, accepting, rejecting, delta, distance."""

@@ -21,13 +21,12 @@ Acceptance is on transitions: a run is accepted iff it takes accepting transitio
 
 from __future__ import annotations
 
-from collections import deque
 from collections.abc import Collection, Iterable, Sequence
 from dataclasses import dataclass
 from functools import cached_property
 
 from d2spo.errors import UserError
-from d2spo.ltl.automaton import UNREACHABLE, AutomatonTooLarge, _dot_escape, letters_to_guard
+from d2spo.ltl.automaton import UNREACHABLE, AutomatonTooLarge, _dot_escape, backward_distances, letters_to_guard
 from d2spo.ltl.buchi_reduce import dead_states, product, reduce, universal_states
 from d2spo.ltl.determinise import buchi_marks, determinise
 from d2spo.ltl.formula import And, Formula, Or, check_size
@@ -233,22 +232,8 @@ def letters_to_marked(delta: Sequence[Sequence[int]], marked: Sequence[Sequence[
                       letters: Collection[int]) -> list[int | None]:
     """Per state, the fewest ``letters`` after which a run has taken a marked transition
     (``marked[q][a]``: at least 1); None when none can be. Breadth-first search backwards."""
-    pred: list[set[int]] = [set() for _ in delta]
-    dist: list[int | None] = [None] * len(delta)
-    frontier: deque[int] = deque()
-    for q, row in enumerate(delta):
-        for a in letters:
-            pred[row[a]].add(q)
-        if any(marked[q][a] for a in letters):
-            dist[q] = 1
-            frontier.append(q)
-    while frontier:
-        t = frontier.popleft()
-        for q in sorted(pred[t]):
-            if dist[q] is None:
-                dist[q] = dist[t] + 1  # type: ignore[operator]
-                frontier.append(q)
-    return dist
+    seeds = [q for q in range(len(delta)) if any(marked[q][a] for a in letters)]
+    return backward_distances(delta, letters, seeds, 1)
 
 
 def to_dba(formula: Formula | str, max_states: int = 1000) -> BuchiAutomaton:
