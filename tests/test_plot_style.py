@@ -10,7 +10,7 @@ from matplotlib.colors import to_hex
 from matplotlib.figure import Figure
 from PIL import Image
 
-from d2spo import cli, plots, plotstyle
+from d2spo import cli, map_plots, plots, plotstyle
 from d2spo.envs import layouts, render
 from d2spo.envs.compiled_task import default_task
 from d2spo.errors import ConfigError
@@ -67,7 +67,7 @@ def _legend_texts(fig) -> list[str]:
 
 def test_state_fields_share_one_colour_scale_that_leaves_out_contact_and_names_what_it_shows():
     task = default_task(task_automaton(task_formula("phi2")), "paper", "event")
-    fig = plots.draw_state_fields_figure(task)
+    fig = map_plots.draw_state_fields_figure(task)
     bars = [ax for ax in fig.axes if hasattr(ax, "_colorbar")]
     panels = _plot_axes(fig)
     assert len(bars) == 1 and len(panels) == 6  # phi2 on paper: six states with a target, one colourbar
@@ -77,7 +77,7 @@ def test_state_fields_share_one_colour_scale_that_leaves_out_contact_and_names_w
     assert len({(im.norm.vmin, im.norm.vmax) for im in images}) == 1  # one scale for every panel
     # the scale is set by the nodes the robot can stand on: the contact band (× 100 per step, up to
     # ~49 m here) is drawn apart, so the open space is not squeezed into the bottom of the scale
-    contact, penalty = plots.field_regions(task)
+    contact, penalty = map_plots.field_regions(task)
     top = images[0].norm.vmax
     field = task.fields.field
     assert top == pytest.approx(max(float(field[q][~contact].max()) for q in range(task.n_states)
@@ -151,7 +151,7 @@ def test_certify_figure_is_a_300_dpi_png(tmp_path):
     summary = {"residual": {"rho_h": 0.1}, "counterexamples": {"L": [], "D": [{"pose": [1.0, 1.0], "counterexample": True}]},
                "run": "runs/x"}
     path = tmp_path / "certify.png"
-    plots.certify_figure(lay, maps, (0, 5, 0, 5), summary, 0.05, 0.05, path)
+    map_plots.certify_figure(lay, maps, (0, 5, 0, 5), summary, 0.05, 0.05, path)
     assert round(Image.open(path).info["dpi"][0]) == 300
 
 
@@ -159,7 +159,7 @@ def test_certify_figure_is_a_300_dpi_png(tmp_path):
 def test_the_fields_figures_texts_lie_inside_it(task):
     """Six panels (phi2) or two (a patrol): the colourbar's label, the titles and the legend are
     inside the figure (a one-line label once ran off a two-panel figure's edge)."""
-    fig = plots.draw_state_fields_figure(default_task(task_automaton(task_formula(task)), "paper", "event"))
+    fig = map_plots.draw_state_fields_figure(default_task(task_automaton(task_formula(task)), "paper", "event"))
     fig.canvas.draw()
     box = fig.bbox
     bar = next(ax for ax in fig.axes if hasattr(ax, "_colorbar"))

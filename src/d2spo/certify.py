@@ -3,7 +3,7 @@
 The maths is in `safety/certify.py` (per point) and `safety/bounds.py` (interval bounds). This
 module loads a run, builds the nets, measures the nominal model's residual on held-out transitions,
 classifies every point, runs the search for counterexamples (`certify_search.py`), and writes
-RUN/certify.json and RUN/certify.png (drawn by `plots.certify_figure`). Nothing here prints; the CLI renders
+RUN/certify.json and RUN/certify.png (drawn by `map_plots.certify_figure`). Nothing here prints; the CLI renders
 the summary.
 
 Nets: the run's X_L (Proposition 1) and P_exp (Proposition 2: D, the explored set, where T_e of
@@ -34,7 +34,7 @@ from d2spo.config import config_to_dict
 from d2spo.envs import geometry
 from d2spo.errors import RunDirError
 from d2spo.fields import check_fields
-from d2spo.plots import certify_figure
+from d2spo.map_plots import certify_figure
 from d2spo.run import build, load_run_config
 from d2spo.runio import atomic_write_json
 from d2spo.safety import bounds

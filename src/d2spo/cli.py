@@ -49,7 +49,8 @@ from d2spo.evaluate import EvalConfig, evaluate_run, write_evaluation
 from d2spo.fields import check_fields
 from d2spo.ltl import task_automaton, task_formula
 from d2spo.ltl.tasks import TASKS
-from d2spo.plots import evaluation_figure, state_fields_figure
+from d2spo.map_plots import state_fields_figure
+from d2spo.plots import evaluation_figure
 from d2spo.plotstyle import check_picture_path
 from d2spo.progress import train_with_progress
 from d2spo.repair import RepairConfig, repair_run

@@ -123,7 +123,7 @@ def compile_task(automaton: Any, layout: Layout, label_mode: str, robot_radius: 
 def default_task(automaton: Automaton, layout_name: str, label_mode: str) -> CompiledTask:
     """``automaton`` compiled on a layout as the default environment config compiles it (robot
     radius, layout scale, shaping clearance and costs), its fields included: what ``d2spo ltl
-    --plot`` draws (``plots.state_fields_figure``) before it checks the task."""
+    --plot`` draws (``map_plots.state_fields_figure``) before it checks the task."""
     cfg = EnvConfig(layout=layout_name, label_mode=label_mode).resolved()
     layout = layouts.load(layout_name).scaled(cfg.layout_scale)
     return compile_task(automaton, layout, label_mode, cfg.robot_radius, cfg.reward.field_costs(cfg.robot_radius))
