@@ -1,4 +1,5 @@
-"""The generalist's environment (envs/generalist.py): a layout per episode from a bank, the subgoal observation."""
+"""The generalist's environment (envs/generalist.py): a slot (layout and task) per episode from a bank, the
+subgoal observation; shared labels, disks and rectangular arenas."""
 
 from __future__ import annotations
 
@@ -9,20 +10,29 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from d2spo.envs import EnvConfig, generator, layout_bank, make_env, sensors
+from d2spo.envs import EnvConfig, generator, layouts, make_env, sensors
 from d2spo.envs.generalist import GeneralistEnv, make_generalist_env, subgoal, view
 from d2spo.envs.sensors import Sensed
 from d2spo.errors import ConfigError
 from d2spo.ltl.reward import RewardConfig
 
 SEEDS = (3, 4, 5)
+OFFICE = "tests/data/layouts/office.json"
 
 
 @pytest.fixture(scope="module")
 def built():
-    bank = layout_bank.build_bank(SEEDS)
-    env, params = make_generalist_env(EnvConfig(preset="ideal"), "phi1", bank)
-    return bank, env, params
+    lays = [generator.generate(s) for s in SEEDS]
+    env, params = make_generalist_env(EnvConfig(preset="ideal"), "phi1", lays)
+    return lays, env, params
+
+
+def sensed_all(info_or_ctx, mask=None):
+    """Every obstacle of a step's info (or a learner's context) as sensed: boxes, walls and disks."""
+    get = (lambda k: info_or_ctx[k]) if isinstance(info_or_ctx, dict) else (
+        lambda k: getattr(info_or_ctx, {"sensed": "mask"}.get(k, k)))
+    m = get("sensed") if mask is None else mask
+    return Sensed(get("box_lo"), get("box_hi"), jnp.ones_like(m), get("disk_center"), get("disk_radius"))
 
 
 def test_view_holds_the_drawn_layouts_geometry(built):
@@ -31,7 +41,8 @@ def test_view_holds_the_drawn_layouts_geometry(built):
         lay = generator.generate(seed)
         v = view(params, jnp.int32(b))
         assert np.allclose(np.asarray(v.geom.arena_hi), lay.arena)
-        assert np.allclose(np.asarray(v.area_center), [a.center for a in lay.areas], atol=1e-5)
+        assert np.allclose(np.asarray(v.area_center)[:4], [a.center for a in lay.areas], atol=1e-5)
+        assert np.all(np.asarray(v.area_center)[4:] < -100) and not np.any(np.asarray(v.area_radius)[4:])
         o = lay.obstacles[0]
         from d2spo.envs import geometry
         assert bool(geometry.collides(jnp.asarray(o.center, jnp.float32), v.geom, v.robot_radius))
@@ -46,7 +57,7 @@ def test_resets_draw_every_layout_and_observations_are_finite(built):
     states, obs = jax.jit(lambda k: env.reset_batch(k, params, 64))(jax.random.PRNGKey(0))
     assert set(np.asarray(states.layout).tolist()) == {0, 1, 2}
     assert obs.shape == (64, env.observation_size) and bool(jnp.all(jnp.isfinite(obs)))
-    starts = np.asarray(bank.start)[np.asarray(states.layout), :2]
+    starts = np.asarray(params.bank.start)[np.asarray(states.layout), :2]
     assert np.allclose(np.asarray(states.pose)[:, :2], starts, atol=1e-5)
     sl = env.observation_slices
     # phi1's initial state has a target (A1) and forbidden areas (A2, A3)
@@ -78,7 +89,7 @@ def test_subgoal_descends_the_path_rewards_along_it_and_an_ending_episode_draws_
     # the CBF input read off the observation is what the sensed boxes alone give (walls are boxes):
     # the learner's data and its acting see the same x, with no arena
     x_obs = jax.jit(env.cbf_input)(info["next_obs"], params)
-    ctx = Sensed(info["box_lo"], info["box_hi"], info["sensed"] | True)
+    ctx = sensed_all(info)
     big = jnp.array([-100.0, -100.0]), jnp.array([100.0, 100.0])
     x_ctx = jax.jit(jax.vmap(lambda p, c: sensors.cbf_input(p, c, *big, env.n_rays, params.sensing_radius)))(
         info["next_pose"], ctx)
@@ -87,7 +98,7 @@ def test_subgoal_descends_the_path_rewards_along_it_and_an_ending_episode_draws_
 
 def test_a_task_over_other_areas_is_refused(built):
     bank, _, _ = built
-    with pytest.raises(ConfigError, match="A1..A4"):
+    with pytest.raises(ConfigError, match="F A5 & F A1 names A5, which no area of layout 'random:3' carries"):
         make_generalist_env(EnvConfig(), "F A5 & F A1", bank)
     with pytest.raises(ConfigError, match="one area at a time"):  # the bank's areas never overlap
         make_generalist_env(EnvConfig(), "F (A1 & A2)", bank)
@@ -120,7 +131,7 @@ def test_the_generalist_learner_reads_x_and_o_s_per_environment(built):
     states, obs = env.reset_batch(jax.random.PRNGKey(5), params, 16)  # the shapes of the test above: one compile
     _, _, _, _, _, info = jax.jit(env.step_batch)(jax.random.PRNGKey(6), states, jnp.zeros((16, 2)), params)
     ctx = learner.context(info)
-    all_sensed = Sensed(ctx.box_lo, ctx.box_hi, jnp.ones_like(ctx.mask))
+    all_sensed = sensed_all(ctx)
     x_data = jax.vmap(learner.features)(info["next_pose"], all_sensed)
     np.testing.assert_allclose(np.asarray(learner.x_of_obs(info["next_obs"])), np.asarray(x_data), atol=1e-4)
     pose, sensed = learner.synthetic_sample(jax.random.PRNGKey(7))  # walls are its last four boxes
@@ -192,9 +203,9 @@ def test_the_generalists_cbf_input_is_layout_free(built):
                            layouts=LayoutBank)
     g = view(params, jnp.int32(1)).geom
     pose = jnp.asarray([*generator.generate(SEEDS[1]).start[:2], 0.7], jnp.float32)
-    sensed = Sensed(g.box_lo, g.box_hi, jnp.ones(g.box_lo.shape[:1], bool))
+    sensed = Sensed(g.box_lo, g.box_hi, jnp.ones((g.n_obstacles,), bool), g.disk_center, g.disk_radius)
     shift = jnp.asarray([37.5, -12.25], jnp.float32)
-    moved = Sensed(g.box_lo + shift, g.box_hi + shift, sensed.mask)
+    moved = Sensed(g.box_lo + shift, g.box_hi + shift, sensed.mask, g.disk_center + shift, g.disk_radius)
     x = learner.features(pose, sensed)
     np.testing.assert_allclose(np.asarray(learner.features(pose.at[:2].add(shift), moved)), np.asarray(x), atol=1e-4)
     assert float(jnp.min(x)) < params.sensing_radius  # the scene is not empty: something is in range
@@ -211,8 +222,48 @@ def test_the_generalist_takes_tasks_no_finite_run_completes(built):
     assert patrol.aut.visit is not None and not bool(patrol.aut.accepting.any())
     waiting_a3 = aut.delta[aut.initial][aut.letter(["A1"])]
     # in each live state the visit's area is the target, A4 forbidden: A1 first, then A3
-    assert np.asarray(patrol.target_areas)[[aut.initial, waiting_a3]].tolist() == [
+    local = np.asarray(patrol.local_state)[[aut.initial, waiting_a3]]
+    assert np.asarray(patrol.bank.target)[0, local, :4].tolist() == [
         [True, False, False, False], [False, False, True, False]]
-    assert np.asarray(patrol.forbidden_areas)[[aut.initial, waiting_a3], 3].all()
+    assert np.asarray(patrol.bank.forbidden)[0, local, 3].all()
     with pytest.raises(ConfigError, match="scored by accepting visits"):
         make_generalist_env(EnvConfig(), ["phi1", "patrol2"], bank)
+
+
+def test_every_area_of_a_label_is_a_target_and_either_completes():
+    """The office: desk-1 and desk-2 are both labelled desk. Both are targets of "a desk, then the
+    kitchen", the field leads to the nearer, and entering either one advances the task."""
+    office = layouts.load(OFFICE)
+    env, params = make_generalist_env(EnvConfig(preset="ideal"), "F (desk & F kitchen)", [office])
+    bank, aut = params.bank, env.automaton
+    names = [a.name for a in office.areas]
+    desks = [names.index("desk-1"), names.index("desk-2")]
+    q0 = int(params.local_state[aut.initial])
+    assert np.asarray(bank.target)[0, q0, desks].all() and not np.asarray(bank.target)[0, q0, names.index("kitchen")]
+    assert int(bank.area_bits[0, desks[0]]) == int(bank.area_bits[0, desks[1]]) == aut.letter(["desk"])
+    step = jax.jit(env.step)
+    for d in desks:  # start just outside each desk, drive into it
+        state, _ = env.reset(jax.random.PRNGKey(0), params)
+        centre, radius = office.areas[d].center, office.areas[d].radius
+        pose = jnp.asarray([centre[0] - radius - 0.05, centre[1], 0.0], jnp.float32)
+        state = state.replace(pose=pose)
+        q = int(state.q)
+        for k in range(10):
+            state, *_ = step(jax.random.PRNGKey(k), state, jnp.array([1.0, 0.0]), params)
+        assert int(state.q) != q and aut.distances([0] + [aut.letter([a]) for a in aut.aps])[int(state.q)] == 1, d
+    field = np.asarray(bank.fields[0, q0])
+    assert field.max() > 0.5 and np.isfinite(field).all()
+
+
+def test_disks_are_obstacles_of_the_view_and_of_the_learners_context():
+    """A round pillar of the office collides in the view, shows in the lidar and in O_s."""
+    office = layouts.load(OFFICE)
+    env, params = make_generalist_env(EnvConfig(preset="ideal"), "F (desk & F kitchen)", [office])
+    from d2spo.envs import geometry
+
+    pillar = office.disks[0]
+    v = view(params, jnp.int32(0))
+    assert bool(geometry.collides(jnp.asarray(pillar.center, jnp.float32), v.geom, v.robot_radius))
+    beside = jnp.asarray([pillar.center[0] - pillar.radius - 0.4, pillar.center[1]], jnp.float32)
+    near = float(sensors.nearest_obstacle(beside, v.geom, jnp.ones((env.n_obstacles,), bool), 5.0))
+    assert near == pytest.approx(0.4, abs=1e-4)

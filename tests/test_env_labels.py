@@ -274,6 +274,9 @@ def test_a_bad_label_in_a_file_is_one_line(tmp_path, capsys):
     assert len(err) == 1 and "layout.areas[0].label: 'desk-1' is not a proposition name" in err[0]
 
 
-def test_the_field_bank_refuses_disks():
-    with pytest.raises(ConfigError, match="box obstacles only"):
-        layout_bank.pack([layouts.load(str(OFFICE))])
+def test_the_field_bank_holds_disks_and_shared_labels():
+    office = layouts.load(str(OFFICE))
+    bank = layout_bank.pack([office])
+    assert np.asarray(bank.disk_mask)[0].tolist() == [True] + [False] * (layout_bank.D_MAX - 1)
+    np.testing.assert_allclose(np.asarray(bank.disk_center)[0, 0], office.disks[0].center)
+    assert np.asarray(bank.area_mask)[0].sum() == 3 and np.asarray(bank.box_mask)[0].sum() == 1

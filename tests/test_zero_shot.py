@@ -15,7 +15,7 @@ from _counting import count_calls
 from d2spo.algos.d2spo import D2SPOConfig
 from d2spo.algos.generalist import build_generalist
 from d2spo.config import TrainConfig
-from d2spo.envs import EnvConfig, layout_bank, layouts
+from d2spo.envs import EnvConfig, generator, layouts
 from d2spo.envs.generalist import view
 from d2spo.errors import ConfigError
 from d2spo.zero_shot import generalist_layout, task_tag
@@ -36,7 +36,7 @@ def gen_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("gen") / "run"
     out.mkdir()
     (out / "config.json").write_text(json.dumps(config_to_dict(cfg)))
-    _, _, learner = build_generalist(cfg, layout_bank.build_bank([3]), 400)
+    _, _, learner = build_generalist(cfg, [generator.generate(3)], 400)
     shapes = jax.eval_shape(learner.init, jax.random.PRNGKey(0))  # zeros: a robot that stands still
     Checkpoints(out, run_fingerprint(out)).save(jax.tree_util.tree_map(lambda t: jnp.zeros(t.shape, t.dtype), shapes),
                                                 {"episodes": 0, "env_steps": 0, "chunks": 0, "wall_seconds": 0.0})
@@ -86,20 +86,27 @@ def test_eval_refuses_a_generalist_case_in_one_line(gen_run, capsys, args, match
     assert len(err) == 1 and match in err[0], err
 
 
-def test_the_layouts_areas_are_read_in_the_order_a1_to_a4(tmp_path):
-    data = layouts.load("paper").to_json()
-    data["areas"] = data["areas"][::-1]
-    path = tmp_path / "rev.json"
-    path.write_text(json.dumps(data))
-    lay, _ = generalist_layout(EnvConfig(), str(path), "phi1")
-    assert [a.name for a in lay.areas] == ["A1", "A2", "A3", "A4"]
-    assert lay.areas[0].center == tuple(layouts.load("paper").areas[0].center)
+TWELVE = "tests/data/layouts/twelve-areas.json"
+
+
+def test_a_generalist_runs_zero_shot_on_twelve_named_areas_with_shared_labels_and_a_pillar(gen_run, capsys):
+    """12 areas with names of their own (three docks labelled dock, four desks labelled desk), a
+    12 m x 8 m arena and a round pillar: the generalist trained on A1..A4 in square rooms of boxes
+    is evaluated there on a task over those labels."""
+    lay, _ = generalist_layout(EnvConfig(preset="ideal"), TWELVE, "F (desk & F (kitchen & F dock))")
+    assert len(lay.areas) == 12 and len(lay.disks) == 1 and lay.arena == (12.0, 8.0)
+    assert _main(["eval", str(gen_run), "--task", "F (desk & F (kitchen & F dock))", "--layout", TWELVE,
+                  "--episodes", "2", "--runtime-filter", "False"]) == 0
+    out = " ".join(capsys.readouterr().out.split())
+    assert "(zero-shot)" in out
+    (res,) = [json.loads(f.read_text()) for f in gen_run.glob("eval-twelve-areas-*.json")]
+    assert res["per_layout"][0]["episodes"] == 2 and 0.0 <= res["completion_rate"] <= 1.0
 
 
 @pytest.mark.parametrize("changes,task,match", [
-    ({"arena": [6.0, 5.0]}, "phi1", "square arenas"),
-    ({"arena": [12.0, 12.0]}, "phi1", "larger than the generalist's 10 m"),
-    ({"areas": [{"name": "A1", "center": [4.35, 0.8], "radius": 0.35}]}, "F A1", "areas A1, A2, A3, A4"),
+    ({"arena": [21.0, 5.0]}, "phi1", "at most 20 m a side"),
+    ({"obstacles": [], "areas": [{"name": f"A{i + 1}", "center": [0.45 + 0.55 * (i % 8), 2.6 + 1.0 * (i // 8)],
+                                  "radius": 0.2} for i in range(17)]}, "F A1", "17 areas, more than the 16"),
     ({"areas": [{"name": f"A{i + 1}", "center": c, "radius": 0.35}
                 for i, c in enumerate([[4.35, 0.8], [4.35, 1.2], [0.65, 4.35], [2.5, 2.5]])]}, "phi1", "overlap"),
     ({}, "F B7", "propositions with no area"),
@@ -125,8 +132,8 @@ def test_task_tags_name_tasks_and_hash_formulas():
 
 
 def test_the_runtime_filter_keeps_clear_of_each_environments_own_layout():
-    bank = layout_bank.build_bank([3, 4])
-    _, params, learner = build_generalist(_cfg(runtime_filter=True), bank, 400)
+    lays = [generator.generate(3), generator.generate(4)]
+    _, params, learner = build_generalist(_cfg(runtime_filter=True), lays, 400, tasks_of=[0, 0])
     state, _ = jax.jit(learner.env.reset_batch, static_argnums=2)(jax.random.PRNGKey(1), params, 8)
     ctx = jax.jit(learner.filter_context)(state)
     for k in range(8):
@@ -167,11 +174,13 @@ def test_the_validation_layouts_are_held_out():
     from d2spo.record import Validation
 
     cfg = dataclasses.replace(_cfg(), validation_layouts=2, validation_episodes=4)
-    env, params, learner = build_generalist(cfg, layout_bank.build_bank([0]), 400)
+    env, params, learner = build_generalist(cfg, [generator.generate(0)], 400)
     v = Validation(cfg, env, params, learner)
-    assert v.layouts == f"random:{VALIDATION_SEED}..{VALIDATION_SEED + 1}"
-    want = [generator.generate(VALIDATION_SEED + i).arena[0] for i in range(2)]
-    np.testing.assert_allclose(np.asarray(v.params.bank.arena)[:, 0], want, rtol=1e-6)
+    assert v.layouts == f"world:{VALIDATION_SEED}..{VALIDATION_SEED + 1}"  # the default training world
+    want = [layouts.load(f"world:{VALIDATION_SEED + i}").arena[0] for i in range(2)]
+    tasks = len(env.plan.names)  # every held-out layout with every task of the mixture
+    np.testing.assert_allclose(np.asarray(v.params.bank.arena)[::tasks, 0], want, rtol=1e-6)
+    assert np.asarray(v.params.bank.task).tolist() == list(range(tasks)) * 2
 
 
 def test_a_zero_shot_eval_of_n_layouts_builds_one_generalist_and_n_envs(gen_run, monkeypatch):

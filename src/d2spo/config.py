@@ -47,8 +47,12 @@ DEFAULT_SETTINGS: dict[str, Any] = {"num_envs": 16, "td3.hidden": DEFAULT_WIDTHS
 WANDB_FORBIDDEN = "/\\#?%:"
 """Characters a W&B project name may not hold (``--wandb-project``)."""
 VALIDATION_SEED = 50_000
-"""First seed of the generalist's validation layouts (training uses random:0 .., the benchmark
+"""First seed of the generalist's validation layouts (training uses WORLD:0 .., the benchmark
 random:100000 ..)."""
+GENERALIST_WORLDS = ("world", "random")
+"""Layout families a generalist trains on (``generalist_world``): ``world:SEED`` (``envs.world``:
+rectangular arenas of 5-20 m, boxes and pillars, 4-12 labelled areas, ZoneEnv's zones among them)
+or ``random:SEED`` (``envs.generator``: square 5-10 m arenas of boxes, areas A1..A4)."""
 
 
 @dataclass(frozen=True)
@@ -81,7 +85,10 @@ class TrainConfig:
     generalist: bool = False
     """Train one d2spo policy for a bank of random layouts."""
     generalist_layouts: int = 256
-    """With --generalist: train on layouts random:0..N-1."""
+    """With --generalist: train on layouts WORLD:0..N-1 (WORLD: ``generalist_world``)."""
+    generalist_world: str = "world"
+    """With --generalist: the layout family it trains and validates on: world (rectangular arenas to
+    20 m, pillars, 4-12 labelled areas, ZoneEnv's zones among them) or random (square 5-10 m, A1..A4)."""
     generalist_tasks: int | None = None
     """With --generalist: also train on N random reach-avoid tasks; 0: --task alone. None: 16."""
     validation_layouts: int = 16
@@ -145,9 +152,12 @@ class TrainConfig:
         if not (isinstance(project, str) and 0 < len(project) <= 128) or set(project) & set(WANDB_FORBIDDEN):
             raise ConfigError("wandb_project", f"a W&B project name is 1 to 128 characters without "
                               f"{' '.join(WANDB_FORBIDDEN)}, got {self.wandb_project!r}")
+        if self.generalist_world not in GENERALIST_WORLDS:
+            raise ConfigError("generalist_world", f"expected one of {', '.join(GENERALIST_WORLDS)}, "
+                              f"got {self.generalist_world!r}")
         if self.generalist and self.generalist_layouts > VALIDATION_SEED:
-            raise ConfigError("generalist_layouts", f"at most {VALIDATION_SEED}: the layouts from random:"
-                              f"{VALIDATION_SEED} on are the validation set")
+            raise ConfigError("generalist_layouts", f"at most {VALIDATION_SEED}: the layouts from "
+                              f"{self.generalist_world}:{VALIDATION_SEED} on are the validation set")
         if self.d2spo.actor_through_safety is None:  # on for one layout, off for the generalist
             object.__setattr__(self, "d2spo", dataclasses.replace(self.d2spo, actor_through_safety=not self.generalist))
         if not isinstance(self.task, str) or not self.task.strip():
@@ -212,6 +222,7 @@ FORMER_DEFAULTS: dict[tuple[str, ...], Any] = {
     ("env", "reward", "shaping_metric"): "geodesic",  # geodesic-per-state became the default on 2026-11-23
     ("anneal", "relax"): "all",  # the field came with the option "targets", which became the default
     ("validation_layouts",): 0,  # generalists trained before validation kept their last policy
+    ("generalist_world",): "random",  # generalists trained on random:SEED until 2026-11-26
     ("env", "base_max_steps"): 200,  # an unset max_steps gave 200 steps until 2026-11-25
     ("env", "reward", "shaping_clearance_cost"): 10.0,  # the per-state field's clearance band cost 10x until 2026-11-25
     ("env", "reward", "shaping_collide_cost"): 10.0,

@@ -22,8 +22,8 @@ from tensorboardX import SummaryWriter
 from d2spo.algos.base import ChunkLog
 from d2spo.checkpoint import Checkpoints
 from d2spo.config import VALIDATION_SEED, TrainConfig
-from d2spo.envs import layout_bank
 from d2spo.envs.generalist import view
+from d2spo.envs.layouts import load as load_layout
 from d2spo.errors import NaNError
 from d2spo.rollout import make_rollout, rates, visit_optimum
 from d2spo.run import best_policy_path, load_best_policy, save_snapshot, snapshot_path
@@ -282,10 +282,14 @@ class Validation:
 
     def __init__(self, cfg: TrainConfig, env, params, learner):
         n = cfg.validation_layouts
-        self.layouts = f"random:{VALIDATION_SEED}..{VALIDATION_SEED + n - 1}"
-        bank = layout_bank.build_bank(range(VALIDATION_SEED, VALIDATION_SEED + n))
+        self.layouts = f"{cfg.generalist_world}:{VALIDATION_SEED}..{VALIDATION_SEED + n - 1}"
+        tasks = len(env.plan.names)  # every layout with every task of the mixture
+        layouts = [load_layout(f"{cfg.generalist_world}:{s}") for s in range(VALIDATION_SEED, VALIDATION_SEED + n)]
+        limit = cfg.env.max_steps  # None: each layout's own (envs.generalist.slot_max_steps)
+        bank = env.bank([lay for lay in layouts for _ in range(tasks)], [t for _ in layouts for t in range(tasks)],
+                        limit)
         self.params = view(params.replace(bank=bank), jnp.zeros((), jnp.int32))
-        self.rollout = make_rollout(learner, env, cfg.validation_episodes, int(params.max_steps))
+        self.rollout = make_rollout(learner, env, cfg.validation_episodes, int(np.max(np.asarray(bank.max_steps))))
         self.key = jax.random.PRNGKey(cfg.seed + 20_000)
 
     def __call__(self, policy) -> dict:

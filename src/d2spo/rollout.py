@@ -26,16 +26,17 @@ def acting_on(learner: Learner, params) -> Learner:
     return other
 
 
-def make_rollout(learner: Learner, env, episodes: int, max_steps: int):
+def make_rollout(learner: Learner, env, episodes: int, max_steps: int, slot_per_episode: bool = False):
     """A jitted ``(params, policy, key) -> (collided, completed, return, length, poses)``: ``episodes``
     envs in parallel, one deterministic episode each; poses are [E, T + 1, 3]. The env params are an
     argument, so one compilation serves every layout with the same array shapes. For a Büchi task
-    (``params.aut.visit`` set) the tuple ends with each episode's accepting visits [E] too."""
+    (``params.aut.visit`` set) the tuple ends with each episode's accepting visits [E] too.
+    ``slot_per_episode`` (a generalist's env): episode e starts in slot e of the bank, not a drawn one."""
 
-    def one(params, policy, key):
+    def one(params, policy, key, e):
         lrn = acting_on(learner, params)
         k0, k1 = jax.random.split(key)
-        state, obs = env.reset(k0, params)
+        state, obs = env.reset_in_slot(k0, params, e) if slot_per_episode else env.reset(k0, params)
 
         def body(c, k):
             (state, obs, alive, ret, length, collided, completed), visits = c[:7], c[7:]
@@ -60,7 +61,8 @@ def make_rollout(learner: Learner, env, episodes: int, max_steps: int):
 
     @jax.jit
     def run(params, policy, key):
-        return jax.vmap(one, in_axes=(None, None, 0))(params, policy, jax.random.split(key, episodes))
+        return jax.vmap(one, in_axes=(None, None, 0, 0))(params, policy, jax.random.split(key, episodes),
+                                                          jnp.arange(episodes, dtype=jnp.int32))
 
     return run
 

@@ -19,8 +19,7 @@ from d2spo.algos import has_runtime_filter, make_learner
 from d2spo.algos.generalist import build_generalist
 from d2spo.checkpoint import has_checkpoint, load_checkpoint, run_fingerprint
 from d2spo.config import TrainConfig, config_differences, config_from_dict, config_to_dict
-from d2spo.envs import layout_bank, layouts, make_env
-from d2spo.envs.generalist import GENERALIST_MAX_STEPS
+from d2spo.envs import layouts, make_env
 from d2spo.envs.preflight import preflight
 from d2spo.errors import ConfigError, RunDirError
 from d2spo.inputs import sha256_of
@@ -38,9 +37,11 @@ def build(cfg: TrainConfig):
 
 
 def _build_generalist(cfg: TrainConfig):
-    """(env, params, learner) of ``--generalist``: the bank random:0 .. random:N-1, ``algos.generalist.build_generalist``."""
-    bank = layout_bank.build_bank(range(cfg.generalist_layouts))
-    return build_generalist(cfg, bank, cfg.env.max_steps or GENERALIST_MAX_STEPS)
+    """(env, params, learner) of ``--generalist``: the layouts WORLD:0 .. WORLD:N-1 (WORLD: its
+    ``generalist_world``), slot k paired with task k modulo the mixture's size
+    (``algos.generalist.build_generalist``)."""
+    drawn = [layouts.load(f"{cfg.generalist_world}:{s}") for s in range(cfg.generalist_layouts)]
+    return build_generalist(cfg, drawn, cfg.env.max_steps)  # None: each layout's slot_max_steps
 
 
 

@@ -7,12 +7,13 @@ environment has its own layout, so the generalist is ``D2SPOLearner`` given ``La
 reads both per environment instead:
 
 * x of an observation is ``GeneralistEnv.cbf_input`` (the ranges and the clearance it carries);
-* a step's O_s is ``info["box_lo"]``, ``info["box_hi"]`` and ``info["sensed"]`` (the layout's
-  boxes and its four walls as boxes, ``envs.generalist.view``); the sensor model then needs no
-  arena, so the learner's arena is one far larger than any layout's;
-* the cautious start's synthetic samples are drawn in arenas of ``generator.SIDE`` with walls as
-  boxes, as the bank's layouts are;
-* the runtime filter keeps clear of the boxes of each environment's own layout
+* a step's O_s is ``info["box_lo"]``, ``info["box_hi"]``, ``info["disk_center"]``,
+  ``info["disk_radius"]`` and ``info["sensed"]`` (the layout's boxes, its four walls as boxes and
+  its disks, ``envs.generalist.view``); the sensor model then needs no arena, so the learner's
+  arena is one far larger than any layout's;
+* the cautious start's synthetic samples are drawn among boxes and disks in arenas of
+  ``SYNTHETIC_SIDE`` with walls as boxes, as the bank's layouts are;
+* the runtime filter keeps clear of the obstacles of each environment's own layout
   (``filter_context``), in training and when acting.
 """
 
@@ -24,14 +25,18 @@ import jax
 import jax.numpy as jnp
 
 from d2spo.algos.d2spo import D2SPOConfig, D2SPOLearner
-from d2spo.envs import generator, geometry
-from d2spo.envs.generalist import N_BOXES, make_generalist_env, view, wall_boxes
+from d2spo.envs import geometry
+from d2spo.envs.generalist import N_BOXES, N_DISKS, make_generalist_env, view_geometry, wall_boxes
 from d2spo.envs.geometry import Geometry
 from d2spo.envs.sensors import Sensed
 from d2spo.errors import ConfigError
 from d2spo.ltl.tasks import reach_avoid_tasks
 
 BEYOND = 1.0e3
+SYNTHETIC_SIDE = (5.0, 20.0)
+"""Range of the synthetic samples' arena side (m): the sides the generalist's layouts have."""
+SYNTHETIC_DISK_RADIUS = (0.1, 0.4)
+"""Range of the synthetic samples' disk radii (m)."""
 """Half-side (m) of the learner's arena: farther than any wall box, so walls are seen only as boxes."""
 
 
@@ -44,7 +49,7 @@ class LayoutBank:
     not as constants (``train.learner_program``)."""
 
     def __init__(self, env, params, d2: D2SPOConfig):
-        if int(params.geom.box_lo.shape[0]) != N_BOXES:
+        if int(params.geom.box_lo.shape[0]) != N_BOXES or params.geom.n_disks != N_DISKS:
             raise ConfigError("env", "LayoutBank reads envs.generalist.GeneralistEnv")
         self.env = env
         self.H = float(env.config.sensing_radius)
@@ -57,23 +62,23 @@ class LayoutBank:
         return self.env.cbf_input(obs, params)
 
     def context(self, params, info: dict) -> Sensed:
-        return Sensed(info["box_lo"], info["box_hi"], info["sensed"])
+        return Sensed(info["box_lo"], info["box_hi"], info["sensed"], info["disk_center"], info["disk_radius"])
 
     def filter_context(self, params, env_state) -> Sensed:
-        """Every box (obstacles and walls) of the layout of each environment of ``env_state``."""
+        """Every obstacle (boxes, walls, disks) of the layout of each environment of ``env_state``."""
 
         def one(b):
-            g = view(params, b).geom
-            return Sensed(g.box_lo, g.box_hi, jnp.ones(g.box_lo.shape[:1], bool))
+            g = view_geometry(params.bank, b)
+            return Sensed(g.box_lo, g.box_hi, jnp.ones((g.n_obstacles,), bool), g.disk_center, g.disk_radius)
 
         b = env_state.layout
         return jax.vmap(one)(b) if b.ndim else one(b)
 
     def synthetic_sample(self, params, key: jax.Array):
-        """A hypothetical pose among random boxes in a random arena of the generator's sizes, its
-        walls as the last four boxes (as in ``envs.generalist.view``)."""
-        k_side, k_pose, k_theta, k_centre, k_half = jax.random.split(key, 5)
-        side = jax.random.uniform(k_side, (), minval=generator.SIDE[0], maxval=generator.SIDE[1])
+        """A hypothetical pose among random boxes and disks in a random square arena of
+        ``SYNTHETIC_SIDE``, its walls as the last four boxes (as in ``envs.generalist.view``)."""
+        k_side, k_pose, k_theta, k_centre, k_half, k_disk, k_radius = jax.random.split(key, 7)
+        side = jax.random.uniform(k_side, (), minval=SYNTHETIC_SIDE[0], maxval=SYNTHETIC_SIDE[1])
         pose_xy = jax.random.uniform(k_pose, (2,), minval=0.0, maxval=side)
         theta = jax.random.uniform(k_theta, (), minval=-jnp.pi, maxval=jnp.pi)
         m = N_BOXES - 4
@@ -83,17 +88,22 @@ class LayoutBank:
         w_lo, w_hi = wall_boxes(jnp.stack([side, side]))
         box_lo = jnp.concatenate([centre - half, w_lo])
         box_hi = jnp.concatenate([centre + half, w_hi])
+        disk_center = jax.random.uniform(k_disk, (N_DISKS, 2), minval=0.0, maxval=side)
+        disk_radius = jax.random.uniform(k_radius, (N_DISKS,), minval=SYNTHETIC_DISK_RADIUS[0],
+                                         maxval=SYNTHETIC_DISK_RADIUS[1])
         lo, hi = self.arena(params)
-        mask = geometry.sensed_mask(pose_xy, Geometry(box_lo, box_hi, lo, hi), self.H)
-        return jnp.concatenate([pose_xy, theta[None]]), Sensed(box_lo, box_hi, mask)
+        mask = geometry.sensed_mask(pose_xy, Geometry(box_lo, box_hi, lo, hi, disk_center, disk_radius), self.H)
+        return jnp.concatenate([pose_xy, theta[None]]), Sensed(box_lo, box_hi, mask, disk_center, disk_radius)
 
 
-def build_generalist(cfg, bank, max_steps: int):
-    """(env, params, learner) of a generalist config (``TrainConfig``, ``generalist`` set) on ``bank``
-    for ``cfg.task`` and ``cfg.generalist_tasks`` random reach-avoid sequences, every episode at
-    most ``max_steps`` long. The layouts' own radii label the areas (no annealing)."""
+def build_generalist(cfg, layouts, max_steps: int | None, tasks_of=None):
+    """(env, params, learner) of a generalist config (``TrainConfig``, ``generalist`` set) on
+    ``layouts`` (or a bank of this config's task mixture) for ``cfg.task`` and
+    ``cfg.generalist_tasks`` random reach-avoid sequences (slot k paired with task tasks_of[k],
+    default k modulo their number), every episode at most ``max_steps`` long (None: each slot's
+    ``envs.generalist.slot_max_steps``). The layouts' own radii label the areas (no annealing)."""
     tasks = [cfg.task, *reach_avoid_tasks(cfg.generalist_tasks)] if cfg.generalist_tasks else cfg.task
-    env, params = make_generalist_env(cfg.env_config(), tasks, bank, max_steps)
+    env, params = make_generalist_env(cfg.env_config(), tasks, layouts, max_steps, tasks_of)
     anneal = dataclasses.replace(cfg.anneal, enabled=False)
     learner = D2SPOLearner(env, params, cfg.td3, cfg.cbf, anneal, cfg.num_envs, cfg.chunk_steps, cfg.episodes,
                            cfg.d2spo, layouts=LayoutBank)

@@ -1,19 +1,20 @@
 """The generalist's environment: a new layout from a bank at every reset, and an observation that
-names the subgoal instead of the layout or the automaton state.
+names the subgoal instead of the layout, its labels or the automaton state.
 
 ``envs.nav.Env`` trains on one layout: its observation holds the robot's position in that arena,
 the areas' positions and the automaton state's one-hot, so what a policy learns there is tied to
 the layout and the formula. ``GeneralistEnv`` keeps nav's dynamics, sensing, labelling and reward,
 and changes two things:
 
-* **Layouts.** Every episode draws one of the B layouts of a ``layout_bank.LayoutBank`` (square
-  arenas of 5-10 m, four areas A1..A4, ``envs.generator``); the state carries its index.
-  ``view(params, b)`` writes layout b's arrays into the base fields (geometry, areas, start), so
-  nav's step reads them as it reads its own. Unused obstacle slots become tiny boxes far outside the
-  arena. The start is the layout's, with a uniform heading; the labelling radius is the true one
-  (no annealing).
-* **Observation** (float32 [K + 10]), all in the robot's frame, none of it the layout's coordinates
-  or the automaton's state index:
+* **Layouts.** Every episode draws one of the B slots of a ``layout_bank.LayoutBank``: a layout
+  of any world (a rectangular arena of at most 20 m a side, boxes and disks, up to 16 areas whose
+  labels any number of areas may share) paired with one task of the mixture; the state carries the
+  slot's index. ``view(params, b)`` writes slot b's arrays into the base fields (geometry, areas,
+  their letter bits, start), so nav's step reads them as it reads its own. Unused obstacle and
+  area slots become tiny shapes far outside the arena. The start is the layout's, with a uniform
+  heading; the labelling radius is the true one (no annealing).
+* **Observation** (float32 [K + 10]), all in the robot's frame, none of it the layout's coordinates,
+  its label names, its number of areas or the automaton's state index:
 
   - ``lidar`` [K]: ranges / H, as nav's;
   - ``clearance`` [1]: the distance to the nearest obstacle or wall / H (the paper's b(z, O_s));
@@ -27,19 +28,22 @@ and changes two things:
   - ``progress`` [1]: the automaton's distance to acceptance (area visits still needed) / its
     largest finite value.
 
-  The automaton state decides the target and forbidden areas (``area_roles``), the layout bank the
-  distances: one network serves every formula over A1..A4 and every layout of the distribution.
+  The automaton state and the slot decide the target and forbidden areas (every area of a label
+  whose entry makes progress, every area of a label whose entry rejects: ``slot_roles``), the
+  bank the distances: one network serves every formula and every layout the bank can hold.
 
 The reward is nav's (Eq. (8) plus the shaping); its shaping distance is the same path length as the
 observation's target distance, and its scale the drawn layout's diagonal. ``GeneralistEnv``
 overrides nav's public hooks (``observation_parts``, ``observe``, ``reset_state``,
 ``shaping_distance``) and ``step``; ``make_generalist_env`` builds it from its ``EnvConfig`` (the
-dynamics, the robot, the reward), the task(s) and the bank.
+dynamics, the robot, the reward), the task(s) and the layouts; ``GeneralistEnv.bank`` pairs other
+layouts with its tasks (a zero-shot evaluation, a bank drawn afresh).
 """
 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from typing import Any
 
 import jax
@@ -53,47 +57,54 @@ from d2spo.envs.geometry import Geometry
 from d2spo.envs.layout_bank import LayoutBank
 from d2spo.envs.nav import Env, EnvState
 from d2spo.envs.params import EnvParams, robot_fields
+from d2spo.envs.workspace import Layout
 from d2spo.errors import ConfigError
 from d2spo.ltl import task_automaton, task_formula
 from d2spo.ltl.automaton import UNREACHABLE, Automaton, AutomatonArrays, union
 from d2spo.ltl.buchi_task import BuchiTask
 
 N_AREAS = layout_bank.N_AREAS
-"""Areas per layout (A1 .. A4)."""
+"""Area slots per layout."""
 GENERALIST_MAX_STEPS = 400
-"""The generalist's episode limit when ``max_steps`` is unset: routes in 10 m arenas are long."""
+"""The least episode limit of a slot when ``max_steps`` is unset (``slot_max_steps``)."""
+STEPS_PER_METRE = 20
+"""A slot's episode limit when ``max_steps`` is unset: this many steps per metre of the arena's
+width plus height (400 for 10 m x 10 m, 800 for 20 m x 20 m), and at least ``GENERALIST_MAX_STEPS``.
+A task of the training mixture visits at most four areas; at the default robot's 0.1 m per step
+these are about 2.4 half-perimeters of the arena, room for detours round walls."""
 SCALE = 10.0
-"""Metres per unit of the observation's distances (the largest arena's side)."""
+"""Metres per unit of the observation's distances."""
 FAR = -1.0e3
-"""Where unused obstacle slots go: a tiny box this far outside every arena."""
+"""Where unused obstacle and area slots go: far outside every arena."""
+AUTO_NUMPY_FIELDS = 48
+"""``TaskPlan.bank``'s "auto" computes up to this many fields with numpy (0.1 s each), more with JAX."""
 
 
 @struct.dataclass(kw_only=True)
 class GeneralState(EnvState):
-    """nav's state plus the index of the episode's layout in the bank."""
+    """nav's state plus the index of the episode's slot in the bank."""
 
     layout: jnp.ndarray
-    """int32 []: the episode's layout (index into ``GeneralParams.bank``)."""
+    """int32 []: the episode's slot (index into ``GeneralParams.bank``)."""
 
 
 @struct.dataclass(kw_only=True)
 class GeneralParams(EnvParams):
-    """nav's params (dynamics, automaton, reward, ...) plus the bank and the roles of the areas.
+    """nav's params (dynamics, automaton, reward, ...) plus the bank.
 
-    In a ``view`` the base fields (geometry, areas, start) hold layout ``layout``'s arrays.
+    In a ``view`` the base fields (geometry, areas, letter bits, start) hold slot ``layout``'s arrays.
     """
 
     bank: LayoutBank
-    """The layouts and their fields."""
-    target_areas: jnp.ndarray
-    """bool [Q, 4]: in automaton state q, entering area i (alone) moves closer to acceptance."""
-    forbidden_areas: jnp.ndarray
-    """bool [Q, 4]: in automaton state q, entering area i (alone) rejects the task or moves away."""
+    """The slots: layouts, their tasks, roles and fields."""
     layout: jnp.ndarray
-    """int32 []: the layout the base fields hold (``view``)."""
+    """int32 []: the slot the base fields hold (``view``)."""
     initials: jnp.ndarray
-    """int32 [T]: the initial state of each task of the mixture (one task: [1]); every episode
-    starts in one of them, drawn uniformly (``ltl.automaton.union``)."""
+    """int32 [T]: the initial state of each task of the mixture (one task: [1]); an episode starts in
+    its slot's task's (``ltl.automaton.union``)."""
+    local_state: jnp.ndarray
+    """int32 [Q]: the index of each state within its own task (the bank's roles and fields are per
+    slot and local state)."""
     progress_scale: jnp.ndarray
     """float32 [Q]: per state, the largest finite distance to acceptance of its own task (the
     observation's ``progress`` divides by it)."""
@@ -101,6 +112,8 @@ class GeneralParams(EnvParams):
 
 N_BOXES = layout_bank.M_MAX + 4
 """Obstacle boxes of a view: the bank's slots, then the four walls as boxes (``view``)."""
+N_DISKS = layout_bank.D_MAX
+"""Disk obstacles of a view: the bank's slots."""
 WALL = 1.0
 """Thickness (m) of the wall boxes, more than the sensing radius reaches through."""
 
@@ -115,67 +128,96 @@ def wall_boxes(arena: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
 
 
 def view(params: GeneralParams, b: jnp.ndarray) -> GeneralParams:
-    """``params`` with layout b's geometry, areas and start in the base fields. The geometry's boxes
-    are the layout's (unused slots far away) and its four walls (``wall_boxes``), so a set of sensed
-    boxes (``info["box_lo"]``, ``info["box_hi"]``, ``info["sensed"]``) describes everything the
-    robot senses without the arena: the learner's CBF input needs no per-layout arena."""
+    """``params`` with slot b's geometry, areas and start in the base fields. The geometry's boxes
+    are the layout's (unused slots far away) and its four walls (``wall_boxes``), its disks the
+    layout's (unused slots far away), so a set of sensed obstacles (``info["box_lo"]``,
+    ``info["box_hi"]``, ``info["disk_center"]``, ``info["disk_radius"]``, ``info["sensed"]``)
+    describes everything the robot senses without the arena: the learner's CBF input needs no
+    per-layout arena."""
     return params.replace(**_layout_fields(params.bank, b))
 
 
-def _layout_fields(bank: LayoutBank, b: jnp.ndarray) -> dict:
-    """The fields of ``GeneralParams`` that hold layout b of ``bank`` (``view``)."""
+def view_geometry(bank: LayoutBank, b: jnp.ndarray) -> Geometry:
+    """Slot b's obstacles as a ``Geometry``: boxes then walls as boxes, disks (``view``)."""
     mask = bank.box_mask[b][:, None]
     arena = bank.arena[b]
     w_lo, w_hi = wall_boxes(arena)
     lo = jnp.concatenate([jnp.where(mask, bank.box_lo[b], FAR), w_lo])
     hi = jnp.concatenate([jnp.where(mask, bank.box_hi[b], FAR + 0.01), w_hi])
-    geom = Geometry(lo, hi, jnp.zeros_like(arena), arena)
-    radius = bank.area_radius[b]
-    return dict(geom=geom, area_center=bank.area_center[b], area_radius=radius, label_radius=radius,
-                start=bank.start[b], layout=jnp.asarray(b, jnp.int32))
+    disk = bank.disk_mask[b]
+    centre = jnp.where(disk[:, None], bank.disk_center[b], FAR)
+    radius = jnp.where(disk, bank.disk_radius[b], 0.01)
+    return Geometry(lo, hi, jnp.zeros_like(arena), arena, centre, radius)
+
+
+def _layout_fields(bank: LayoutBank, b: jnp.ndarray) -> dict:
+    """The fields of ``GeneralParams`` that hold slot b of ``bank`` (``view``)."""
+    used = bank.area_mask[b]
+    centre = jnp.where(used[:, None], bank.area_center[b], FAR)
+    radius = jnp.where(used, bank.area_radius[b], 0.0)
+    return dict(geom=view_geometry(bank, b), area_center=centre, area_radius=radius, label_radius=radius,
+                area_bits=bank.area_bits[b], start=bank.start[b], max_steps=bank.max_steps[b],
+                layout=jnp.asarray(b, jnp.int32))
+
+
+def slot_max_steps(layout: Layout) -> int:
+    """A slot's episode limit when none is given (``STEPS_PER_METRE``)."""
+    return max(GENERALIST_MAX_STEPS, int(np.ceil(STEPS_PER_METRE * (layout.arena[0] + layout.arena[1]))))
 
 
 def subgoal(params: GeneralParams, q: jnp.ndarray, xy: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:
-    """(distance, direction [2], any) to the nearest target of state q in the view's layout, along
+    """(distance, direction [2], any) to the nearest target of state q in the view's slot, along
     the path round obstacles and q's forbidden areas (``layout_bank.nearest``); 0, 0, False when q
     has no target."""
-    target = params.target_areas[q]
-    dist, direction = layout_bank.nearest(params.bank, params.layout, target, params.forbidden_areas[q], xy)
-    return dist, direction, jnp.any(target)
+    return layout_bank.nearest(params.bank, params.layout, params.local_state[q], xy)
 
 
 class GeneralistEnv(Env):
-    """nav's environment over a bank of layouts, with the subgoal observation (module docstring)."""
+    """nav's environment over a bank of slots, with the subgoal observation (module docstring)."""
 
-    def __init__(self, config: EnvConfig, automaton: Automaton, bank_size: int):
-        super().__init__(config, automaton, automaton.n_states, N_BOXES, N_AREAS)  # no task: the layout is the bank's
-        self.bank_size = bank_size
-        """Layouts in the bank (``GeneralParams.bank``)."""
+    def __init__(self, config: EnvConfig, automaton: Automaton, plan: TaskPlan):
+        super().__init__(config, automaton, automaton.n_states, N_BOXES + N_DISKS, N_AREAS)  # the layout: the bank's
+        self.plan = plan
+        """The tasks of the mixture, their states and roles (``bank`` pairs layouts with them)."""
 
     def observation_parts(self) -> list[tuple[str, int]]:
         """The subgoal observation's parts, in order, with their sizes (module docstring)."""
         return [("lidar", self.n_rays), ("clearance", 1), ("target", 4), ("forbidden", 4), ("progress", 1)]
 
+    def bank(self, layouts: Sequence[Layout], tasks: Sequence[int] | None = None, max_steps: int | None = None,
+             method: str = "auto") -> LayoutBank:
+        """A bank of ``layouts``, slot k paired with task tasks[k] of the mixture (default: k modulo
+        the number of tasks), with its roles, episode limits and fields (``TaskPlan.bank``)."""
+        return self.plan.bank(layouts, tasks, max_steps, method)
+
     # -- the layout of the state ------------------------------------------------------------
     def step(self, key: jax.Array, state: GeneralState, action: jnp.ndarray, params: GeneralParams):
-        """nav's step in the state's layout; an episode that ends restarts in a newly drawn layout.
-        ``info`` also holds the step's boxes (``box_lo``, ``box_hi`` [N_BOXES, 2]; ``sensed`` masks them)."""
+        """nav's step in the state's slot; an episode that ends restarts in a newly drawn slot.
+        ``info`` also holds the step's obstacles (``box_lo``, ``box_hi`` [N_BOXES, 2], ``disk_center``
+        [N_DISKS, 2], ``disk_radius`` [N_DISKS]; ``sensed`` masks them, boxes first)."""
         v = view(params, state.layout)
         out = super().step(key, state, action, v)
-        out[-1].update(box_lo=v.geom.box_lo, box_hi=v.geom.box_hi)
+        out[-1].update(box_lo=v.geom.box_lo, box_hi=v.geom.box_hi, disk_center=v.geom.disk_center,
+                       disk_radius=v.geom.disk_radius)
         return out
 
     def reset_state(self, u: jnp.ndarray, params: GeneralParams) -> GeneralState:
         """A fresh episode (``reset``, and nav's step when one ends) from three uniforms in [-1, 1]:
-        u[0] draws the layout uniformly from the bank, u[1] the heading, u[2] the task of the mixture."""
+        u[0] draws the slot uniformly from the bank (its layout and its task), u[1] the heading."""
+        n = params.bank.arena.shape[0]
+        return self._start_in(jnp.clip(jnp.floor((u[0] + 1.0) * 0.5 * n).astype(jnp.int32), 0, n - 1), u, params)
 
-        def pick(x, n):
-            return jnp.clip(jnp.floor((x + 1.0) * 0.5 * n).astype(jnp.int32), 0, n - 1)
+    def reset_in_slot(self, key: jax.Array, params: GeneralParams, b: jnp.ndarray) -> tuple[GeneralState, jnp.ndarray]:
+        """``reset`` in slot b of the bank rather than a drawn one (an evaluation that gives every
+        episode a layout of its own: ``rollout.make_rollout(..., slot_per_episode=True)``)."""
+        state = self._start_in(jnp.asarray(b, jnp.int32), jax.random.uniform(key, (3,), minval=-1.0, maxval=1.0),
+                               params)
+        return state, self.observe(state, params)
 
-        b = pick(u[0], params.bank.arena.shape[0])
+    def _start_in(self, b: jnp.ndarray, u: jnp.ndarray, params: GeneralParams) -> GeneralState:
         v = view(params, b)
         start = jnp.stack([v.start[0], v.start[1], jnp.pi * u[1]])
-        aut = v.aut._replace(initial=params.initials[pick(u[2], params.initials.shape[0])])
+        aut = v.aut._replace(initial=params.initials[params.bank.task[b]])
         base = super().reset_state(jnp.zeros(3), v.replace(start=start, start_jitter=jnp.zeros(3), aut=aut))
         return GeneralState(**{f.name: getattr(base, f.name) for f in dataclasses.fields(EnvState)}, layout=b)
 
@@ -185,7 +227,7 @@ class GeneralistEnv(Env):
         return subgoal(params, q, xy)[0]
 
     def observe(self, state: GeneralState, params: GeneralParams) -> jnp.ndarray:
-        """The subgoal observation of ``state`` in its own layout (module docstring)."""
+        """The subgoal observation of ``state`` in its own slot (module docstring)."""
         v = view(params, state.layout)
         pose = state.pose
         xy, c, s = pose[:2], jnp.cos(pose[2]), jnp.sin(pose[2])
@@ -199,9 +241,11 @@ class GeneralistEnv(Env):
 
         dist, direction, found = subgoal(v, state.q, xy)
         target = jnp.concatenate([jnp.minimum(dist / SCALE, 2.0)[None], frame(direction), found[None]])
-        rel = v.area_center - xy  # [4, 2]
+        rel = v.area_center - xy  # [N, 2]
         centre = jnp.sqrt(rel[:, 0] * rel[:, 0] + rel[:, 1] * rel[:, 1])
-        edge = jnp.where(v.forbidden_areas[state.q], jnp.maximum(centre - v.area_radius, 0.0), jnp.inf)
+        bank, b = v.bank, state.layout
+        forbids = bank.forbidden[b, v.local_state[state.q]] & bank.area_mask[b]
+        edge = jnp.where(forbids, jnp.maximum(centre - v.area_radius, 0.0), jnp.inf)
         j = jnp.argmin(edge)
         has = jnp.isfinite(edge[j])
         toward = jnp.where(has, rel[j] / jnp.maximum(centre[j], 1e-6), 0.0)
@@ -218,37 +262,72 @@ class GeneralistEnv(Env):
         return jnp.concatenate([obs[..., sl["lidar"]], obs[..., sl["clearance"]]], axis=-1) * params.sensing_radius
 
 
-def area_roles(automaton: Automaton, roles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(target [Q, 4], forbidden [Q, 4]): the role of entering area A(i+1) alone in each state, from
-    the letters' ``roles`` (``state_fields.letter_roles``; areas whose name is no proposition are neutral)."""
-    target = np.zeros((automaton.n_states, N_AREAS), bool)
-    forbidden = np.zeros_like(target)
-    for i in range(N_AREAS):
-        name = f"A{i + 1}"
-        if name in automaton.aps:
-            letter = automaton.letter([name])
-            target[:, i] = roles[:, letter] == state_fields.TARGET
-            forbidden[:, i] = roles[:, letter] == state_fields.FORBIDDEN
-    return target, forbidden
+@dataclasses.dataclass(frozen=True)
+class TaskPlan:
+    """The tasks of a generalist's mixture over one union automaton, and what pairing a layout with
+    one of them needs: each task's first state and size, and every letter's role in every state."""
+
+    automaton: Automaton
+    """The union of the tasks' automata (one task: its own)."""
+    names: tuple[str, ...]
+    """The tasks, as given (names or formulas; ``"a task"`` for an automaton object)."""
+    offsets: tuple[int, ...]
+    """Task t's states are offsets[t] .. offsets[t + 1] - 1 of ``automaton`` (T + 1 entries)."""
+    initials: tuple[int, ...]
+    """Task t's initial state in ``automaton``."""
+    roles: np.ndarray
+    """int [Q, letters]: ``state_fields.letter_roles`` of the union."""
+    needs: tuple[frozenset, ...]
+    """Per task, the propositions a layout paired with it must carry."""
+
+    @property
+    def states(self) -> int:
+        """S: the most states of one task (the bank's per-slot axis)."""
+        return max(b - a for a, b in zip(self.offsets[:-1], self.offsets[1:]))
+
+    def slot_roles(self, layout: Layout, task: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(area_bits [N_AREAS], target [S, N_AREAS], forbidden [S, N_AREAS]) of ``layout`` paired with
+        task ``task``: an area's bit is its label's letter (0 for a label no task names), its role in
+        each state of the task that of entering it alone. Raises ConfigError when the layout lacks a
+        label the task names."""
+        aps = self.automaton.aps
+        labels = [a.label for a in layout.areas]
+        missing = sorted(self.needs[task] - set(labels))
+        if missing:
+            raise ConfigError("task", f"{self.names[task]} names {', '.join(missing)}, which no area of layout "
+                              f"{layout.name!r} carries (its labels: {', '.join(layout.labels) or 'none'})")
+        bits = np.zeros(N_AREAS, np.int32)
+        target = np.zeros((self.states, N_AREAS), bool)
+        forbidden = np.zeros_like(target)
+        lo, hi = self.offsets[task], self.offsets[task + 1]
+        for k, label in enumerate(labels):
+            if label in aps:
+                letter = self.automaton.letter([label])
+                bits[k] = letter
+                target[:hi - lo, k] = self.roles[lo:hi, letter] == state_fields.TARGET
+                forbidden[:hi - lo, k] = self.roles[lo:hi, letter] == state_fields.FORBIDDEN
+        return bits, target, forbidden
+
+    def bank(self, layouts: Sequence[Layout], tasks: Sequence[int] | None = None, max_steps: int | None = None,
+             method: str = "auto") -> LayoutBank:
+        """A bank of ``layouts``, slot k paired with task tasks[k] (default k modulo the number of
+        tasks), its roles, its episode limits (``max_steps`` for every slot; None: each its
+        ``slot_max_steps``) and its fields (``layout_bank.with_fields``; method "auto": numpy for a
+        handful of fields, where JAX's compilation would cost more than it saves). Raises ConfigError."""
+        n_tasks = len(self.names)
+        tasks = [k % n_tasks for k in range(len(layouts))] if tasks is None else [int(t) for t in tasks]
+        packed = layout_bank.pack(layouts, tasks)
+        roles = [self.slot_roles(lay, t) for lay, t in zip(layouts, tasks, strict=True)]
+        limits = [slot_max_steps(lay) if max_steps is None else int(max_steps) for lay in layouts]
+        paired = layout_bank.pair(packed, *(np.stack(x) for x in zip(*roles)), np.asarray(limits))
+        if method == "auto":
+            method = "numpy" if len(layouts) * self.states <= AUTO_NUMPY_FIELDS else "jax"
+        return layout_bank.with_fields(paired, method)
 
 
-def make_generalist_env(cfg: EnvConfig, task: Any, bank: LayoutBank, max_steps: int = GENERALIST_MAX_STEPS
-                        ) -> tuple[GeneralistEnv, GeneralParams]:
-    """The generalist's env for a task (a name, a formula or an automaton over A1..A4), or a
-    mixture of tasks (a list of them: each episode draws one, ``ltl.automaton.union``), and a bank.
-
-    The dynamics, the robot and the reward are ``cfg``'s (``params.robot_fields``); ``max_steps``
-    is one limit for every layout (the longest routes of 10 m arenas need it). The bank's areas
-    never overlap, so a task must be doable entering one area at a time, and its layouts admit a
-    robot of ``generator.RANDOM_RADIUS`` at most. Raises ConfigError.
-    """
-    n = int(bank.arena.shape[0])
-    if n == 0 or bank.fields.ndim != 5:
-        raise ConfigError("bank", "a layout bank with its fields is needed (layout_bank.build_bank)")
-    tasks = list(task) if isinstance(task, (list, tuple)) else [task]
-    if not tasks:
-        raise ConfigError("task", "the generalist needs at least one task")
-    automata = []
+def task_plan(tasks: Sequence[Any], label_mode: str) -> TaskPlan:
+    """The ``TaskPlan`` of a mixture of tasks (names, formulas or Automaton objects). Raises ConfigError."""
+    automata, names = [], []
     for t in tasks:
         a = task_automaton(task_formula(t)) if isinstance(t, str) else t
         if not isinstance(a, Automaton):
@@ -256,36 +335,65 @@ def make_generalist_env(cfg: EnvConfig, task: Any, bank: LayoutBank, max_steps: 
         if len(tasks) > 1 and isinstance(a, BuchiTask) and any(map(any, a.visits)):
             raise ConfigError("task", f"{t if isinstance(t, str) else 'a task'} is scored by accepting visits; "
                               "a task mixture holds tasks that complete only (train or evaluate it alone)")
-        unknown = sorted(set(a.aps) - {f"A{i + 1}" for i in range(N_AREAS)})
-        if unknown:
-            raise ConfigError("task", f"the generalist's layouts have areas A1..A4; the task names {unknown}")
         automata.append(a)
-    cfg = dataclasses.replace(cfg, max_steps=max_steps).resolved()
-    if cfg.robot_radius > generator.RANDOM_RADIUS:
-        raise ConfigError("robot_radius", f"the generalist's layouts admit a robot of radius at most "
-                          f"{generator.RANDOM_RADIUS:g} m, got {cfg.robot_radius:g}")
+        names.append(t if isinstance(t, str) else "a task")
     aut, initials = union(automata) if len(automata) > 1 else (automata[0], [automata[0].initial])
-    singles = [0] + [aut.letter([a]) for a in aut.aps]  # bank layouts' areas never overlap
+    offsets = tuple(int(x) for x in np.cumsum([0] + [a.n_states for a in automata]))
+    singles = [0] + [aut.letter([a]) for a in aut.aps]  # a bank's areas never overlap
     distance = aut.distances(singles)
-    for t, q0 in zip(tasks, initials, strict=True):
+    for name, q0 in zip(names, initials, strict=True):
         if distance[q0] is None:
-            what = t if isinstance(t, str) else "a task"
-            raise ConfigError("task", f"{what} cannot be completed entering one area at a time, as the generalist's "
+            raise ConfigError("task", f"{name} cannot be completed entering one area at a time, as the generalist's "
                               "layouts (areas that never overlap) need")
-    target, forbidden = area_roles(aut, state_fields.letter_roles(aut, distance, cfg.label_mode == "event"))
+    roles = state_fields.letter_roles(aut, distance, label_mode == "event")
+    return TaskPlan(aut, tuple(names), offsets, tuple(int(q) for q in initials), roles,
+                    tuple(frozenset(a.aps) for a in automata))
+
+
+def make_generalist_env(cfg: EnvConfig, task: Any, layouts: Sequence[Layout] | LayoutBank,
+                        max_steps: int | None = None, tasks_of: Sequence[int] | None = None
+                        ) -> tuple[GeneralistEnv, GeneralParams]:
+    """The generalist's env for a task (a name, a formula or an automaton), or a mixture of tasks (a
+    list of them: each slot is paired with one, ``ltl.automaton.union``), over ``layouts`` (slot k
+    paired with task tasks_of[k], default k modulo the number of tasks; or a bank this env's plan
+    made, ``GeneralistEnv.bank``).
+
+    The dynamics, the robot and the reward are ``cfg``'s (``params.robot_fields``); ``max_steps``
+    is one limit for every slot (None: each slot's ``slot_max_steps``; the params' own
+    ``max_steps`` is the largest, a rollout's length). A bank's areas never overlap, so a task must
+    be doable entering one area at a time, and its layouts admit a robot of
+    ``generator.RANDOM_RADIUS`` at most.
+    Raises ConfigError.
+    """
+    tasks = list(task) if isinstance(task, (list, tuple)) else [task]
+    if not tasks:
+        raise ConfigError("task", "the generalist needs at least one task")
+    resolved = cfg.resolved()
+    if resolved.robot_radius > generator.RANDOM_RADIUS:  # before the fields are computed
+        raise ConfigError("robot_radius", f"the generalist's layouts admit a robot of radius at most "
+                          f"{generator.RANDOM_RADIUS:g} m, got {resolved.robot_radius:g}")
+    plan = task_plan(tasks, resolved.label_mode)
+    bank = layouts if isinstance(layouts, LayoutBank) else plan.bank(layouts, tasks_of, max_steps)
+    if bank.size == 0 or bank.fields.ndim != 4 or bank.fields.shape[1] != plan.states:
+        raise ConfigError("bank", "a bank of this task mixture, with its fields, is needed (GeneralistEnv.bank)")
+    longest = int(np.max(np.asarray(bank.max_steps)))
+    cfg = dataclasses.replace(cfg, max_steps=longest).resolved()
+    aut = plan.automaton
+    distance = aut.distances([0] + [aut.letter([a]) for a in aut.aps])
     finite = np.array([UNREACHABLE if d is None else d for d in distance])
     scale = np.ones(aut.n_states, np.float32)  # per state, its own task's largest finite distance
-    bounds = np.cumsum([0] + [a.n_states for a in automata])
-    for lo, hi in zip(bounds[:-1], bounds[1:]):
+    local = np.zeros(aut.n_states, np.int32)
+    for lo, hi in zip(plan.offsets[:-1], plan.offsets[1:]):
         own = finite[lo:hi][finite[lo:hi] < UNREACHABLE]
         scale[lo:hi] = max(int(own.max()) if own.size else 1, 1)
-    bits = np.array([aut.letter([f"A{i + 1}"]) if f"A{i + 1}" in aut.aps else 0 for i in range(N_AREAS)], np.int32)
+        local[lo:hi] = np.arange(hi - lo)
+    singles = [0] + [aut.letter([a]) for a in aut.aps]
     params = GeneralParams(
-        **robot_fields(cfg, max_steps), **_layout_fields(bank, jnp.zeros((), jnp.int32)),
+        **{**robot_fields(cfg, longest), **_layout_fields(bank, jnp.zeros((), jnp.int32)),
+           "max_steps": jnp.asarray(longest, jnp.int32)},
         aut=AutomatonArrays(*(None if x is None else jnp.asarray(x) for x in aut.arrays(singles, distance))),
-        area_bits=jnp.asarray(bits),
-        advance=jnp.asarray(target), relax_mask=jnp.ones_like(jnp.asarray(target)),
+        advance=jnp.zeros((aut.n_states, N_AREAS), bool), relax_mask=jnp.ones((aut.n_states, N_AREAS), bool),
         geodesic=jnp.zeros((N_AREAS, 1, 1), jnp.float32), state_field=jnp.zeros((aut.n_states, 1, 1), jnp.float32),
-        bank=bank, target_areas=jnp.asarray(target), forbidden_areas=jnp.asarray(forbidden),
-        initials=jnp.asarray(initials, jnp.int32), progress_scale=jnp.asarray(scale))
-    return GeneralistEnv(cfg, aut, n), params
+        bank=bank, initials=jnp.asarray(plan.initials, jnp.int32),
+        local_state=jnp.asarray(local), progress_scale=jnp.asarray(scale))
+    return GeneralistEnv(cfg, aut, plan), params

@@ -1,43 +1,43 @@
-"""A bank of layouts with a distance field per (target area, forbidden areas), for subgoal features.
+"""A bank of layouts of any world, each paired with a task, with one distance field per automaton
+state of that task: the generalist's subgoal features (``nearest``).
 
-An automaton state names target areas and forbidden ones (``envs.state_fields``). A policy that
-serves every formula and layout reads, instead of the state's index, the distance and direction to
-the nearest target along a path that goes round obstacles and round the forbidden areas. For a
-layout with four areas there are 4 targets x 8 forbidden subsets of the other three: 32 fields,
-all computed up front (``bank_of``, ``build_bank``), then read inside jit (``field_at``,
-``nearest``).
+An automaton state names target areas and forbidden ones (``envs.state_fields``: every area of a
+label whose entry makes progress, every area of a label whose entry rejects). A policy that serves
+every formula and layout reads, instead of the state's index, the distance and direction to the
+nearest target along a path that goes round obstacles and round the forbidden areas. A slot of the
+bank holds one layout (a rectangular arena, up to ``M_MAX`` boxes and ``D_MAX`` disks, up to
+``N_AREAS`` areas, several of them may share a label), the task it is paired with and, per state
+of that task, the state's target and forbidden areas and its field. The fields are computed when a
+bank is made (``with_fields``): only the states of the slot's own task, never an enumeration of
+area subsets, so the cost grows with the number of states, not with 2^areas.
 
-Field (i, f) at a grid node is the length of the shortest 8-neighbour grid path from the node to
-area i's disk (the last step is the straight distance to the disk), where
+Field s of a slot at a grid node is the length of the shortest 8-neighbour grid path from the node
+to the nearest target area's disk (the last step is the straight distance to the disk), where
 
 * a step costs its length times the mean of its two nodes' multipliers: 1 in the open,
   ``CLEARANCE_COST`` (2) where the node is closer than ``clearance`` (0.3 m, the reward's
   shaping clearance) to an obstacle or wall, and ``COLLIDE_COST`` (100) where it is closer than
-  the robot's radius (0.15 m). The clearance tier is 2, not nav's 10: a 0.6-0.8 m opening lies
-  wholly in it, and at 10x the path length jumped by metres for a step sideways across the
-  opening's mouth (6 m for 0.2 m on ``random:2``), in the shaping reward and in the observation's
-  direction; the first generalist trained with 10x stopped in front of such openings. The third
-  tier is not in ``envs.geodesic``: without it a thin wall costs the same as the opening beside it,
-  and the field would cross a corridor's wall rather than take a long detour to an opening;
-* entering the disk of an area of subset f costs ``BLOCKED_COST`` arena diagonals (finite, as in
+  the robot's radius (0.15 m) or outside the arena. The clearance tier is 2, not nav's 10: a
+  0.6-0.8 m opening lies wholly in it, and at 10x the path length jumped by metres for a step
+  sideways across the opening's mouth (6 m for 0.2 m on ``random:2``); the first generalist
+  trained with 10x stopped in front of such openings. The third tier is not in ``envs.geodesic``:
+  without it a thin wall costs the same as the opening beside it, and the field would cross a
+  corridor's wall rather than take a long detour to an opening;
+* entering the disk of a forbidden area costs ``BLOCKED_COST`` arena diagonals (finite, as in
   ``envs.state_fields``: a target walled off by forbidden areas still has a field), leaving it
   nothing; coming closer than ``clearance`` to such a disk costs ``BLOCKED_COST`` times the approach.
 
-Subset f is a bitmask over the other three areas in increasing order: for target A2 (index 1),
-bit 0 is A1, bit 1 is A3, bit 2 is A4.
-
-The grid has ``G`` x ``G`` nodes over each layout's own square arena (spacing side / (G - 1):
-0.079 m at 5 m, 0.159 m at 10 m), node (row y, column x) at (x, y) * spacing. ``G`` = 64 resolves
-the narrowest gap ``generator.GAP_WIDTH`` allows (0.6 m) at the largest arena (10 m): the node
-nearest the gap's centre line is at most half a spacing (0.08 m) off it, so the opening always holds
-a line of nodes with clearance >= 0.22 m > the robot radius (cost 2x), while the wall makes a band
-of >= 0.4 m of 100x nodes that no step (0.16 m) jumps. It takes G >= 35 (spacing < 0.3 m); 64 keeps
-about four nodes across the opening (docs/layouts.md, "Field bank").
+The grid has ``G`` x ``G`` nodes over the square of the arena's longer side (spacing side / (G - 1):
+0.07 m at 6.6 m, 0.21 m at 20 m); nodes beyond the shorter side lie outside the arena. ``G`` = 96
+resolves the narrowest gap the generators draw (0.6 m) up to ``MAX_SIDE`` (20 m): the node
+nearest the gap's centre line is at most half a spacing (0.105 m) off it, so the opening holds a line
+of nodes with clearance > 0.19 m > the robot radius (cost 2x), while the wall makes a band of
+>= 0.4 m of 100x nodes that no step (0.3 m diagonally) jumps (docs/layouts.md, "Field bank").
 
 Two solvers give the same fields: ``fields_numpy`` (scipy's Dijkstra, one per field, like
-``envs.state_fields``) and ``fields_jax`` (pure JAX, vmappable over layouts, so fresh layouts could
-be drawn inside a jitted loop): Gauss-Seidel sweeps of the grid in four directions (each row takes
-its neighbours in the previous row, then a min-plus scan along itself), repeated until nothing
+``envs.state_fields``) and ``fields_jax`` (pure JAX, vmappable over slots, so fresh layouts can be
+drawn while a run trains): Gauss-Seidel sweeps of the grid in four directions (each row takes its
+neighbours in the previous row, then a min-plus scan along itself), repeated until nothing
 changes. bench/layout_fields.py times both.
 """
 
@@ -53,18 +53,20 @@ import numpy as np
 from scipy import sparse
 from scipy.sparse import csgraph
 
-from d2spo.envs import generator, geodesic
+from d2spo.envs import geodesic
 from d2spo.envs.workspace import Layout
 from d2spo.errors import ConfigError
 
-G = 64
-"""Grid nodes per side (module docstring: why 64)."""
-N_AREAS = generator.N_AREAS
-"""Areas per layout in a bank."""
-N_SUBSETS = 2 ** (N_AREAS - 1)
-"""Forbidden subsets per target: every subset of the other areas."""
-M_MAX = generator.MAX_BOXES
-"""Obstacle slots per layout (unused slots are masked)."""
+G = 96
+"""Grid nodes per side (module docstring: why 96)."""
+N_AREAS = 16
+"""Area slots per layout (unused slots are masked): the most areas a generalist reads."""
+M_MAX = 24
+"""Box obstacle slots per layout (unused slots are masked)."""
+D_MAX = 12
+"""Disk obstacle slots per layout (unused slots are masked)."""
+MAX_SIDE = 20.0
+"""Longest arena side (m) a bank holds: ``G`` resolves a 0.6 m gap up to it (module docstring)."""
 CLEARANCE = 0.3
 """Nodes closer than this (m) to an obstacle or wall cost ``CLEARANCE_COST`` times their length (the
 default ``RewardConfig.shaping_clearance``); coming this close to a forbidden area costs
@@ -81,108 +83,180 @@ TOL = 1e-4
 settle every field of the layouts tried to 1e-5 m; later ones only reorder float sums."""
 MAX_SWEEPS = 100
 """Most rounds of four sweeps ``fields_jax`` runs."""
-
-_OTHERS = np.array([[j for j in range(N_AREAS) if j != i] for i in range(N_AREAS)])  # [4, 3]
-_IN_SUBSET = np.array([[[(f >> k) & 1 for k in range(N_AREAS - 1)] for f in range(N_SUBSETS)]], bool)  # [1, 8, 3]
-_FORBIDS = np.zeros((N_AREAS, N_SUBSETS, N_AREAS), bool)  # [i, f, j]: subset f of target i holds area j
-for _i in range(N_AREAS):
-    _FORBIDS[_i][:, _OTHERS[_i]] = _IN_SUBSET[0]
+TOL_SIDE = 1e-6
+"""Slack (m) when comparing an arena's side with ``MAX_SIDE``."""
 
 
 class LayoutBank(NamedTuple):
-    """B layouts as fixed-shape arrays (a pytree), with their fields."""
+    """B slots as fixed-shape arrays (a pytree): a layout, its task, and per state of the task the
+    target and forbidden areas and the field. S is the most states of a task of the bank's mixture."""
 
     arena: jax.Array
-    """float32 [B, 2]: (width, height) in metres; width == height."""
+    """float32 [B, 2]: (width, height) in metres."""
     box_lo: jax.Array
-    """float32 [B, M_MAX, 2]: lower-left corners of the obstacles (unused slots: 0)."""
+    """float32 [B, M_MAX, 2]: lower-left corners of the boxes (unused slots: 0)."""
     box_hi: jax.Array
-    """float32 [B, M_MAX, 2]: upper-right corners of the obstacles (unused slots: 0)."""
+    """float32 [B, M_MAX, 2]: upper-right corners of the boxes (unused slots: 0)."""
     box_mask: jax.Array
-    """bool [B, M_MAX]: which obstacle slots hold an obstacle."""
+    """bool [B, M_MAX]: which box slots hold a box."""
+    disk_center: jax.Array
+    """float32 [B, D_MAX, 2]: centres of the disk obstacles (unused slots: 0)."""
+    disk_radius: jax.Array
+    """float32 [B, D_MAX]: radii of the disk obstacles (unused slots: 0)."""
+    disk_mask: jax.Array
+    """bool [B, D_MAX]: which disk slots hold a disk."""
     area_center: jax.Array
-    """float32 [B, 4, 2]: centres of A1 .. A4."""
+    """float32 [B, N_AREAS, 2]: centres of the areas, in the layout's order (unused slots: 0)."""
     area_radius: jax.Array
-    """float32 [B, 4]: radii of A1 .. A4."""
+    """float32 [B, N_AREAS]: radii of the areas (unused slots: 0)."""
+    area_mask: jax.Array
+    """bool [B, N_AREAS]: which area slots hold an area."""
     start: jax.Array
     """float32 [B, 3]: start pose (x, y, theta)."""
+    max_steps: jax.Array
+    """int32 [B]: the episode limit of the slot (``pair``; 0 before)."""
+    task: jax.Array
+    """int32 [B]: the task of the mixture the slot is paired with (``pair``; 0 before)."""
+    area_bits: jax.Array
+    """int32 [B, N_AREAS]: the letter bit of each area's label in the automaton (0: a label no task
+    names, or an unused slot)."""
+    target: jax.Array
+    """bool [B, S, N_AREAS]: in state s of the slot's task, entering the area (alone) makes progress."""
+    forbidden: jax.Array
+    """bool [B, S, N_AREAS]: in state s of the slot's task, entering the area (alone) rejects the task
+    or moves away from acceptance."""
     fields: jax.Array
-    """float32 [B, 4, 8, G, G]: field (target i, forbidden subset f), row y, column x (module docstring).
-    float32, not float16: the direction is a difference of neighbouring values 0.08-0.16 m apart,
+    """float32 [B, S, G, G]: field s, row y, column x (module docstring); [B, 0] before ``with_fields``.
+    float32, not float16: the direction is a difference of neighbouring values 0.07-0.21 m apart,
     and float16 resolves 0.03 m between 32 and 64 m (a route in a 10 m arena), a 20-40% error."""
+
+    @property
+    def size(self) -> int:
+        return int(self.arena.shape[0])
+
+    @property
+    def grid(self) -> int:
+        return int(self.fields.shape[-1]) if self.fields.ndim == 4 else 0
 
 
 # ------------------------------------------------------------------------------------ packing
 
 
-def pack(layouts: Sequence[Layout]) -> LayoutBank:
-    """The layouts as arrays, fields not computed yet (``fields`` empty: [B, 0])."""
-    for lay in layouts:
-        if lay.disks:
-            raise ConfigError("layout.obstacles", f"{lay.name}: a bank holds box obstacles only, got "
-                              f"{len(lay.disks)} disks")
-        if lay.arena[0] != lay.arena[1]:
-            raise ConfigError("layout.arena", f"{lay.name}: a bank holds square arenas, got {lay.arena}")
-        if len(lay.areas) != N_AREAS:
-            raise ConfigError("layout.areas", f"{lay.name}: a bank holds {N_AREAS} areas, got {len(lay.areas)}")
-        if len(lay.obstacles) > M_MAX:
-            raise ConfigError("layout.obstacles", f"{lay.name}: a bank holds at most {M_MAX} obstacles, "
-                              f"got {len(lay.obstacles)}")
+def check_fits(lay: Layout) -> None:
+    """ConfigError (one line) when ``lay`` exceeds what a bank slot holds."""
+    where = f"layout {lay.name!r}"
+    w, h = lay.arena
+    if max(w, h) > MAX_SIDE + TOL_SIDE:
+        raise ConfigError("layout.arena", f"{where}: arena {w:g} x {h:g} m; a generalist reads arenas of at most "
+                          f"{MAX_SIDE:g} m a side")
+    for what, n, most in (("areas", len(lay.areas), N_AREAS), ("box obstacles", len(lay.boxes), M_MAX),
+                          ("disk obstacles", len(lay.disks), D_MAX)):
+        if n > most:
+            raise ConfigError("layout", f"{where}: {n} {what}, more than the {most} a generalist reads")
+    areas = lay.areas
+    for i, a in enumerate(areas):
+        for b in areas[i + 1:]:
+            if math.dist(a.center, b.center) < a.radius + b.radius:
+                raise ConfigError("layout.areas", f"{where}: areas {a.name} and {b.name} overlap; a generalist "
+                                  "plans one area at a time")
+
+
+def pack(layouts: Sequence[Layout], tasks: Sequence[int] | None = None) -> LayoutBank:
+    """The layouts as arrays (slot k holds layouts[k], paired with task tasks[k], default 0); labels,
+    roles and fields not set yet (``pair``, ``with_fields``). Raises ConfigError (``check_fits``)."""
     b = len(layouts)
-    lo, hi, mask = np.zeros((b, M_MAX, 2)), np.zeros((b, M_MAX, 2)), np.zeros((b, M_MAX), bool)
+    if b == 0:
+        raise ConfigError("layouts", "a bank needs at least one layout")
+    for lay in layouts:
+        check_fits(lay)
+    lo, hi, bmask = np.zeros((b, M_MAX, 2)), np.zeros((b, M_MAX, 2)), np.zeros((b, M_MAX), bool)
+    dc, dr, dmask = np.zeros((b, D_MAX, 2)), np.zeros((b, D_MAX)), np.zeros((b, D_MAX), bool)
+    ac, ar, amask = np.zeros((b, N_AREAS, 2)), np.zeros((b, N_AREAS)), np.zeros((b, N_AREAS), bool)
     for k, lay in enumerate(layouts):
-        for m, o in enumerate(lay.obstacles):
-            lo[k, m], hi[k, m], mask[k, m] = o.lo, o.hi, True
+        for m, o in enumerate(lay.boxes):
+            lo[k, m], hi[k, m], bmask[k, m] = o.lo, o.hi, True
+        for m, o in enumerate(lay.disks):
+            dc[k, m], dr[k, m], dmask[k, m] = o.center, o.radius, True
+        for m, a in enumerate(lay.areas):
+            ac[k, m], ar[k, m], amask[k, m] = a.center, a.radius, True
     f32 = lambda x: jnp.asarray(np.asarray(x, np.float64), jnp.float32)  # noqa: E731
     return LayoutBank(
-        arena=f32([lay.arena for lay in layouts]), box_lo=f32(lo), box_hi=f32(hi), box_mask=jnp.asarray(mask),
-        area_center=f32([[a.center for a in lay.areas] for lay in layouts]),
-        area_radius=f32([[a.radius for a in lay.areas] for lay in layouts]),
-        start=f32([lay.start for lay in layouts]), fields=jnp.zeros((b, 0), jnp.float32))
+        arena=f32([lay.arena for lay in layouts]), box_lo=f32(lo), box_hi=f32(hi), box_mask=jnp.asarray(bmask),
+        disk_center=f32(dc), disk_radius=f32(dr), disk_mask=jnp.asarray(dmask),
+        area_center=f32(ac), area_radius=f32(ar), area_mask=jnp.asarray(amask),
+        start=f32([lay.start for lay in layouts]), max_steps=jnp.zeros(b, jnp.int32),
+        task=jnp.asarray(np.zeros(b, np.int32) if tasks is None else np.asarray(tasks, np.int32)),
+        area_bits=jnp.zeros((b, N_AREAS), jnp.int32), target=jnp.zeros((b, 0, N_AREAS), bool),
+        forbidden=jnp.zeros((b, 0, N_AREAS), bool), fields=jnp.zeros((b, 0), jnp.float32))
 
 
-def bank_of(layouts: Sequence[Layout], method: str = "numpy", chunk: int = 64, grid: int = G) -> LayoutBank:
-    """The layouts with their fields on ``grid`` x ``grid`` nodes, computed by ``fields_numpy`` (one
-    at a time; the faster on a CPU: bench/RESULTS.md) or ``fields_jax`` (``chunk`` layouts a call)."""
-    bank = pack(layouts)
-    args = (bank.arena, bank.box_lo, bank.box_hi, bank.box_mask, bank.area_center, bank.area_radius)
+def pair(bank: LayoutBank, area_bits: np.ndarray, target: np.ndarray, forbidden: np.ndarray,
+         max_steps: np.ndarray | None = None) -> LayoutBank:
+    """``bank`` with its slots' letter bits [B, N_AREAS], roles [B, S, N_AREAS] (``envs.generalist``
+    derives them from the slots' labels and tasks) and episode limits [B] (None: unchanged); the
+    fields still to compute."""
+    if max_steps is not None:
+        bank = bank._replace(max_steps=jnp.asarray(max_steps, jnp.int32))
+    return bank._replace(area_bits=jnp.asarray(area_bits, jnp.int32), target=jnp.asarray(target, bool),
+                         forbidden=jnp.asarray(forbidden, bool), fields=jnp.zeros((bank.size, 0), jnp.float32))
+
+
+def _slot_args(bank: LayoutBank) -> tuple:
+    return (bank.arena, bank.box_lo, bank.box_hi, bank.box_mask, bank.disk_center, bank.disk_radius, bank.disk_mask,
+            bank.area_center, bank.area_radius, bank.area_mask, bank.target, bank.forbidden)
+
+
+def with_fields(bank: LayoutBank, method: str = "jax", chunk: int = 32, grid: int = G) -> LayoutBank:
+    """``bank`` with the fields of every slot on ``grid`` x ``grid`` nodes, by ``fields_jax`` (``chunk``
+    slots a call; the faster for many slots, after its compilation) or ``fields_numpy`` (one at a time)."""
+    if bank.target.shape[1] == 0:
+        raise ConfigError("bank", "the bank's slots have no task states yet (layout_bank.pair)")
+    args = _slot_args(bank)
+    n = bank.size
     if method == "jax":
-        out = [_fields_batch(*(a[s:s + chunk] for a in args), grid) for s in range(0, len(layouts), chunk)]
+        out = []
+        for s in range(0, n, chunk):
+            part = [a[s:s + chunk] for a in args]
+            short = chunk - part[0].shape[0]
+            if short and n > chunk:  # one compiled shape: pad the last call with copies of its first slot
+                part = [jnp.concatenate([a, jnp.repeat(a[:1], short, axis=0)]) for a in part]
+            out.append(_fields_batch(*part, grid)[:chunk - short])
     elif method == "numpy":
-        out = [fields_numpy(*(a[k] for a in args), grid)[None] for k in range(len(layouts))]
+        out = [fields_numpy(*(a[k] for a in args), grid=grid)[None] for k in range(n)]
     else:
         raise ConfigError("method", f"expected 'jax' or 'numpy', got {method!r}")
-    return bank._replace(fields=jnp.concatenate([jnp.asarray(o) for o in out]))
-
-
-def build_bank(seeds: Sequence[int], method: str = "numpy", chunk: int = 64, grid: int = G) -> LayoutBank:
-    """The layouts ``random:SEED`` (``generator.generate``) for ``seeds``, with their fields."""
-    return bank_of([generator.generate(int(s)) for s in seeds], method, chunk, grid)
+    fields = jnp.concatenate([jnp.asarray(o) for o in out])
+    return bank._replace(fields=jnp.where(jnp.isfinite(fields), fields, 0.0))  # a state with no target: 0
 
 
 # ------------------------------------------------------------------------------------ step costs
 
 
-def step_costs(arena, box_lo, box_hi, box_mask, area_center, area_radius, grid: int = G):
-    """(cost [3, 3, 4, 8, G, G], start [4, 8, G, G]) of one layout, pure JAX.
+def step_costs(arena, box_lo, box_hi, box_mask, disk_center, disk_radius, disk_mask, area_center, area_radius,
+               area_mask, target, forbidden, grid: int = G):
+    """(cost [3, 3, S, G, G], start [S, G, G]) of one slot, pure JAX.
 
-    ``cost[dy + 1, dx + 1, i, f, y, x]``: cost of the step from node (y, x) to (y + dy, x + dx) in
-    field (i, f) (inf off the grid). ``start[i, f, y, x]``: the straight distance from the node to
-    area i's disk where that is at most one diagonal step (0 inside), inf elsewhere.
+    ``cost[dy + 1, dx + 1, s, y, x]``: cost of the step from node (y, x) to (y + dy, x + dx) in
+    field s (inf off the grid). ``start[s, y, x]``: the straight distance from the node to the
+    nearest disk of a target area of s where that is at most one diagonal step (0 inside), inf elsewhere.
     """
     w, h = arena[0], arena[1]
-    spacing = w / (grid - 1)
+    spacing = jnp.maximum(w, h) / (grid - 1)
     px, py = jnp.meshgrid(jnp.arange(grid) * spacing, jnp.arange(grid) * spacing)  # [G, G]
-    p = jnp.stack([px, py], -1)[..., None, :]  # [G, G, 1, 2]
-    out = jnp.maximum(jnp.maximum(box_lo - p, 0.0), p - box_hi)  # [G, G, M, 2]
+    p = jnp.stack([px, py], -1)  # [G, G, 2]
+    out = jnp.maximum(jnp.maximum(box_lo - p[..., None, :], 0.0), p[..., None, :] - box_hi)  # [G, G, M, 2]
     boxes = jnp.where(box_mask, jnp.linalg.norm(out, axis=-1), jnp.inf).min(-1)
-    clear = jnp.minimum(jnp.minimum(jnp.minimum(px, py), jnp.minimum(w - px, h - py)), boxes)
+    disks = jnp.where(disk_mask, jnp.linalg.norm(p[..., None, :] - disk_center, axis=-1) - disk_radius,
+                      jnp.inf).min(-1)
+    walls = jnp.minimum(jnp.minimum(px, py), jnp.minimum(w - px, h - py))  # negative outside the arena
+    clear = jnp.minimum(jnp.minimum(walls, boxes), disks)
     mult = jnp.where(clear < ROBOT_RADIUS, COLLIDE_COST, jnp.where(clear < CLEARANCE, CLEARANCE_COST, 1.0))
-    gap = jnp.maximum(jnp.linalg.norm(p[..., 0, :][None] - area_center[:, None, None], axis=-1)
-                      - area_radius[:, None, None], 0.0)  # [4, G, G]: distance to each disk
-    forbids = jnp.asarray(_FORBIDS)[..., None, None]  # [4, 8, 4, 1, 1]
-    inside = jnp.any(forbids & (gap == 0.0), axis=2)  # [4, 8, G, G]: in a forbidden disk
-    depth = jnp.max(jnp.where(forbids, jnp.maximum(CLEARANCE - gap, 0.0), 0.0), axis=2)  # into the keep-out ring
+    gap = jnp.maximum(jnp.linalg.norm(p[None] - area_center[:, None, None], axis=-1)
+                      - area_radius[:, None, None], 0.0)  # [N, G, G]: distance to each disk
+    gap = jnp.where(area_mask[:, None, None], gap, jnp.inf)
+    forbids = forbidden[..., None, None]  # [S, N, 1, 1]
+    inside = jnp.any(forbids & (gap == 0.0), axis=1)  # [S, G, G]: in a forbidden disk
+    depth = jnp.max(jnp.where(forbids, jnp.maximum(CLEARANCE - gap, 0.0), 0.0), axis=1)  # into the keep-out ring
     penalty = geodesic.BLOCKED_COST * jnp.hypot(w, h)
     rows = []
     for dy in (-1, 0, 1):
@@ -194,11 +268,12 @@ def step_costs(arena, box_lo, box_hi, box_mask, area_center, area_radius, grid: 
             on_grid = _shifted(jnp.ones((grid, grid), bool), dy, dx)
             row.append(jnp.where(on_grid & ((dy, dx) != (0, 0)), c, jnp.inf))
         rows.append(jnp.stack(row))
-    start = jnp.where(gap <= spacing * math.sqrt(2.0), gap, jnp.inf)  # [4, G, G]
-    return jnp.stack(rows), jnp.broadcast_to(start[:, None], (N_AREAS, N_SUBSETS, grid, grid))
+    nearest_target = jnp.min(jnp.where(target[..., None, None], gap[None], jnp.inf), axis=1)  # [S, G, G]
+    start = jnp.where(nearest_target <= spacing * math.sqrt(2.0), nearest_target, jnp.inf)
+    return jnp.stack(rows), start
 
 
-_step_costs_jit = jax.jit(step_costs, static_argnums=6)
+_step_costs_jit = jax.jit(step_costs, static_argnums=12)
 
 
 def _shifted(a: jax.Array, dy: int, dx: int) -> jax.Array:
@@ -212,40 +287,39 @@ def _shifted(a: jax.Array, dy: int, dx: int) -> jax.Array:
 # ------------------------------------------------------------------------------------ solvers
 
 
-def fields_numpy(arena, box_lo, box_hi, box_mask, area_center, area_radius, grid: int = G) -> np.ndarray:
-    """float32 [4, 8, G, G]: the fields of one layout by scipy's Dijkstra (one search per field,
-    from a source joined to every node by the node's ``start`` distance, over the reversed steps)."""
-    cost, start = (np.asarray(a, np.float64) for a in _step_costs_jit(arena, box_lo, box_hi, box_mask, area_center,
-                                                                      area_radius, grid))
+def fields_numpy(*slot, grid: int = G) -> np.ndarray:
+    """float32 [S, G, G]: the fields of one slot (``_slot_args`` of one slot) by scipy's Dijkstra (one
+    search per field, from a source joined to every node by the node's ``start`` distance, over the
+    reversed steps). A state with no target gets inf everywhere."""
+    cost, start = (np.asarray(a, np.float64) for a in _step_costs_jit(*slot, grid))
     n = grid * grid
     idx = np.arange(n).reshape(grid, grid)
-    out = np.empty((N_AREAS, N_SUBSETS, grid, grid), np.float32)
-    for i in range(N_AREAS):
-        for f in range(N_SUBSETS):
-            rows, cols, data = [], [], []
-            for dy in (-1, 0, 1):
-                for dx in (-1, 0, 1):
-                    c = cost[dy + 1, dx + 1, i, f]
-                    src = idx[np.isfinite(c)]
-                    dst = src + dy * grid + dx
-                    rows.append(dst)  # reversed: a search from the disk reaches src through dst
-                    cols.append(src)
-                    data.append(c.ravel()[src])
-            s = start[i, f].ravel()
-            ends = np.flatnonzero(np.isfinite(s))
-            rows.append(np.full(ends.shape, n))
-            cols.append(ends)
-            data.append(np.maximum(s[ends], 1e-9))  # an explicit zero would be no edge
-            graph = sparse.csr_matrix((np.concatenate(data), (np.concatenate(rows), np.concatenate(cols))),
-                                      shape=(n + 1, n + 1))
-            dist = csgraph.dijkstra(graph, directed=True, indices=n)[:n]
-            out[i, f] = np.where(s <= 1e-9, 0.0, dist).reshape(grid, grid)
+    out = np.empty(start.shape, np.float32)
+    for s in range(start.shape[0]):
+        rows, cols, data = [], [], []
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                c = cost[dy + 1, dx + 1, s]
+                src = idx[np.isfinite(c)]
+                dst = src + dy * grid + dx
+                rows.append(dst)  # reversed: a search from the disk reaches src through dst
+                cols.append(src)
+                data.append(c.ravel()[src])
+        st = start[s].ravel()
+        ends = np.flatnonzero(np.isfinite(st))
+        rows.append(np.full(ends.shape, n))
+        cols.append(ends)
+        data.append(np.maximum(st[ends], 1e-9))  # an explicit zero would be no edge
+        graph = sparse.csr_matrix((np.concatenate(data), (np.concatenate(rows), np.concatenate(cols))),
+                                  shape=(n + 1, n + 1))
+        dist = csgraph.dijkstra(graph, directed=True, indices=n)[:n]
+        out[s] = np.where(st <= 1e-9, 0.0, dist).reshape(grid, grid)
     return out
 
 
-def fields_jax(arena, box_lo, box_hi, box_mask, area_center, area_radius, grid: int = G) -> jax.Array:
-    """float32 [4, 8, G, G]: the fields of one layout, pure JAX (jit and vmap over layouts)."""
-    cost, d = step_costs(arena, box_lo, box_hi, box_mask, area_center, area_radius, grid)
+def fields_jax(*slot, grid: int = G) -> jax.Array:
+    """float32 [S, G, G]: the fields of one slot, pure JAX (jit and vmap over slots)."""
+    cost, d = step_costs(*slot, grid)
     t = lambda a: jnp.swapaxes(a, -1, -2)  # noqa: E731
     flip = lambda a: jnp.flip(a, -2)  # noqa: E731
     # the sweep runs down the rows of each view of the grid: (view, its inverse, the view of the costs)
@@ -269,7 +343,8 @@ def fields_jax(arena, box_lo, box_hi, box_mask, area_center, area_radius, grid: 
     return d
 
 
-_fields_batch = jax.jit(jax.vmap(fields_jax, in_axes=(0, 0, 0, 0, 0, 0, None)), static_argnums=6)
+_fields_batch = jax.jit(jax.vmap(lambda *a: fields_jax(*a[:-1], grid=a[-1]), in_axes=(0,) * 12 + (None,)),
+                        static_argnums=12)
 
 
 def _sweep_down(d: jax.Array, cost: jax.Array) -> jax.Array:
@@ -310,44 +385,35 @@ def _min_plus_scan(value: jax.Array, step: jax.Array) -> jax.Array:
 # ------------------------------------------------------------------------------------ lookup
 
 
-def field_at(bank: LayoutBank, b, i, f, xy: jax.Array) -> jax.Array:
-    """Field (target i, forbidden subset f) of layout b, bilinear at xy [2] (clamped to the arena),
-    as ``geodesic.lookup``; it gathers the four nodes from the whole bank, so no slice of a field is
-    copied when b, i, f are traced (inside the training step)."""
+def field_at(bank: LayoutBank, b, s, xy: jax.Array) -> jax.Array:
+    """Field s of slot b, bilinear at xy [2] (clamped to the grid), as ``geodesic.lookup``; it
+    gathers the four nodes from the whole bank, so no slice of a field is copied when b and s are
+    traced (inside the training step)."""
     g = bank.fields.shape[-1]
-    spacing = bank.arena[b, 0] / (g - 1)
+    spacing = jnp.maximum(bank.arena[b, 0], bank.arena[b, 1]) / (g - 1)
     fx = jnp.clip(xy[0] / spacing, 0.0, g - 1.0)
     fy = jnp.clip(xy[1] / spacing, 0.0, g - 1.0)
     x0 = jnp.clip(jnp.floor(fx).astype(jnp.int32), 0, g - 2)
     y0 = jnp.clip(jnp.floor(fy).astype(jnp.int32), 0, g - 2)
     tx, ty = fx - x0, fy - y0
-    f00, f01 = bank.fields[b, i, f, y0, x0], bank.fields[b, i, f, y0, x0 + 1]
-    f10, f11 = bank.fields[b, i, f, y0 + 1, x0], bank.fields[b, i, f, y0 + 1, x0 + 1]
+    f00, f01 = bank.fields[b, s, y0, x0], bank.fields[b, s, y0, x0 + 1]
+    f10, f11 = bank.fields[b, s, y0 + 1, x0], bank.fields[b, s, y0 + 1, x0 + 1]
     return (1 - ty) * ((1 - tx) * f00 + tx * f01) + ty * ((1 - tx) * f10 + tx * f11)
 
 
-def subsets(forbidden: jax.Array) -> jax.Array:
-    """int32 [4]: per target i, the index of the forbidden subset ``forbidden`` (bool [4]) names."""
-    bits = jnp.asarray(forbidden)[jnp.asarray(_OTHERS)]  # [4, 3]
-    return jnp.sum(bits * (1 << jnp.arange(N_AREAS - 1)), axis=-1).astype(jnp.int32)
+def nearest(bank: LayoutBank, b, s, xy: jax.Array):
+    """(distance [], direction [2], any []) at xy to the nearest target area of state s of slot b,
+    along a path avoiding the state's forbidden areas; ``any``: the state has a target.
 
-
-def nearest(bank: LayoutBank, b, target: jax.Array, forbidden: jax.Array, xy: jax.Array):
-    """(distance [], direction [2]) at xy to the nearest area of ``target`` (bool [4]) along a path
-    avoiding the areas of ``forbidden`` (bool [4]; a target is never forbidden for itself).
-
-    The direction is the unit vector of steepest descent of that target's bilinear field, by central
+    The direction is the unit vector of steepest descent of the bilinear field, by central
     differences half a grid spacing either side; with no target (or a flat field) both are 0.
     """
-    f = subsets(forbidden)
-    per_target = jax.vmap(lambda i, fi: field_at(bank, b, i, fi, xy))(jnp.arange(N_AREAS), f)
-    per_target = jnp.where(target, per_target, jnp.inf)
-    k = jnp.argmin(per_target)
-    any_target = jnp.any(target)
-    eps = 0.5 * bank.arena[b, 0] / (bank.fields.shape[-1] - 1)
-    probe = lambda dxy: field_at(bank, b, k, f[k], xy + dxy)  # noqa: E731
+    any_target = jnp.any(bank.target[b, s] & bank.area_mask[b])
+    eps = 0.5 * jnp.maximum(bank.arena[b, 0], bank.arena[b, 1]) / (bank.fields.shape[-1] - 1)
+    probe = lambda dxy: field_at(bank, b, s, xy + dxy)  # noqa: E731
     grad = jnp.stack([probe(jnp.array([eps, 0.0])) - probe(jnp.array([-eps, 0.0])),
                       probe(jnp.array([0.0, eps])) - probe(jnp.array([0.0, -eps]))]) / (2 * eps)
+    grad = jnp.where(jnp.isfinite(grad), grad, 0.0)
     norm = jnp.linalg.norm(grad)
     direction = jnp.where(any_target & (norm > 0), -grad / jnp.where(norm > 0, norm, 1.0), 0.0)
-    return jnp.where(any_target, per_target[k], 0.0), direction
+    return jnp.where(any_target, field_at(bank, b, s, xy), 0.0), direction, any_target

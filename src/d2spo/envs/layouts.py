@@ -30,10 +30,11 @@ from d2spo.inputs import read_regular
 BUILTIN = ("paper", "relaxed", "open", "physical-1", "physical-2", "physical-3", "physical-4")
 """Names of the layouts shipped as JSON files in ``d2spo/envs/layouts/``."""
 
-RANDOM_KINDS = ("random", "random5", "zones")
+RANDOM_KINDS = ("random", "random5", "zones", "world")
 """Procedural layouts by seed: ``random:SEED`` (``generator.generate``: 5-10 m arenas of three
-styles), ``random5:SEED`` (``generator.random_layout``: 5 m arenas) and ``zones:SEED``
-(``zones.zones_layout``: ZoneEnv's eight coloured zones)."""
+styles), ``random5:SEED`` (``generator.random_layout``: 5 m arenas), ``zones:SEED``
+(``zones.zones_layout``: ZoneEnv's eight coloured zones) and ``world:SEED`` (``world.generate``:
+the generalist's training world, rectangular arenas of 5-20 m, boxes and pillars, 4-12 areas)."""
 
 
 # ----------------------------------------------------------------------------------- JSON parsing
@@ -183,6 +184,10 @@ def load(name_or_path: str) -> Layout:
             raise ConfigError("layout", f"random layout seed must be non-negative, got {seed}")
         if kind == "zones":
             return zones_layout(seed)
+        if kind == "world":
+            from d2spo.envs import world  # it reads the bank's limits (jax): only when asked for
+
+            return world.generate(seed)
         return generator.random_layout(seed) if kind == "random5" else generator.generate(seed)
     path = Path(name_or_path)
     if path.suffix == ".json" or path.exists():
@@ -199,7 +204,7 @@ def load(name_or_path: str) -> Layout:
             raise ConfigError("layout", f"{path}: unreadable JSON ({json_trouble(e)})") from None
         return from_json(data, default_name=path.stem)
     raise ConfigError("layout", f"unknown layout {name_or_path!r}; use one of {list(BUILTIN)}, "
-                      "'random[:SEED]', 'random5[:SEED]', 'zones[:SEED]' or a path to a .json file")
+                      "'random[:SEED]', 'random5[:SEED]', 'zones[:SEED]', 'world[:SEED]' or a path to a .json file")
 
 
 def random_seed(name_or_path: str) -> tuple[str, int] | None:
