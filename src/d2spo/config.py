@@ -49,6 +49,8 @@ WANDB_FORBIDDEN = "/\\#?%:"
 VALIDATION_SEED = 50_000
 """First seed of the generalist's validation layouts (training uses WORLD:0 .., the benchmark
 random:100000 ..)."""
+REDRAW_SEED = 10_000_000
+"""First seed of the layouts a generalist's bank is redrawn with (``generalist_redraw``)."""
 GENERALIST_WORLDS = ("world", "random")
 """Layout families a generalist trains on (``generalist_world``): ``world:SEED`` (``envs.world``:
 rectangular arenas of 5-20 m, boxes and pillars, 4-12 labelled areas, ZoneEnv's zones among them)
@@ -86,6 +88,9 @@ class TrainConfig:
     """Train one d2spo policy for a bank of random layouts."""
     generalist_layouts: int = 256
     """With --generalist: train on layouts WORLD:0..N-1 (WORLD: ``generalist_world``)."""
+    generalist_redraw: int = 0
+    """With --generalist: after every chunk, this many bank slots no environment is in get fresh
+    layouts (WORLD:REDRAW_SEED ..., each keeping its slot's task); 0: the bank stays fixed."""
     generalist_world: str = "world"
     """With --generalist: the layout family it trains and validates on: world (rectangular arenas to
     20 m, pillars, 4-12 labelled areas, ZoneEnv's zones among them) or random (square 5-10 m, A1..A4)."""
@@ -155,6 +160,9 @@ class TrainConfig:
         if self.generalist_world not in GENERALIST_WORLDS:
             raise ConfigError("generalist_world", f"expected one of {', '.join(GENERALIST_WORLDS)}, "
                               f"got {self.generalist_world!r}")
+        if not 0 <= self.generalist_redraw <= self.generalist_layouts:
+            raise ConfigError("generalist_redraw", f"expected 0 .. generalist_layouts ({self.generalist_layouts}), "
+                              f"got {self.generalist_redraw}")
         if self.generalist and self.generalist_layouts > VALIDATION_SEED:
             raise ConfigError("generalist_layouts", f"at most {VALIDATION_SEED}: the layouts from "
                               f"{self.generalist_world}:{VALIDATION_SEED} on are the validation set")

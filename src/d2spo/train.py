@@ -18,6 +18,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 
+from d2spo.algos.generalist import Redraw
 from d2spo.checkpoint import Checkpoints, fingerprint, has_checkpoint, run_fingerprint
 from d2spo.config import TrainConfig, config_to_dict
 from d2spo.errors import ConfigError, RunDirWarning
@@ -79,10 +80,16 @@ def _train_locked(cfg: TrainConfig, out: Path, built, resume: bool, progress: Pr
         overhead = _compiled(chunk, carry, t_enter, t_compile, [progress], [meta], cfg)
         validation = Validation(cfg, env, params, learner) if cfg.generalist and cfg.validation_layouts else None
         run = RunRecord(cfg, out, meta, checkpoints, overhead, validation, wandb)
+        redraw = Redraw(cfg, env) if cfg.generalist and cfg.generalist_redraw else None
+        if redraw is not None:  # a resumed run's bank as its checkpoint left it
+            chunk.params = redraw.apply(chunk.params, run.meta.get("redrawn", {}))
         chunks_this_call = 0
         while not run.done:
             carry, log = chunk(carry)
             run.record(log, progress)
+            if redraw is not None:
+                chunk.params, updates = redraw.next(chunk.params, carry.env_state.layout, run.meta)
+                run.meta.update(updates)
             run.save(learner, carry)
             chunks_this_call += 1
             if stop_after_chunks is not None and chunks_this_call >= stop_after_chunks:

@@ -108,3 +108,52 @@ def build_generalist(cfg, layouts, max_steps: int | None, tasks_of=None):
     learner = D2SPOLearner(env, params, cfg.td3, cfg.cbf, anneal, cfg.num_envs, cfg.chunk_steps, cfg.episodes,
                            cfg.d2spo, layouts=LayoutBank)
     return env, params, learner
+
+
+class Redraw:
+    """Fresh layouts for a generalist's bank while it trains (``TrainConfig.generalist_redraw``).
+
+    After chunk k the next ``generalist_redraw`` slots in turn that no environment is in get the
+    layouts WORLD:REDRAW_SEED + n for the next n (a running count), each paired with its slot's own
+    task, its roles, episode limit and fields computed then (``GeneralistEnv.bank``). The bank's
+    state is the map slot -> seed, kept in the checkpoint's meta (``"redrawn"``), so a resumed run
+    rebuilds the same bank. An environment keeps its slot to the end of its episode: the slots in
+    use are skipped, so no episode changes layout under the robot."""
+
+    def __init__(self, cfg, env):
+        self.cfg, self.env = cfg, env
+        self.per_chunk = int(cfg.generalist_redraw)
+        self.size = int(cfg.generalist_layouts)
+
+    def apply(self, params, assigned: dict[str, int]) -> object:
+        """``params`` with slot s holding layout WORLD:seed for every ("s", seed) of ``assigned``."""
+        if not assigned:
+            return params
+        from d2spo.envs.layouts import load
+
+        slots = sorted(int(s) for s in assigned)
+        layouts = [load(f"{self.cfg.generalist_world}:{int(assigned[str(s)])}") for s in slots]
+        tasks = [int(t) for t in jax.device_get(params.bank.task)[slots]]
+        fresh = self.env.bank(layouts, tasks, self.cfg.env.max_steps, method="jax")  # fields independent of grouping
+        index = jnp.asarray(slots, jnp.int32)
+        bank = jax.tree_util.tree_map(lambda old, new: old.at[index].set(new), params.bank, fresh)
+        return params.replace(bank=bank)
+
+    def next(self, params, in_use, meta: dict) -> tuple[object, dict]:
+        """(params, the run meta's updates) after one chunk's redraw: ``in_use`` [num_envs] the slots
+        the environments are in; ``meta`` holds ``"redrawn"`` (slot -> seed), ``"redraw_next"`` (the
+        next slot in turn) and ``"redraw_count"`` (layouts drawn so far)."""
+        from d2spo.config import REDRAW_SEED
+
+        busy = {int(s) for s in jax.device_get(in_use).ravel()}
+        slot, count = int(meta.get("redraw_next", 0)), int(meta.get("redraw_count", 0))
+        chosen: dict = {}
+        for _ in range(self.size):
+            if len(chosen) == self.per_chunk:
+                break
+            if slot not in busy:
+                chosen[str(slot)] = REDRAW_SEED + count
+                count += 1
+            slot = (slot + 1) % self.size
+        updates = {"redrawn": {**meta.get("redrawn", {}), **chosen}, "redraw_next": slot, "redraw_count": count}
+        return self.apply(params, chosen), updates

@@ -206,9 +206,11 @@ def _slot_args(bank: LayoutBank) -> tuple:
             bank.area_center, bank.area_radius, bank.area_mask, bank.target, bank.forbidden)
 
 
-def with_fields(bank: LayoutBank, method: str = "jax", chunk: int = 32, grid: int = G) -> LayoutBank:
+def with_fields(bank: LayoutBank, method: str = "jax", chunk: int = 16, grid: int = G) -> LayoutBank:
     """``bank`` with the fields of every slot on ``grid`` x ``grid`` nodes, by ``fields_jax`` (``chunk``
-    slots a call; the faster for many slots, after its compilation) or ``fields_numpy`` (one at a time)."""
+    slots a call, the last call padded: one compiled program, and a slot's field the same bit for bit
+    whichever slots share its call; the faster for many slots, after its compilation) or
+    ``fields_numpy`` (one at a time)."""
     if bank.target.shape[1] == 0:
         raise ConfigError("bank", "the bank's slots have no task states yet (layout_bank.pair)")
     args = _slot_args(bank)
@@ -218,7 +220,7 @@ def with_fields(bank: LayoutBank, method: str = "jax", chunk: int = 32, grid: in
         for s in range(0, n, chunk):
             part = [a[s:s + chunk] for a in args]
             short = chunk - part[0].shape[0]
-            if short and n > chunk:  # one compiled shape: pad the last call with copies of its first slot
+            if short:  # one compiled shape: pad the last call with copies of its first slot
                 part = [jnp.concatenate([a, jnp.repeat(a[:1], short, axis=0)]) for a in part]
             out.append(_fields_batch(*part, grid)[:chunk - short])
     elif method == "numpy":
