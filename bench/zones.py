@@ -90,12 +90,13 @@ def evaluate_seed(run: Path, episodes: int, keep_paths: int) -> dict:
     for task in TASKS:
         needs = [generalist_layout(cfg.env, lay.name, task)[1] for lay in layouts[:LIMIT_SAMPLE]]
         limit = min(ZONE_ENV_LIMIT, max([cfg.env.max_steps or slot_max_steps(layouts[0])] + needs))
-        per = {"max_steps": limit}
+        per, bank = {"max_steps": limit}, None
         for filt in (False, True):
             c = dataclasses.replace(cfg, task=task, generalist_tasks=0,
                                     d2spo=dataclasses.replace(cfg.d2spo, runtime_filter=filt))
             env, params, learner = build_generalist(c, layouts[:1], limit)
-            params = view(params.replace(bank=env.bank(layouts, max_steps=limit)), jnp.zeros((), jnp.int32))
+            bank = env.bank(layouts, max_steps=limit) if bank is None else bank  # the same for both modes
+            params = view(params.replace(bank=bank), jnp.zeros((), jnp.int32))
             run = make_rollout(learner, env, episodes, limit, slot_per_episode=True)
             t = time.perf_counter()
             collided, completed, _, length, poses = (np.asarray(a) for a in run(params, policy, jax.random.PRNGKey(7)))

@@ -239,7 +239,7 @@ class RunRecord:
         self.tb.close()
         summary = {
             "algo": cfg.algo, "task": cfg.task, "seed": cfg.seed,
-            "layout": f"random:0..{cfg.generalist_layouts - 1}" if cfg.generalist else cfg.layout,
+            "layout": f"{cfg.generalist_world}:0..{cfg.generalist_layouts - 1}" if cfg.generalist else cfg.layout,
             "episodes": len(self.writer), "env_steps": self.meta["env_steps"], "wall_seconds": round(wall, 2),
             "compile_seconds": round(self.meta.get("compile_seconds", 0.0), 2),
             "env_steps_per_second": round(self.meta["env_steps"] / max(wall, 1e-9), 1),
