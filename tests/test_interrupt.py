@@ -39,3 +39,14 @@ def test_ctrl_c_while_compiling_exits_at_once_with_one_line(tmp_path):
     assert [ln for ln in stderr.splitlines() if ln.strip()] == ["d2spo: error: interrupted"]
     assert run_holder(out) is None  # the lock is free
     assert not [p.name for p in out.iterdir() if p.name.endswith(".tmp")]
+
+
+def test_an_interrupt_swallowed_on_its_way_still_ends_the_command():
+    """The `d2spo` command's SIGINT handler raises KeyboardInterrupt and, should that be swallowed
+    (Python ignores exceptions raised in garbage-collection callbacks), exits 130 with one line."""
+    code = ("import os, signal, time\nfrom d2spo import cli\ncli.INTERRUPT_GRACE = 0.5\n"
+            "signal.signal(signal.SIGINT, cli._interrupted)\n"
+            "try:\n    os.kill(os.getpid(), signal.SIGINT)\n    time.sleep(5)\nexcept KeyboardInterrupt:\n    pass\n"
+            "time.sleep(30)\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 130 and proc.stderr.strip().splitlines() == ["d2spo: error: interrupted"], proc.stderr
