@@ -275,6 +275,10 @@ class TaskPlan:
     """Task t's states are offsets[t] .. offsets[t + 1] - 1 of ``automaton`` (T + 1 entries)."""
     initials: tuple[int, ...]
     """Task t's initial state in ``automaton``."""
+    singles: tuple[int, ...]
+    """The letters of one area entered alone (and the empty letter): a bank's areas never overlap."""
+    distance: tuple[int | None, ...]
+    """Per state of ``automaton``, its distance to acceptance over ``singles`` (None: unreachable)."""
     roles: np.ndarray
     """int [Q, letters]: ``state_fields.letter_roles`` of the union."""
     needs: tuple[frozenset, ...]
@@ -346,7 +350,7 @@ def task_plan(tasks: Sequence[Any], label_mode: str) -> TaskPlan:
             raise ConfigError("task", f"{name} cannot be completed entering one area at a time, as the generalist's "
                               "layouts (areas that never overlap) need")
     roles = state_fields.letter_roles(aut, distance, label_mode == "event")
-    return TaskPlan(aut, tuple(names), offsets, tuple(int(q) for q in initials), roles,
+    return TaskPlan(aut, tuple(names), offsets, tuple(int(q) for q in initials), tuple(singles), tuple(distance), roles,
                     tuple(frozenset(a.aps) for a in automata))
 
 
@@ -378,8 +382,7 @@ def make_generalist_env(cfg: EnvConfig, task: Any, layouts: Sequence[Layout] | L
         raise ConfigError("bank", "a bank of this task mixture, with its fields, is needed (GeneralistEnv.bank)")
     longest = int(np.max(np.asarray(bank.max_steps)))
     cfg = dataclasses.replace(cfg, max_steps=longest).resolved()
-    aut = plan.automaton
-    distance = aut.distances([0] + [aut.letter([a]) for a in aut.aps])
+    aut, distance = plan.automaton, list(plan.distance)
     finite = np.array([UNREACHABLE if d is None else d for d in distance])
     scale = np.ones(aut.n_states, np.float32)  # per state, its own task's largest finite distance
     local = np.zeros(aut.n_states, np.int32)
@@ -387,11 +390,10 @@ def make_generalist_env(cfg: EnvConfig, task: Any, layouts: Sequence[Layout] | L
         own = finite[lo:hi][finite[lo:hi] < UNREACHABLE]
         scale[lo:hi] = max(int(own.max()) if own.size else 1, 1)
         local[lo:hi] = np.arange(hi - lo)
-    singles = [0] + [aut.letter([a]) for a in aut.aps]
     params = GeneralParams(
         **{**robot_fields(cfg, longest), **_layout_fields(bank, jnp.zeros((), jnp.int32)),
            "max_steps": jnp.asarray(longest, jnp.int32)},
-        aut=AutomatonArrays(*(None if x is None else jnp.asarray(x) for x in aut.arrays(singles, distance))),
+        aut=AutomatonArrays(*(None if x is None else jnp.asarray(x) for x in aut.arrays(list(plan.singles), distance))),
         advance=jnp.zeros((aut.n_states, N_AREAS), bool), relax_mask=jnp.ones((aut.n_states, N_AREAS), bool),
         geodesic=jnp.zeros((N_AREAS, 1, 1), jnp.float32), state_field=jnp.zeros((aut.n_states, 1, 1), jnp.float32),
         bank=bank, initials=jnp.asarray(plan.initials, jnp.int32),

@@ -111,14 +111,14 @@ def _scattered(rng: np.random.Generator, w: float, h: float, n: int, half: tuple
             if keep_clear is not None and np.linalg.norm(c - np.asarray(keep_clear[:2])) - r < keep_clear[2]:
                 continue
             if len(disks) < layout_bank.D_MAX:
-                disks.append(DiskObstacle(_rounded(c), round(r, 3)))
+                disks.append(DiskObstacle(generator._rounded(c), round(r, 3)))
             continue
         hh = rng.uniform(*half, 2)
         if keep_clear is not None:
             q = np.abs(c - np.asarray(keep_clear[:2])) - hh
             if np.linalg.norm(np.maximum(q, 0.0)) + min(q.max(), 0.0) < keep_clear[2]:
                 continue
-        boxes.append(Obstacle(_rounded(c), _rounded(hh)))
+        boxes.append(Obstacle(generator._rounded(c), generator._rounded(hh)))
     return boxes + disks
 
 
@@ -176,7 +176,7 @@ def _with_start_and_areas(rng: np.random.Generator, layout: Layout, far_side) ->
     for _ in range(100):
         xy = np.array([rng.uniform(0.5, w - 0.5), rng.uniform(0.5, h - 0.5)])
         if layout.clearance(xy) >= generator.START_CLEARANCE:
-            start = (*_rounded(xy), round(float(rng.uniform(-math.pi, math.pi)), 3))
+            start = (*generator._rounded(xy), round(float(rng.uniform(-math.pi, math.pi)), 3))
             break
     if start is None:
         return None
@@ -187,7 +187,7 @@ def _with_start_and_areas(rng: np.random.Generator, layout: Layout, far_side) ->
     for _ in range(60 * n_areas):
         r = round(float(rng.uniform(*generator.AREA_RADIUS)), 3)
         lo = r + generator.AREA_MARGIN
-        c = np.array(_rounded([rng.uniform(lo, w - lo), rng.uniform(lo, h - lo)]))
+        c = np.array(generator._rounded([rng.uniform(lo, w - lo), rng.uniform(lo, h - lo)]))
         if layout.clearance(c) < lo or np.linalg.norm(c - start[:2]) < r + generator.AREA_SPACING:
             continue
         if any(np.linalg.norm(c - np.asarray(a.center)) < r + a.radius + generator.AREA_SPACING for a in areas):
@@ -204,6 +204,3 @@ def _with_start_and_areas(rng: np.random.Generator, layout: Layout, far_side) ->
             return None
     return replace(layout, start=start, areas=tuple(areas))
 
-
-def _rounded(values) -> tuple[float, ...]:
-    return tuple(round(float(v), 3) for v in values)
