@@ -14,6 +14,7 @@ from _tiny import tiny_cfg, write_run
 
 from d2spo import cli
 from d2spo.checkpoint import Checkpoints, run_fingerprint
+from d2spo.train import learner_program
 
 CCFG_TINY = dict(grid_step=0.25, headings=2, residual_episodes=2, search_starts=8, search_steps=4)
 """A small grid and search: certification of the tiny runs below takes seconds once compiled."""
@@ -30,7 +31,7 @@ def untrained_run(tmp_path_factory):
 
     cfg = tiny_cfg()
     _, _, learner = build(cfg)
-    carry = jax.jit(learner.init)(jax.random.PRNGKey(0))
+    carry = learner_program(learner, "init")(jax.random.PRNGKey(0))
     path = tmp_path_factory.mktemp("certify") / "run"
     write_run(path, cfg, carry)
     return path

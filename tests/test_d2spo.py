@@ -11,6 +11,7 @@ from d2spo.config import TrainConfig
 from d2spo.envs import EnvConfig
 from d2spo.rollout import random_proposal_safety
 from d2spo.run import build
+from d2spo.train import learner_program
 
 
 def test_cautious_start_makes_random_exploration_safe():
@@ -20,7 +21,7 @@ def test_cautious_start_makes_random_exploration_safe():
     # init compiles in): the two tests share one compiled init through the persistent cache
     cfg = TrainConfig(algo="d2spo", task="phi1", env=EnvConfig(layout="paper"), episodes=FIG5_EPISODES).check()
     env, params, learner = build(cfg)
-    carry = jax.jit(learner.init)(jax.random.PRNGKey(0))
+    carry = learner_program(learner, "init")(jax.random.PRNGKey(0))
     raw = random_proposal_safety(learner, carry, env, params, shielded=False)
     safe = random_proposal_safety(learner, carry, env, params, shielded=True)
     assert raw < 0.6, raw

@@ -28,6 +28,7 @@ from d2spo.export import ExportConfig, export_run, write_export
 from d2spo.ltl.labelling import next_state
 from d2spo.run import build
 from d2spo.safety.filter import cbf_condition
+from d2spo.train import learner_program
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -58,7 +59,7 @@ def _tiny_run(root: Path, cfg: TrainConfig):
     tanh(4 min(x)/H - 1), a barrier that crosses zero 0.3 m from obstacles (so the filter acts at part
     of the arena), and its export (with ONNX where the onnx package is here)."""
     _, _, learner = build(cfg)
-    carry = jax.jit(learner.init)(jax.random.PRNGKey(0))
+    carry = learner_program(learner, "init")(jax.random.PRNGKey(0))
     p = jax.tree_util.tree_map(np.zeros_like, carry.safety.cbf)
     p["params"]["Dense_0"]["kernel"][-1, 0] = 4.0  # the input's last entry is min(x)/H
     p["params"]["Dense_0"]["bias"][0] = -1.0
@@ -176,7 +177,7 @@ def test_other_learners_export_their_actor(algo, case, states, tmp_path):
     """TD3's actor (td3, tlgrl, td3-lag) and SAC's evaluation action tanh(mean) (sac-lag, rcrl)."""
     cfg = dataclasses.replace(case[2], algo=algo)
     _, _, learner = build(cfg)
-    carry = jax.jit(learner.init)(jax.random.PRNGKey(1))
+    carry = learner_program(learner, "init")(jax.random.PRNGKey(1))
     write_run(tmp_path / "run", cfg, carry)
     m = export_run(tmp_path / "run", tmp_path / "out")
     assert m["filter"] is None and "safety_policy" not in m["networks"]

@@ -50,3 +50,17 @@ def test_an_interrupt_swallowed_on_its_way_still_ends_the_command():
             "time.sleep(30)\n")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 130 and proc.stderr.strip().splitlines() == ["d2spo: error: interrupted"], proc.stderr
+
+
+def test_an_interrupt_python_cannot_raise_ends_the_command_at_once():
+    """A KeyboardInterrupt raised where Python can only report it ("Exception ignored in ...": a
+    finaliser, XLA's garbage-collection callback) ends the `d2spo` command at once with 130 and
+    its one line (``cli._leave_if_interrupt_swallowed``), not after the watchdog's grace."""
+    code = ("import sys, time\nfrom d2spo import cli\ncli.INTERRUPT_GRACE = 60.0\n"
+            "sys.unraisablehook = cli._leave_if_interrupt_swallowed\n"
+            "class Held:\n    def __del__(self):\n        raise KeyboardInterrupt\n"
+            "Held()\ntime.sleep(10)\n")
+    start = time.monotonic()
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 130 and proc.stderr.strip().splitlines() == ["d2spo: error: interrupted"], proc.stderr
+    assert time.monotonic() - start < 8.0

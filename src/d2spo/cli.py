@@ -373,10 +373,24 @@ def _interrupted(signum, frame) -> None:
     raise KeyboardInterrupt
 
 
+def _leave_if_interrupt_swallowed(unraisable) -> None:
+    """``sys.unraisablehook`` of the `d2spo` command: a KeyboardInterrupt that Python could not
+    raise (it landed in a callback, XLA's garbage-collection one say, and would be printed as
+    "Exception ignored") ends the command at once with the usual line and 130, instead of after
+    the watchdog's ``INTERRUPT_GRACE`` seconds; anything else goes to Python's own hook."""
+    if isinstance(unraisable.exc_value, KeyboardInterrupt):
+        error("interrupted")
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(130)
+    sys.__unraisablehook__(unraisable)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else list(argv)
     if argv is None and threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGINT, _interrupted)
+        sys.unraisablehook = _leave_if_interrupt_swallowed
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("always", D2SPOWarning)

@@ -18,6 +18,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 
+from d2spo._xla import long_running_options
 from d2spo.algos.generalist import Redraw
 from d2spo.checkpoint import Checkpoints, fingerprint, has_checkpoint, run_fingerprint
 from d2spo.config import TrainConfig, config_to_dict
@@ -104,13 +105,13 @@ class _ParamsArgument:
     into the program as constants: the generalist's are the field bank (128 MiB for 256 layouts),
     which XLA took tens of minutes to compile as constants. ``lower`` as a jitted function has."""
 
-    def __init__(self, learner, name: str, vmapped: bool, donate: bool):
+    def __init__(self, learner, name: str, vmapped: bool, donate: bool, options: dict | None):
         def run(x, params):
             fn = getattr(acting_on(learner, params), name)
             return (jax.vmap(fn) if vmapped else fn)(x)
 
         self.params = learner.params
-        self.fn = jax.jit(run, donate_argnums=(0,) if donate else ())
+        self.fn = jax.jit(run, donate_argnums=(0,) if donate else (), compiler_options=options)
 
     def __call__(self, x):
         return self.fn(x, self.params)
@@ -122,11 +123,13 @@ class _ParamsArgument:
 def learner_program(learner, name: str, vmapped: bool = False, donate: bool = False):
     """The jitted ``learner.<name>`` (``init`` or ``chunk``), vmapped over seeds if asked, donating
     its argument if asked. Learners with ``params_as_argument`` (the generalist) get their env
-    params as an argument (``_ParamsArgument``); the others keep them as constants, as before."""
+    params as an argument (``_ParamsArgument``); the others keep them as constants, as before.
+    An ``init`` that pre-trains (``learner.long_init``) gets ``_xla.long_running_options()``."""
+    options = long_running_options() if name == "init" and getattr(learner, "long_init", False) else None
     if getattr(learner, "params_as_argument", False):
-        return _ParamsArgument(learner, name, vmapped, donate)
+        return _ParamsArgument(learner, name, vmapped, donate, options)
     fn = getattr(learner, name)
-    return jax.jit(jax.vmap(fn) if vmapped else fn, donate_argnums=0 if donate else ())
+    return jax.jit(jax.vmap(fn) if vmapped else fn, donate_argnums=0 if donate else (), compiler_options=options)
 
 
 def _compiling(progress: list[ProgressFn | None], metas: list[dict | None], cfg: TrainConfig) -> float:

@@ -248,6 +248,12 @@ class D2SPOLearner(TD3Learner):
         return self.layouts.x_of_obs(self.params, obs)
 
     # -- init ----------------------------------------------------------------------------
+    @property
+    def long_init(self) -> bool:
+        """Whether ``init`` runs long (the cautious start's pre-training): train.learner_program
+        compiles it with ``_xla.long_running_options()``."""
+        return bool(self.d2.pretrain)
+
     def init(self, key: jax.Array) -> D2SPOCarry:
         base = super().init(key)
         k_s, k_pre, k_data = jax.random.split(jax.random.fold_in(key, 7), 3)
