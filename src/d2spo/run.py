@@ -10,6 +10,7 @@ checkpoints, the lock) are described in docs/runs.md.
 from __future__ import annotations
 
 import dataclasses
+import weakref
 from pathlib import Path
 
 import jax
@@ -149,13 +150,35 @@ def best_policy_path(run_dir: Path) -> Path:
 
 
 def load_best_policy(run_dir: Path, learner, key: jax.Array | None = None):
-    """The policy ``_Run.validate`` kept; shapes come from the learner (nothing is trained)."""
+    """The policy ``_Run.validate`` kept; shapes come from the learner (nothing is trained; ``key``
+    is kept for callers of old: shapes do not depend on it)."""
     path = best_policy_path(run_dir)
     if not path.is_file():
         raise RunDirError(f"{run_dir}: no validated policy ({path.name})")
-    key = jax.random.PRNGKey(0) if key is None else key
-    template = jax.eval_shape(lambda k: learner.policy(learner.init(k)), key)
-    return serialization.from_bytes(template, path.read_bytes())
+    return serialization.from_bytes(policy_template(learner), path.read_bytes())
+
+
+_TEMPLATES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def carry_template(learner):
+    """The shapes and dtypes of ``learner.init``'s carry (``jax.eval_shape``: nothing runs), traced
+    once per learner: tracing D²SPO's init takes seconds, and a figure loads several snapshots."""
+    try:
+        return _TEMPLATES[learner]
+    except (KeyError, TypeError):  # TypeError: a learner that cannot be weakly referenced
+        pass
+    template = jax.eval_shape(learner.init, jax.random.PRNGKey(0))
+    try:
+        _TEMPLATES[learner] = template
+    except TypeError:
+        pass
+    return template
+
+
+def policy_template(learner):
+    """The shapes of ``learner.policy(carry)`` (``carry_template``)."""
+    return jax.eval_shape(learner.policy, carry_template(learner))
 
 
 def snapshot_path(run_dir: Path, episodes: int) -> Path:
@@ -168,13 +191,12 @@ def save_snapshot(run_dir: Path, episodes: int, policy) -> None:
 
 
 def load_snapshot(run_dir: Path, episodes: int, learner, key: jax.Array | None = None):
-    """The policy saved by ``save_snapshot``; shapes come from the learner (nothing is trained)."""
+    """The policy saved by ``save_snapshot``; shapes come from the learner (nothing is trained; the
+    ``key`` does not change them)."""
     path = snapshot_path(run_dir, episodes)
     if not path.is_file():
         raise RunDirError(f"{run_dir}: no policy snapshot after {episodes} episodes ({path.name})")
-    key = jax.random.PRNGKey(0) if key is None else key
-    template = jax.eval_shape(lambda k: learner.policy(learner.init(k)), key)
-    return serialization.from_bytes(template, path.read_bytes())
+    return serialization.from_bytes(policy_template(learner), path.read_bytes())
 
 
 
@@ -194,8 +216,7 @@ def load_policy(run_dir: Path, which: str = "best", learner=None):
     if learner is None:
         # a generalist's checkpoint holds no layout: a one-layout bank gives the same shapes, fast
         _, _, learner = build(dataclasses.replace(cfg, generalist_layouts=1, generalist_tasks=0) if cfg.generalist else cfg)
-    template = jax.eval_shape(learner.init, jax.random.PRNGKey(0))  # shapes only: no pre-training
-    carry, meta = load_checkpoint(run_dir, template, run_fingerprint(run_dir))
+    carry, meta = load_checkpoint(run_dir, carry_template(learner), run_fingerprint(run_dir))
     meta = dict(meta)
     best = meta.get("best")
     if which == "best" and best is not None and best_policy_path(run_dir).is_file():
