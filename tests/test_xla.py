@@ -50,3 +50,17 @@ def test_vmapped_orthogonal_init_finishes_in_a_fresh_process():
         pytest.fail("the vmapped initialisation did not finish in 180 s (XLA scheduler deadlock?)")
     assert r.returncode == 0, r.stderr[-2000:]
     assert r.stdout.strip() == "finished"
+
+
+def test_long_running_programs_get_the_level_the_environment_names(monkeypatch):
+    """``$D2SPO_XLA_LONG_RUNNING_LEVEL`` (the suite sets 3) becomes D²SPO's init's compiler option;
+    unset, the commands' programs keep XLA's flags; a bad value is a ConfigError (one line)."""
+    from d2spo.errors import ConfigError
+
+    monkeypatch.setenv(_xla.LONG_RUNNING_LEVEL, "3")
+    assert _xla.long_running_options() == {"xla_backend_optimization_level": 3}
+    monkeypatch.delenv(_xla.LONG_RUNNING_LEVEL)
+    assert _xla.long_running_options() is None
+    monkeypatch.setenv(_xla.LONG_RUNNING_LEVEL, "fast")
+    with pytest.raises(ConfigError, match="expected an XLA optimisation level 0-3, got 'fast'"):
+        _xla.long_running_options()
