@@ -94,11 +94,18 @@ def print_evaluation(res: dict, path: Path, filter_asked: bool | None) -> None:
     task = f", task {res['task']!r} (zero-shot)" if res.get("task_given") else ""
     which = f", {res['policy']} policy" if str(res.get("policy", "")).startswith("best") else ""
     t = Table(title=f"{res['run']}{which} on {res['layout']} / {res['dynamics']} ({res['episodes']} episodes{filt}{task})")
-    for name in ("layout", "safety_rate", "completion_rate", "mean_return", "distance driven"):
+    recurrence = "accepting_visits_per_episode" in res  # a patrol completes nothing: its visits instead
+    score = "visits / optimum" if recurrence else "completion_rate"
+    for name in ("layout", "safety_rate", score, "mean_return", "distance driven"):
         t.add_column(name, justify="left" if name == "layout" else "right")
 
+    def visits(r: dict) -> str:
+        best, frac = r.get("route_optimal_visits"), r.get("visit_fraction")
+        of = f" of {best}" if best is not None else ""
+        return f"{r['accepting_visits_per_episode']:.2f}{of}" + ("" if frac is None else f" ({100 * frac:.1f}%)")
+
     def row(name: str, r: dict, **style) -> None:
-        t.add_row(name, f"{100 * r['safety_rate']:.2f}%", f"{100 * r['completion_rate']:.2f}%",
+        t.add_row(name, f"{100 * r['safety_rate']:.2f}%", visits(r) if recurrence else f"{100 * r['completion_rate']:.2f}%",
                   f"{r['mean_return']:.2f}", f"{r['mean_distance']:.2f} m", **style)
 
     per = res["per_layout"]
@@ -107,7 +114,7 @@ def print_evaluation(res: dict, path: Path, filter_asked: bool | None) -> None:
             row(r["layout"], r, style="red" if r["safety_rate"] < 1.0 else None)
         row(f"all {len(per)}", res, end_section=False, style="bold")
     else:
-        row(per[0]["layout"], res)
+        row(per[0]["layout"], {**res, "route_optimal_visits": per[0].get("route_optimal_visits")})
     Console().print(t)
     if "accepting_visits_per_episode" in res:  # a Büchi task: scored by its accepting visits too
         optimum = "" if res.get("visit_fraction") is None else f" ({100 * res['visit_fraction']:.1f}% of the route-optimal count)"
