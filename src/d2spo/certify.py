@@ -35,7 +35,7 @@ from d2spo.envs import geometry
 from d2spo.errors import RunDirError
 from d2spo.fields import check_fields
 from d2spo.map_plots import certify_figure
-from d2spo.run import build, load_run_config
+from d2spo.run import build, carry_template, load_run_config
 from d2spo.runio import atomic_write_json
 from d2spo.safety import bounds
 from d2spo.safety import certify as cert
@@ -99,7 +99,7 @@ def load_cbf_run(run_dir: Path) -> CBFRun:
     if not has_checkpoint(run_dir):
         raise RunDirError(f"{run_dir}: no checkpoint (checkpoint.json) to certify")
     env, params, learner = build(cfg)
-    template = jax.eval_shape(learner.init, jax.random.PRNGKey(0))
+    template = carry_template(learner)
     carry, meta = load_checkpoint(run_dir, template, run_fingerprint(run_dir))
     got = jax.tree_util.tree_leaves(carry)
     want = jax.tree_util.tree_leaves(template)

@@ -116,7 +116,7 @@ def print_evaluation(res: dict, path: Path, filter_asked: bool | None) -> None:
     else:
         row(per[0]["layout"], {**res, "route_optimal_visits": per[0].get("route_optimal_visits")})
     Console().print(t)
-    if "accepting_visits_per_episode" in res:  # a Büchi task: scored by its accepting visits too
+    if recurrence:  # a Büchi task: scored by its accepting visits too
         optimum = "" if res.get("visit_fraction") is None else f" ({100 * res['visit_fraction']:.1f}% of the route-optimal count)"
         print(f"accepting visits per episode: {res['accepting_visits_per_episode']:.2f}{optimum}")
     print(f"wrote {path}")
