@@ -147,6 +147,13 @@ def test_the_generalist_flag_is_for_d2spo():
         TrainConfig(algo="tlgrl", generalist=True)
     with pytest.raises(ConfigError, match="generalist_layouts"):
         TrainConfig(generalist=True, generalist_layouts=0)
+    # the annealed radius of Sec. IV-C does not reach the generalist's drawn layouts: refused, not ignored
+    from d2spo.ltl.anneal import AnnealConfig
+
+    with pytest.raises(ConfigError, match="anneal: has no effect with --generalist"):
+        TrainConfig(generalist=True, anneal=AnnealConfig(enabled=False)).check()
+    TrainConfig(generalist=True).check()
+    TrainConfig(anneal=AnnealConfig(enabled=False)).check()
 
 
 def test_a_union_runs_each_automaton_from_its_own_initial_state():

@@ -187,7 +187,14 @@ class TrainConfig:
         """This config, if this machine can hold a run of it (``seeds`` vmapped together): every field
         is checked when it is made (``__post_init__``), the memory its arrays need here, from the
         config alone (``d2spo.memory``), before anything is built. A config.json that is read back
-        (to evaluate a run) is not held to this machine's memory."""
+        (to evaluate a run) is not held to this machine's memory, nor to the check below, which
+        came after generalists had been trained with the anneal settings recorded.
+
+        The generalist draws each episode's layout with its areas' true radii
+        (``envs.generalist``), so ``--anneal.*`` would change nothing there: refused, not ignored."""
+        if self.generalist and self.anneal != AnnealConfig():
+            raise ConfigError("anneal", "has no effect with --generalist: every layout it draws is labelled "
+                              "with its areas' true radii (docs/config.md); leave --anneal.* out")
         check_memory(self, seeds)
         return self
 
