@@ -219,3 +219,18 @@ def test_a_zero_shot_patrol_is_scored_against_each_layouts_route_optimal_visits(
     assert lay["route_optimal_visits"] == best >= 2 and lay["visit_fraction"] == 0.0 == res["visit_fraction"]
     # the table's row gives the visits against the layout's optimum, not a completion rate of 0
     assert "visits / optimum" in out and f"0.00 of {best} (0.0%)" in out and "completion_rate" not in out
+
+
+def test_layout_seeds_walks_every_drawn_family_and_is_refused_elsewhere():
+    """``--layout-seeds N`` names N layouts of any drawn family (docs/layouts.md promises it for
+    ``zones``); on a fixed layout it is one line, not a silent single layout."""
+    from d2spo.errors import ConfigError
+    from d2spo.evaluate import EvalConfig
+
+    assert EvalConfig(layout="world:50000", layout_seeds=3).layouts() == ["world:50000", "world:50001", "world:50002"]
+    assert EvalConfig(layout="zones:7", layout_seeds=2).layouts() == ["zones:7", "zones:8"]
+    assert EvalConfig(layout="random5", layout_seeds=2).layouts() == ["random5:0", "random5:1"]
+    assert EvalConfig(layout="paper").layouts() == ["paper"]
+    for layout in ("paper", None, "worlds:3", "tests/data/layouts/handmade/corridor-5.json"):
+        with pytest.raises(ConfigError, match="layout_seeds: only applies with a drawn layout"):
+            EvalConfig(layout=layout, layout_seeds=2)

@@ -23,7 +23,7 @@ from d2spo.algos import has_runtime_filter
 from d2spo.config import TrainConfig
 from d2spo.envs import dynamics as dyn
 from d2spo.envs.env_config import EnvConfig
-from d2spo.envs.layouts import layout_file, random_seed
+from d2spo.envs.layouts import RANDOM_KINDS, layout_file, random_seed
 from d2spo.errors import ConfigError, NaNError
 from d2spo.fields import check_choice, check_fields, field_docstring
 from d2spo.inputs import sha256_of
@@ -65,8 +65,8 @@ class EvalConfig:
     seed: int = 0
     """Seed of the evaluation episodes."""
     layout_seeds: int = 1
-    """With --layout random[:SEED] or random5[:SEED]: average over this many random layouts (seeds
-    SEED..SEED+n-1)."""
+    """With a drawn --layout (random, random5, zones or world[:SEED]): average over this many
+    layouts of it (seeds SEED..SEED+n-1)."""
     runtime_filter: bool | None = None
     """D²SPO only: switch the runtime safety filter on or off for this evaluation; default: as trained on
     the training layout and dynamics, on elsewhere (π_Ω alone transfers poorly to unseen layouts)."""
@@ -83,18 +83,25 @@ class EvalConfig:
         check_fields(self, nullable=("filter_iters", "filter_alpha"), count=("episodes", "layout_seeds"),
                      seed=("seed",), natural=("filter_iters",), positive=("filter_alpha",))
         check_choice(self, "policy", POLICY_CHOICES)
-        if self.layout_seeds != 1 and not (self.layout or "").startswith("random"):
-            raise ConfigError("layout_seeds", f"only applies with --layout random[:SEED] or random5[:SEED], got "
-                              f"{self.layout_seeds} with layout {self.layout or 'as trained'!r}")
+        if self.layout_seeds != 1 and _family(self.layout) is None:
+            raise ConfigError("layout_seeds", f"only applies with a drawn layout, --layout "
+                              f"{'|'.join(RANDOM_KINDS)}[:SEED], got {self.layout_seeds} with layout "
+                              f"{self.layout or 'as trained'!r}")
 
     def layouts(self) -> list[str | None]:
         """The layouts evaluated: ``layout`` (None: the training one), or with ``layout_seeds`` > 1 the
-        random layouts SEED .. SEED + n - 1."""
-        if self.layout is not None and self.layout.startswith("random") and self.layout_seeds > 1:
-            kind, _, base = self.layout.partition(":")  # random:SEED or random5:SEED
+        drawn layouts KIND:SEED .. KIND:SEED + n - 1 (KIND: random, random5, zones or world)."""
+        if _family(self.layout) is not None and self.layout_seeds > 1:
+            kind, _, base = self.layout.partition(":")  # e.g. random:SEED, zones:SEED
             if base.isdigit() or not base:  # else layouts.load names the bad seed
                 return [f"{kind}:{int(base or 0) + i}" for i in range(self.layout_seeds)]
         return [self.layout]
+
+def _family(layout: str | None) -> str | None:
+    """The family of a drawn layout name (``random:3`` -> ``random``, ``world`` -> ``world``), else None."""
+    kind = (layout or "").partition(":")[0]
+    return kind if kind in RANDOM_KINDS else None
+
 
 EFFECT_FIELDS = ("actuator_tau", "v_gain", "omega_gain", "slip", "noise_xy", "noise_theta")
 """What ``d2spo eval --dynamics PRESET`` changes."""
