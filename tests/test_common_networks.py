@@ -112,3 +112,23 @@ def test_modules_shapes_ranges_and_independence():
     _, ls = sac.apply(sp, big)
     assert float(jnp.min(ls)) >= -5.0 and float(jnp.max(ls)) <= 2.0
     assert float(jnp.max(ls) - jnp.min(ls)) > 0.1  # state dependent
+
+
+def test_critic_layer_norm_adds_a_norm_per_hidden_layer_and_is_off_by_default():
+    """``--td3.critic-layer-norm``: a LayerNorm after each hidden Dense of both critics; off, the
+    parameters (and so old checkpoints) are those of before."""
+    from d2spo.algos.td3 import TD3Config, make_nets
+
+    obs, act = jnp.ones((3, 5)), jnp.zeros((3, 2))
+    plain = make_nets(2, TD3Config(hidden=(8, 8))).critic
+    normed = make_nets(2, TD3Config(hidden=(8, 8), critic_layer_norm=True)).critic
+    p_plain = plain.init(jax.random.PRNGKey(0), obs, act)
+    p_normed = normed.init(jax.random.PRNGKey(0), obs, act)
+    names = lambda p: sorted(jax.tree_util.keystr(k) for k, _ in jax.tree_util.tree_leaves_with_path(p))  # noqa: E731
+    assert not any("LayerNorm" in n for n in names(p_plain))
+    assert sum("LayerNorm_0']['scale" in n or "LayerNorm_1']['scale" in n for n in names(p_normed)) == 2
+    q = normed.apply(p_normed, obs, act)
+    assert q.shape == (2, 3) and bool(jnp.all(jnp.isfinite(q)))
+    assert not np.allclose(np.asarray(plain.apply(p_plain, obs, act)), np.asarray(q))
+    with pytest.raises(Exception, match="critic_layer_norm"):
+        TD3Config(critic_layer_norm="yes")

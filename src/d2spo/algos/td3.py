@@ -64,6 +64,8 @@ class TD3Config:
     """Random-action transitions before learning starts."""
     updates_per_step: int = 1
     """Gradient updates per vectorised env step."""
+    critic_layer_norm: bool = False
+    """LayerNorm in the critics' hidden layers."""
 
     @property
     def widths(self) -> tuple[int, ...]:
@@ -74,7 +76,7 @@ class TD3Config:
         check_fields(self, "td3", nullable=("hidden",), widths=("hidden",), lr=("actor_lr", "critic_lr"), discount=("gamma",),
                      rate=("tau",), non_negative=("policy_noise", "noise_clip", "exploration_noise"),
                      count=("policy_delay", "batch_size", "buffer_size", "updates_per_step"),
-                     natural=("learning_starts",))
+                     natural=("learning_starts",), flag=("critic_layer_norm",))
 
 
 @struct.dataclass
@@ -101,7 +103,7 @@ class TD3Nets:
 def make_nets(action_size: int, cfg: TD3Config) -> TD3Nets:
     return TD3Nets(
         actor=DeterministicActor(action_size, cfg.widths),
-        critic=TwinQ(cfg.widths),
+        critic=TwinQ(cfg.widths, layer_norm=cfg.critic_layer_norm),
         actor_tx=optax.adam(cfg.actor_lr),
         critic_tx=optax.adam(cfg.critic_lr),
     )

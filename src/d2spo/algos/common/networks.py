@@ -39,11 +39,14 @@ class MLP(nn.Module):
     activation: Activation = nn.relu
     kernel_init: Initializer = nn.initializers.lecun_normal()
     final_kernel_init: Initializer = nn.initializers.lecun_normal()
+    layer_norm: bool = False
+    """LayerNorm between each hidden Dense and its activation."""
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
         for width in self.hidden:
-            x = self.activation(nn.Dense(width, kernel_init=self.kernel_init)(x))
+            x = nn.Dense(width, kernel_init=self.kernel_init)(x)
+            x = self.activation(nn.LayerNorm()(x) if self.layer_norm else x)
         if self.out_dim is not None:
             x = nn.Dense(self.out_dim, kernel_init=self.final_kernel_init)(x)
         return x
@@ -66,11 +69,12 @@ class QNetwork(nn.Module):
 
     hidden: Sequence[int] = (256, 256)
     activation: Activation = nn.relu
+    layer_norm: bool = False
 
     @nn.compact
     def __call__(self, obs: jax.Array, action: jax.Array) -> jax.Array:
         x = jnp.concatenate([obs, action], axis=-1)
-        return MLP(self.hidden, 1, self.activation)(x)[..., 0]
+        return MLP(self.hidden, 1, self.activation, layer_norm=self.layer_norm)(x)[..., 0]
 
 
 class TwinQ(nn.Module):
@@ -79,6 +83,7 @@ class TwinQ(nn.Module):
     hidden: Sequence[int] = (256, 256)
     n_critics: int = 2
     activation: Activation = nn.relu
+    layer_norm: bool = False
 
     @nn.compact
     def __call__(self, obs: jax.Array, action: jax.Array) -> jax.Array:
@@ -90,7 +95,7 @@ class TwinQ(nn.Module):
             out_axes=0,
             axis_size=self.n_critics,
         )
-        return ensemble(self.hidden, self.activation)(obs, action)
+        return ensemble(self.hidden, self.activation, self.layer_norm)(obs, action)
 
 
 class ValueNetwork(nn.Module):
