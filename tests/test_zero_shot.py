@@ -166,6 +166,22 @@ def test_eval_runs_the_validated_policy_unless_the_last_is_asked_for(gen_run, tm
     assert meta["policy"].startswith("last") and all(np.all(x == 0) for x in jax.tree_util.tree_leaves(again))
     with pytest.raises(ConfigError, match="best, last"):
         load_policy(run, "first")
+    # shared without its checkpoints (the replay buffer makes them hundreds of MB): config.json,
+    # summary.json and the validated policy are enough for "best"; "last" needs a checkpoint
+    from d2spo.errors import RunDirError
+
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    for name in ("config.json", best_policy_path(run).name):
+        shutil.copy(run / name, shared / name)
+    with pytest.raises(RunDirError):  # no summary.json: nothing says which policy this is
+        load_policy(shared)
+    (shared / "summary.json").write_text(json.dumps({"episodes": 10, "validation": {"best": {"episodes": 7}}}))
+    _, _, best, meta = load_policy(shared)
+    assert meta["policy"] == "best on validation (after 7 episodes)" and meta["episodes"] == 10
+    assert all(np.all(x == 1) for x in jax.tree_util.tree_leaves(best))
+    with pytest.raises(RunDirError):
+        load_policy(shared, "last")
 
 
 def test_the_validation_layouts_are_held_out():

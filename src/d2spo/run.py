@@ -10,6 +10,7 @@ checkpoints, the lock) are described in docs/runs.md.
 from __future__ import annotations
 
 import dataclasses
+import json
 import weakref
 from pathlib import Path
 
@@ -200,6 +201,22 @@ def load_snapshot(run_dir: Path, episodes: int, learner, key: jax.Array | None =
 
 
 
+def _shared_best(run_dir: Path) -> dict | None:
+    """The meta of a finished generalist's validated policy read from summary.json, for a run
+    directory that holds config.json, summary.json and the policy but no checkpoint (none was
+    written, or it was left behind to share the run); None if any of them is missing."""
+    summary = Path(run_dir) / "summary.json"
+    if not (summary.is_file() and best_policy_path(run_dir).is_file()):
+        return None
+    try:
+        record = json.loads(summary.read_text())
+        best, trained = record["validation"]["best"], int(record["episodes"])
+        kept = int(best["episodes"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return {"policy": f"best on validation (after {kept} episodes)", "best": best, "episodes": trained}
+
+
 POLICY_CHOICES = ("best", "last")
 """Which policy of a run ``load_policy`` returns (``d2spo eval --policy``)."""
 
@@ -216,6 +233,9 @@ def load_policy(run_dir: Path, which: str = "best", learner=None):
     if learner is None:
         # a generalist's checkpoint holds no layout: a one-layout bank gives the same shapes, fast
         _, _, learner = build(dataclasses.replace(cfg, generalist_layouts=1, generalist_tasks=0) if cfg.generalist else cfg)
+    shared = _shared_best(run_dir) if which == "best" and not has_checkpoint(run_dir) else None
+    if shared is not None:  # a finished generalist copied without its checkpoints (the replay: hundreds of MB)
+        return cfg, learner, load_best_policy(run_dir, learner), shared
     carry, meta = load_checkpoint(run_dir, carry_template(learner), run_fingerprint(run_dir))
     meta = dict(meta)
     best = meta.get("best")
