@@ -108,3 +108,36 @@ def test_tensorboard_holds_one_value_per_episode_at_its_index(tmp_path):
     assert got["episode/cost"] == [(0, 1.0), (1, 0.0), (2, 0.0), (3, 1.0), (4, 0.0)]
     assert got["episode/completed"] == [(0, 0.0), (1, 0.0), (2, 1.0), (3, 1.0), (4, 1.0)]
     assert set(EPISODE_SCALARS) <= set(got)
+
+
+def test_a_checkpoint_makes_every_scalar_logged_before_it_durable(tmp_path, monkeypatch):
+    """tensorboardX queues events for a writer thread, and its flush() writes out only what that
+    thread has taken; before a checkpoint the record drains the queue (``durable_tensorboard``), so
+    what TensorBoard holds on disk reaches the checkpoint even if the process dies right after it.
+    The writer thread is held back here, as a loaded machine does."""
+    import threading
+
+    from tensorboardX import event_file_writer
+
+    from d2spo.record import _tensorboard, durable_tensorboard
+
+    slow = threading.Event()
+    write = event_file_writer.EventsWriter.write_event
+
+    def held_back(self, event):
+        slow.wait(0.002)  # a busy machine: the thread takes events from the queue slowly
+        return write(self, event)
+
+    monkeypatch.setattr(event_file_writer.EventsWriter, "write_event", held_back)
+    tb = _tensorboard(tmp_path)
+    for step in range(300):
+        tb.add_scalar("episode/return", float(step), step)
+    tb.flush()  # what the record did before: the queue is not drained
+    assert len(tb_scalars(tmp_path).get("episode/return", [])) < 300, "the writer thread was not held back"
+    tb = durable_tensorboard(tb, tmp_path, 1)
+    assert [s for s, _ in tb_scalars(tmp_path)["episode/return"]] == list(range(300))
+    tb.add_scalar("episode/return", 300.0, 300)  # it goes on, in a second event file of the same run
+    tb = durable_tensorboard(tb, tmp_path, 2)
+    assert [s for s, _ in tb_scalars(tmp_path)["episode/return"]] == list(range(301))
+    assert len(list(tmp_path.glob("events.out.tfevents.*"))) == 3
+    tb.close()

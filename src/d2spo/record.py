@@ -123,7 +123,7 @@ class RunRecord:
         for k, v in (overhead or {}).items():
             self.meta[k] = self.meta.get(k, 0.0) + v
         self.writer = EpisodeWriter(self.out / "episodes.csv", keep_rows=self.meta["episodes"])
-        self.tb = _tensorboard(self.out / "tb")
+        self.tb, self.tb_part = _tensorboard(self.out / "tb"), 0
         every = cfg.checkpoint_every
         self.next_ckpt = (self.meta["episodes"] // every + 1) * every
         if validation is not None:
@@ -195,7 +195,8 @@ class RunRecord:
             self.validate(learner.policy(carry))
         if force or n_done >= self.next_ckpt or self.done:
             self.writer.sync()
-            self.tb.flush()  # what TensorBoard shows survives a kill as far as the checkpoint does
+            self.tb_part += 1  # TensorBoard survives a kill as far as the checkpoint does
+            self.tb = durable_tensorboard(self.tb, self.out / "tb", self.tb_part)
             self.checkpoints.save(carry, self.meta)
             every = self.cfg.checkpoint_every
             self.next_ckpt = (n_done // every + 1) * every
@@ -300,5 +301,20 @@ class Validation:
                 "safety_rate": out["safety_rate"]}
 
 
-def _tensorboard(path: Path) -> SummaryWriter:
-    return SummaryWriter(str(path), flush_secs=30)
+def _tensorboard(path: Path, part: int = 0) -> SummaryWriter:
+    """A writer of a new event file in ``path``; ``part`` > 0 names the file after an earlier one
+    of the same second (``durable_tensorboard``)."""
+    return SummaryWriter(str(path), flush_secs=30, filename_suffix=f".{part:06d}" if part else "")
+
+
+def durable_tensorboard(writer: SummaryWriter, path: Path, part: int) -> SummaryWriter:
+    """Every scalar ``writer`` was given, on disk; returns the writer to go on with.
+
+    tensorboardX hands events to a writer thread through a queue, and its ``flush()`` writes out
+    only what that thread has already taken: under load, the scalars of the last chunks before a
+    checkpoint could still be queued when the run was killed, and were lost (the W&B test saw it:
+    TensorBoard lacked two episodes W&B had). Closing the writer drains the queue first; the run
+    goes on in a new event file of the same directory (number ``part``), which TensorBoard reads as
+    one run."""
+    writer.close()
+    return _tensorboard(path, part)
