@@ -182,6 +182,17 @@ def test_eval_runs_the_validated_policy_unless_the_last_is_asked_for(gen_run, tm
     assert all(np.all(x == 1) for x in jax.tree_util.tree_leaves(best))
     with pytest.raises(RunDirError):
         load_policy(shared, "last")
+    # ... or with the checkpoints' manifests but not their state files: the same, with a warning
+    from d2spo.errors import RunDirWarning
+
+    for name in ("checkpoint.json", "checkpoint.prev.json"):
+        if (run / name).exists():
+            shutil.copy(run / name, shared / name)
+    with pytest.warns(RunDirWarning, match="no usable checkpoint.*the validated policy and summary.json"):
+        _, _, best, meta = load_policy(shared)
+    assert meta["policy"] == "best on validation (after 7 episodes)"
+    with pytest.raises(RunDirError, match="no usable checkpoint"):
+        load_policy(shared, "last")
 
 
 def test_the_validation_layouts_are_held_out():

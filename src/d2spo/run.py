@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import warnings
 import weakref
 from pathlib import Path
 
@@ -23,7 +24,7 @@ from d2spo.checkpoint import has_checkpoint, load_checkpoint, run_fingerprint
 from d2spo.config import TrainConfig, config_differences, config_from_dict, config_to_dict
 from d2spo.envs import layouts, make_env
 from d2spo.envs.preflight import preflight
-from d2spo.errors import ConfigError, RunDirError
+from d2spo.errors import ConfigError, RunDirError, RunDirWarning
 from d2spo.inputs import sha256_of
 from d2spo.runio import atomic_write_bytes, atomic_write_json, read_json, remove_file, remove_tmp_files
 
@@ -233,10 +234,16 @@ def load_policy(run_dir: Path, which: str = "best", learner=None):
     if learner is None:
         # a generalist's checkpoint holds no layout: a one-layout bank gives the same shapes, fast
         _, _, learner = build(dataclasses.replace(cfg, generalist_layouts=1, generalist_tasks=0) if cfg.generalist else cfg)
-    shared = _shared_best(run_dir) if which == "best" and not has_checkpoint(run_dir) else None
-    if shared is not None:  # a finished generalist copied without its checkpoints (the replay: hundreds of MB)
+    shared = _shared_best(run_dir) if which == "best" else None
+    if shared is not None and not has_checkpoint(run_dir):  # a finished generalist copied without them
         return cfg, learner, load_best_policy(run_dir, learner), shared
-    carry, meta = load_checkpoint(run_dir, carry_template(learner), run_fingerprint(run_dir))
+    try:
+        carry, meta = load_checkpoint(run_dir, carry_template(learner), run_fingerprint(run_dir))
+    except RunDirError as e:  # e.g. copied without the state files (the replay: hundreds of MB)
+        if shared is None:
+            raise
+        warnings.warn(f"{e}; the validated policy and summary.json are used", RunDirWarning, stacklevel=2)
+        return cfg, learner, load_best_policy(run_dir, learner), shared
     meta = dict(meta)
     best = meta.get("best")
     if which == "best" and best is not None and best_policy_path(run_dir).is_file():
