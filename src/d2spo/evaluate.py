@@ -91,11 +91,12 @@ class EvalConfig:
     def layouts(self) -> list[str | None]:
         """The layouts evaluated: ``layout`` (None: the training one), or with ``layout_seeds`` > 1 the
         drawn layouts KIND:SEED .. KIND:SEED + n - 1 (KIND: random, random5, zones or world)."""
-        if _family(self.layout) is not None and self.layout_seeds > 1:
-            kind, _, base = self.layout.partition(":")  # e.g. random:SEED, zones:SEED
-            if base.isdigit() or not base:  # else layouts.load names the bad seed
-                return [f"{kind}:{int(base or 0) + i}" for i in range(self.layout_seeds)]
+        drawn = random_seed(self.layout) if self.layout is not None and self.layout_seeds > 1 else None
+        if drawn is not None:  # else layouts.load names a bad seed
+            kind, seed = drawn
+            return [f"{kind}:{seed + i}" for i in range(self.layout_seeds)]
         return [self.layout]
+
 
 def _family(layout: str | None) -> str | None:
     """The family of a drawn layout name (``random:3`` -> ``random``, ``world`` -> ``world``), else None."""

@@ -10,7 +10,6 @@ checkpoints, the lock) are described in docs/runs.md.
 from __future__ import annotations
 
 import dataclasses
-import json
 import warnings
 import weakref
 from pathlib import Path
@@ -210,10 +209,10 @@ def _shared_best(run_dir: Path) -> dict | None:
     if not (summary.is_file() and best_policy_path(run_dir).is_file()):
         return None
     try:
-        record = json.loads(summary.read_text())
+        record = read_json(summary, "the run's summary")
         best, trained = record["validation"]["best"], int(record["episodes"])
         kept = int(best["episodes"])
-    except (OSError, ValueError, KeyError, TypeError):
+    except (RunDirError, ValueError, KeyError, TypeError):
         return None
     return {"policy": f"best on validation (after {kept} episodes)", "best": best, "episodes": trained}
 

@@ -208,7 +208,7 @@ def load(name_or_path: str) -> Layout:
 
 
 def random_seed(name_or_path: str) -> tuple[str, int] | None:
-    """(kind, seed) of a procedural layout ``random[:SEED]`` or ``random5[:SEED]`` that ``load``
+    """(kind, seed) of a drawn layout ``KIND[:SEED]`` (KIND in ``RANDOM_KINDS``) that ``load``
     accepts; None for any other name."""
     kind, _, seed_text = name_or_path.partition(":")
     if kind not in RANDOM_KINDS or not (seed_text or name_or_path == kind):
