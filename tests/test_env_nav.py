@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from d2spo.envs import EnvConfig, geometry, make_env, sensors
+from d2spo.envs import EnvConfig, dynamics, geometry, make_env, sensors
 from d2spo.ltl.automaton import UNREACHABLE, AutomatonArrays
 from d2spo.ltl.reward import RewardConfig
 
@@ -174,6 +174,33 @@ def test_actions_are_clipped():
     np.testing.assert_array_equal(np.asarray(a[0].pose), np.asarray(b[0].pose))
     dt, w = float(params.dyn.dt), float(params.dyn.omega_max)
     assert float(a[0].pose[2]) == pytest.approx(-w * dt, abs=1e-6)
+
+
+def test_a_robot_that_cannot_reverse_spans_zero_to_v_max():
+    """``reverse=False``: a₀ = −1 stands still, 0 drives at v_max / 2, 1 at v_max, and random actions
+    never move the robot backwards; the default (reverse) commands a₀ · v_max exactly."""
+    kw = dict(preset="ideal", start_jitter_xy=0.0, start_jitter_theta=0.0, reward=NO_SHAPING)
+    env, params, step, _ = build("phi1", reverse=False, **kw)
+    v_max = float(params.dyn.v_max)
+    state, _ = jax.jit(env.reset)(jax.random.key(0), params)
+    for a0, v in ((-1.0, 0.0), (0.0, 0.5 * v_max), (1.0, v_max), (-3.0, 0.0)):
+        moved = step(jax.random.key(1), state, jnp.array([a0, 0.0]), params)[0].pose - state.pose
+        assert float(jnp.hypot(moved[0], moved[1])) == pytest.approx(v * float(params.dyn.dt), abs=1e-6)
+    key, s, moved = jax.random.key(3), state, 0.0
+    for t in range(40):
+        k_env, _, action = keys_and_actions(key, t, 1)
+        nxt, _, _, _, done, _ = step(k_env, s, action[0], params)
+        if not done:  # an episode's end resets the pose
+            heading = s.pose[2] + dynamics.wrap_angle(nxt.pose[2] - s.pose[2]) / 2  # midpoint integration
+            forward = (nxt.pose[0] - s.pose[0]) * jnp.cos(heading) + (nxt.pose[1] - s.pose[1]) * jnp.sin(heading)
+            assert float(forward) >= -1e-6, t
+            moved += float(forward)
+        s = nxt
+    assert moved > 0.5
+    _, reversing, *_ = build("phi1", **kw)
+    a = jnp.linspace(-1.0, 1.0, 9)
+    got = jax.vmap(lambda x: dynamics.command(jnp.stack([x, x]), reversing.dyn))(a)
+    np.testing.assert_array_equal(np.asarray(got[:, 0]), np.asarray(a * reversing.dyn.v_max))
 
 
 # --------------------------------------------------------------------------------- labelling

@@ -22,7 +22,7 @@ from d2spo import cli
 from d2spo.algos import make_learner
 from d2spo.config import TrainConfig
 from d2spo.deploy import Policy
-from d2spo.envs import EnvConfig, sensors
+from d2spo.envs import EnvConfig, dynamics, sensors
 from d2spo.errors import ArtefactError
 from d2spo.export import ExportConfig, export_run, write_export
 from d2spo.ltl.labelling import next_state
@@ -78,12 +78,14 @@ def tiny(tmp_path_factory):
 
 @pytest.fixture(scope="module", params=["paper", "office"])
 def case(request, tmp_path_factory):
-    """``tiny``, and a tiny run of "F desk & F kitchen" on ``OFFICE`` (disks, a shared label)."""
+    """``tiny``, and a tiny run of "F desk & F kitchen" on ``OFFICE`` (disks, a shared label) by a robot
+    that cannot reverse (``--no-reverse``)."""
     if request.param == "paper":
         return request.getfixturevalue("tiny")
     root = tmp_path_factory.mktemp("office")
     (root / "office.json").write_text(json.dumps(OFFICE))
-    return _tiny_run(root, tiny_cfg(layout=str(root / "office.json"), task="F desk & F kitchen"))
+    cfg = tiny_cfg(layout=str(root / "office.json"), task="F desk & F kitchen")
+    return _tiny_run(root, dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, reverse=False)).check())
 
 
 @pytest.fixture(scope="module")
@@ -189,6 +191,18 @@ def test_other_learners_export_their_actor(algo, case, states, tmp_path):
     assert np.abs(got - want).max() < 1e-5
     with pytest.raises(ValueError, match="no runtime filter"):
         policy.act_observation(obs[0], filter=True)
+
+
+def test_commands_are_the_envs(case):
+    """The exported (v, ω) of an action is the env's, for a robot that reverses and one that cannot."""
+    _, out, cfg, learner, _ = case
+    policy = Policy.load(out)
+    actions = np.array([[a, b] for a in (-1.5, -1.0, -0.3, 0.0, 0.6, 1.0) for b in (-1.0, 0.25)], np.float32)
+    want = np.asarray(jax.vmap(lambda a: dynamics.command(a, learner.params.dyn))(jnp.asarray(actions)))
+    got = np.array([policy.command(a) for a in actions])
+    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-7)
+    slowest = want[:, 0].min()
+    assert slowest == (0.0 if not cfg.env.reverse else -want[:, 0].max())
 
 
 def test_task_tracker_follows_the_envs_automaton(case):

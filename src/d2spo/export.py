@@ -121,8 +121,10 @@ def write_export(out: Path, cfg, built, policy, source: dict, ecfg: ExportConfig
                    "rays": "ray k points at heading + 2*pi*k/K (counter-clockwise, ray 0 straight ahead) from the "
                            "robot centre; a range is the distance (m) to the first surface hit, clipped to [0, H]"},
         "action": {"size": env.action_size, "low": -1.0, "high": 1.0, "v_max": float(env.config.v_max),
+                   "v_min": -float(env.config.v_max) if env.config.reverse else 0.0,
                    "omega_max": float(env.config.omega_max), "dt": float(env.config.dt),
-                   "command": "v = a[0] * v_max, omega = a[1] * omega_max, a clipped to [-1, 1]"},
+                   "command": "v = v_min + (a[0] + 1) / 2 * (v_max - v_min), omega = a[1] * omega_max, "
+                              "a clipped to [-1, 1]"},
         "robot": {"radius": float(env.config.robot_radius)},
         "layout": _layout(env, params),
         "automaton": _automaton(env, params),

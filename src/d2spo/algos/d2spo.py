@@ -263,7 +263,8 @@ class D2SPOLearner(TD3Learner):
                                              self.cbf_cfg.pretrain_samples, cfg=self.cbf_cfg)
             prior = None
             if self.d2.kinematic_prior:
-                prior = unicycle_prior(float(self.env.config.v_max), float(self.env.config.omega_max))
+                env_cfg = self.env.config
+                prior = unicycle_prior(float(env_cfg.v_max), float(env_cfg.omega_max), None if env_cfg.reverse else 0.0)
             safety, _ = cautious_start(k_pre, safety, pre, nets=self.safety_nets, cfg=self.cbf_cfg,
                                        features_fn=self.features, dt=self.dt, prior=prior,
                                        action_dim=self.env.action_size)

@@ -80,6 +80,7 @@ class Policy:
         """Whether ``act`` filters by default: as the run was trained, or as ``d2spo export`` set it."""
         act = m["action"]
         self.v_max, self.omega_max = float(act["v_max"]), float(act["omega_max"])
+        self.v_mid = 0.5 * (self.v_max + float(act.get("v_min", -self.v_max)))  # no v_min: a robot that reverses
         self._session = None
         if backend == "onnxruntime":
             self._session = _onnx_session(self.directory, m)
@@ -202,9 +203,10 @@ class Policy:
         return self._session.run(["action"], feeds)[0][0]
 
     def command(self, action) -> tuple[float, float]:
-        """(v, ω) the robot is commanded: the action clipped to [-1, 1] times (v_max, ω_max)."""
+        """(v, ω) the robot is commanded: the action clipped to [-1, 1], a₀ mapped onto [v_min, v_max]
+        (v = a₀ · v_max for a robot that reverses) and a₁ times ω_max."""
         a = np.clip(np.asarray(action, F32), -1.0, 1.0)
-        return float(a[0]) * self.v_max, float(a[1]) * self.omega_max
+        return float(a[0]) * (self.v_max - self.v_mid) + self.v_mid, float(a[1]) * self.omega_max
 
     def task_tracker(self) -> TaskTracker:
         """A fresh tracker of the automaton state (``TaskTracker.reset`` it at the start pose)."""

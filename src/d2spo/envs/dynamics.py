@@ -4,7 +4,9 @@ Learners never see this module: it is the black box f of Eq. (1). The nominal mo
 D²SPO fits (Eq. (5)) lives in ``d2spo.safety.nominal``.
 
 State s = (x, y, theta). The agent's action a in [-1, 1]^2 is clipped to that box and scaled to the
-commanded velocities (v, omega) = (a_0 * v_max, a_1 * omega_max). Then, per step of length dt:
+commanded velocities (v, omega) = (a_0 * v_max, a_1 * omega_max); a robot that cannot reverse
+(``EnvConfig.reverse`` False) maps a_0 onto [0, v_max] instead: v = (a_0 + 1) / 2 * v_max. Then,
+per step of length dt:
 
 1. actuator lag: the realised velocities follow the commands through a first-order lag with time
    constant ``actuator_tau`` (exact discretisation, alpha = 1 - exp(-dt / tau); tau = 0 means none);
@@ -169,14 +171,18 @@ class DynamicsParams:
     """Std of the process noise on x and y (m)."""
     noise_theta: jnp.ndarray
     """Std of the process noise on theta (rad)."""
+    v_mid: jnp.ndarray
+    """Commanded linear speed at a_0 = 0: 0 for a robot that reverses, v_max / 2 for one that cannot."""
 
     @classmethod
-    def create(cls, *, dt, v_max, omega_max, actuator_tau, v_gain, omega_gain, slip, noise_xy, noise_theta):
+    def create(cls, *, dt, v_max, omega_max, actuator_tau, v_gain, omega_gain, slip, noise_xy, noise_theta,
+               reverse=True):
         alpha = 1.0 if actuator_tau == 0 else 1.0 - math.exp(-dt / actuator_tau)
         f = lambda v: jnp.asarray(v, jnp.float32)
         return cls(
             dt=f(dt), v_max=f(v_max), omega_max=f(omega_max), lag_alpha=f(alpha), v_gain=f(v_gain),
             omega_gain=f(omega_gain), slip=f(slip), noise_xy=f(noise_xy), noise_theta=f(noise_theta),
+            v_mid=f(0.0 if reverse else 0.5 * v_max),
         )
 
 
@@ -187,9 +193,10 @@ def wrap_angle(theta: jnp.ndarray) -> jnp.ndarray:
 
 
 def command(action: jnp.ndarray, dyn: DynamicsParams) -> jnp.ndarray:
-    """Commanded (v, omega) [2] from an action in [-1, 1]^2 (out-of-range actions are clipped)."""
+    """Commanded (v, omega) [2] from an action in [-1, 1]^2 (out-of-range actions are clipped): v spans
+    [-v_max, v_max], or [0, v_max] for a robot that cannot reverse (v_mid = v_max / 2)."""
     a = jnp.clip(action, -1.0, 1.0)
-    return jnp.stack([a[0] * dyn.v_max, a[1] * dyn.omega_max])
+    return jnp.stack([a[0] * (dyn.v_max - dyn.v_mid) + dyn.v_mid, a[1] * dyn.omega_max])
 
 
 def unicycle_step(

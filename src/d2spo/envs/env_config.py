@@ -41,6 +41,8 @@ class EnvConfig:
     """Control period (s). Preset: 0.1, turtlebot 0.2."""
     v_max: float | None = None
     """Top linear speed (m/s). Preset: 1.0, turtlebot 0.22."""
+    reverse: bool = True
+    """The robot may drive backwards: a[0] spans [-v_max, v_max]; False: [0, v_max] (forward only)."""
     omega_max: float | None = None
     """Top turn rate (rad/s). Preset: 2.5, turtlebot 2.84."""
     robot_radius: float | None = None
@@ -85,7 +87,7 @@ class EnvConfig:
                      positive=("dt", "v_max", "omega_max", "robot_radius", "sensing_radius", "layout_scale",
                                "v_gain", "omega_gain", "label_radius"),
                      non_negative=("actuator_tau", "noise_xy", "noise_theta", "start_jitter_xy", "start_jitter_theta"),
-                     count=("max_steps", "base_max_steps", "n_rays"), flag=("collision_terminates", "observe_path"))
+                     count=("max_steps", "base_max_steps", "n_rays"), flag=("collision_terminates", "observe_path", "reverse"))
         if self.slip is not None and not (isinstance(self.slip, (int, float)) and 0 <= self.slip < 1):
             raise ConfigError("slip", f"must be in [0, 1), got {self.slip!r}")
         check_choice(self, "label_mode", LABEL_MODES)

@@ -86,6 +86,7 @@ def robot_fields(cfg: EnvConfig, max_steps: int) -> dict:
         dyn=DynamicsParams.create(
             dt=cfg.dt, v_max=cfg.v_max, omega_max=cfg.omega_max, actuator_tau=cfg.actuator_tau, v_gain=cfg.v_gain,
             omega_gain=cfg.omega_gain, slip=cfg.slip, noise_xy=cfg.noise_xy, noise_theta=cfg.noise_theta,
+            reverse=cfg.reverse,
         ),
         robot_radius=_f32(cfg.robot_radius),
         sensing_radius=_f32(cfg.sensing_radius),
