@@ -132,3 +132,25 @@ def test_critic_layer_norm_adds_a_norm_per_hidden_layer_and_is_off_by_default():
     assert not np.allclose(np.asarray(plain.apply(p_plain, obs, act)), np.asarray(q))
     with pytest.raises(Exception, match="critic_layer_norm"):
         TD3Config(critic_layer_norm="yes")
+
+
+def test_a_forward_only_actor_proposes_in_its_box_and_explores_there():
+    """``--td3.forward-only``: a[0] = (1 + tanh) / 2 in [0, 1], a[1] = tanh in [-1, 1], from the same
+    parameters as the plain actor; warm-up and noisy behaviour actions stay in that box too."""
+    from d2spo.algos.td3 import TD3Config, explore, init_agent, make_nets
+
+    key = jax.random.PRNGKey(0)
+    big = 1e3 * jax.random.normal(key, (64, 4))
+    plain_nets, fwd_nets = make_nets(2, TD3Config(hidden=(16,))), make_nets(2, TD3Config(hidden=(16,), forward_only=True))
+    assert plain_nets.actor.low is None and fwd_nets.actor.low == (0.0, -1.0)
+    agent = init_agent(key, fwd_nets, 4, 2)
+    plain = np.asarray(plain_nets.actor.apply(agent.actor, big))
+    fwd = np.asarray(fwd_nets.actor.apply(agent.actor, big))
+    np.testing.assert_allclose(fwd[:, 0], (1.0 + plain[:, 0]) / 2.0, atol=1e-6)
+    np.testing.assert_array_equal(fwd[:, 1], plain[:, 1])
+    assert fwd[:, 0].min() >= 0.0 and fwd[:, 0].max() > 0.9 and plain[:, 0].min() < -0.5
+    for random_phase in (True, False):
+        a = np.asarray(explore(fwd_nets, agent, big, jax.random.PRNGKey(1), jnp.asarray(random_phase), 0.5))
+        assert a[:, 0].min() >= 0.0 and a[:, 1].min() < -0.2 and np.abs(a).max() <= 1.0
+        b = np.asarray(explore(plain_nets, agent, big, jax.random.PRNGKey(1), jnp.asarray(random_phase), 0.5))
+        assert b[:, 0].min() < -0.2

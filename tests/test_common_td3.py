@@ -149,3 +149,12 @@ def test_actor_loss_through_a_safety_layer():
     block = lambda s, u: jnp.zeros_like(u)
     g = jax.grad(lambda p: td3_actor_loss(p, critic, obs, actor_apply, critic_apply, None, block, 1.0)[0])(0.3)
     assert float(g) > 0  # shrinking p moves pi(s) = p s toward 0
+
+
+def test_target_smoothing_stays_in_the_actors_box():
+    """A forward-only actor's target action is clipped at its own low bound, not at -1."""
+    obs = jnp.full((256, 1), -0.2)  # pi'(s') = -0.2 with p = 1: below the box [0, 1]
+    a = target_policy_action(jax.random.PRNGKey(3), 1.0, obs, actor_apply, 0.3, 0.5, low=0.0)
+    assert float(jnp.min(a)) == 0.0 and float(jnp.max(a)) > 0.0
+    b = target_policy_action(jax.random.PRNGKey(3), 1.0, obs, actor_apply, 0.3, 0.5)
+    assert float(jnp.min(b)) < -0.3

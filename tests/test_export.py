@@ -79,13 +79,15 @@ def tiny(tmp_path_factory):
 @pytest.fixture(scope="module", params=["paper", "office"])
 def case(request, tmp_path_factory):
     """``tiny``, and a tiny run of "F desk & F kitchen" on ``OFFICE`` (disks, a shared label) by a robot
-    that cannot reverse (``--no-reverse``)."""
+    that cannot reverse (``--no-reverse``) with an actor that proposes forward motion only
+    (``--td3.forward-only``: its export ends with a linear layer)."""
     if request.param == "paper":
         return request.getfixturevalue("tiny")
     root = tmp_path_factory.mktemp("office")
     (root / "office.json").write_text(json.dumps(OFFICE))
     cfg = tiny_cfg(layout=str(root / "office.json"), task="F desk & F kitchen")
-    return _tiny_run(root, dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, reverse=False)).check())
+    return _tiny_run(root, dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, reverse=False),
+                                               td3=dataclasses.replace(cfg.td3, forward_only=True)).check())
 
 
 @pytest.fixture(scope="module")
@@ -147,6 +149,9 @@ def test_actions_equal_the_jax_policys_without_the_filter(case, states):
     print(f"no filter: max abs difference {np.abs(from_obs - want).max():.3g} (observations), "
           f"{np.abs(from_sensors - want).max():.3g} (readings)")
     assert np.abs(from_obs - want).max() < 1e-5 and np.abs(from_sensors - want).max() < 1e-5
+    u_rl = policy.actor(obs)  # the proposals: forward only where the actor was trained so
+    np.testing.assert_allclose(u_rl, np.asarray(case[3].nets.actor.apply(case[4][0], obs)), atol=1e-5)
+    assert (u_rl[:, 0] >= 0).all() if case[2].td3.forward_only else (u_rl[:, 0] < 0).any()
 
 
 def test_actions_equal_the_jax_policys_with_the_filter(case, states):

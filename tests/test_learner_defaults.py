@@ -54,3 +54,15 @@ def test_fast_on_the_command_line_for_another_learner_is_one_line(capsys):
     assert main(["train", "--algo", "tlgrl", "--fast", "--episodes", "1"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("d2spo: error: fast:")
+
+
+def test_the_generalists_actor_proposes_forward_motion_and_old_runs_keep_theirs():
+    """``td3.forward_only`` None: on for the generalist, off on one layout; a config.json written
+    before the field existed (a generalist whose actor could propose reverse) reads back off."""
+    gen = TrainConfig(algo="d2spo", generalist=True)
+    assert gen.td3.forward_only is True and TrainConfig(algo="d2spo").td3.forward_only is False
+    assert TrainConfig(algo="d2spo", generalist=True, td3=TD3Config(forward_only=False)).td3.forward_only is False
+    d = config_to_dict(gen)
+    assert d["td3"]["forward_only"] is True and config_from_dict(d).td3.forward_only is True
+    del d["td3"]["forward_only"]
+    assert config_from_dict(d).td3.forward_only is False

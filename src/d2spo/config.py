@@ -168,6 +168,8 @@ class TrainConfig:
                               f"{self.generalist_world}:{VALIDATION_SEED} on are the validation set")
         if self.d2spo.actor_through_safety is None:  # on for one layout, off for the generalist
             object.__setattr__(self, "d2spo", dataclasses.replace(self.d2spo, actor_through_safety=not self.generalist))
+        if self.td3.forward_only is None:  # on for the generalist, off for one layout
+            object.__setattr__(self, "td3", dataclasses.replace(self.td3, forward_only=self.generalist))
         if not isinstance(self.task, str) or not self.task.strip():
             raise ConfigError("task", f"expected a task name or an LTL formula, got {self.task!r}")
 
@@ -242,6 +244,7 @@ FORMER_DEFAULTS: dict[tuple[str, ...], Any] = {
     ("env", "reward", "shaping_clearance_cost"): 10.0,  # the per-state field's clearance band cost 10x until 2026-11-25
     ("env", "reward", "shaping_collide_cost"): 10.0,
     ("env", "observe_path"): False,  # the observation had no path direction until 2026-11-25
+    ("td3", "forward_only"): False,  # the generalist's actor could propose reverse until 2026-11-27
 }
 """Settings whose default has changed, with the value a config.json that does not mention them was
 trained with (the field did not exist yet, and its old behaviour is this value)."""

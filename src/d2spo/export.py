@@ -181,13 +181,18 @@ def _activation(module) -> str:
 
 def _actor_layers(module, params, arrays: dict) -> list[dict]:
     """The actor as dense layers: the MLP's hidden layers, then the output squashed by tanh (TD3's
-    action; SAC's evaluation action tanh(mean))."""
+    action; SAC's evaluation action tanh(mean)); an actor with a smaller box (``--td3.forward-only``:
+    a = c0 + c1 tanh(·)) ends with that map as a diagonal linear layer."""
     p = params["params"]
     hidden = len(module.hidden)
     act = _activation(module)
     layers = [_dense(p["MLP_0"], f"Dense_{i}", f"actor.{i}", act, arrays) for i in range(hidden)]
     if isinstance(module, DeterministicActor):
         layers.append(_dense(p["MLP_0"], f"Dense_{hidden}", f"actor.{hidden}", "tanh", arrays))
+        if module.low is not None:
+            c0, c1 = (np.asarray(c, np.float32) for c in module.affine())
+            box = {f"Dense_{hidden + 1}": {"kernel": np.diag(c1), "bias": c0}}
+            layers.append(_dense(box, f"Dense_{hidden + 1}", f"actor.{hidden + 1}", "linear", arrays))
     elif isinstance(module, GaussianActor):
         layers.append(_dense(p, "Dense_0", f"actor.{hidden}", "tanh", arrays))  # the mean's head
     else:

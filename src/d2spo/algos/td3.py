@@ -66,6 +66,14 @@ class TD3Config:
     """Gradient updates per vectorised env step."""
     critic_layer_norm: bool = False
     """LayerNorm in the critics' hidden layers."""
+    forward_only: bool | None = None
+    """The actor proposes action[0] (the linear speed) in [0, 1] only, never reverse; None: on for
+    the generalist. What is executed (π_Ω, the filter) may still reverse."""
+
+    def actor_low(self, action_size: int) -> tuple[float, ...] | None:
+        """The actor's smallest action per coordinate (``DeterministicActor.low``): (0, -1, ..) when
+        ``forward_only``, else None (-1 everywhere)."""
+        return (0.0,) + (-1.0,) * (action_size - 1) if self.forward_only else None
 
     @property
     def widths(self) -> tuple[int, ...]:
@@ -73,10 +81,10 @@ class TD3Config:
         return DEFAULT_WIDTHS if self.hidden is None else self.hidden
 
     def __post_init__(self) -> None:
-        check_fields(self, "td3", nullable=("hidden",), widths=("hidden",), lr=("actor_lr", "critic_lr"), discount=("gamma",),
+        check_fields(self, "td3", nullable=("hidden", "forward_only"), widths=("hidden",), lr=("actor_lr", "critic_lr"), discount=("gamma",),
                      rate=("tau",), non_negative=("policy_noise", "noise_clip", "exploration_noise"),
                      count=("policy_delay", "batch_size", "buffer_size", "updates_per_step"),
-                     natural=("learning_starts",), flag=("critic_layer_norm",))
+                     natural=("learning_starts",), flag=("critic_layer_norm", "forward_only"))
 
 
 @struct.dataclass
@@ -102,7 +110,7 @@ class TD3Nets:
 
 def make_nets(action_size: int, cfg: TD3Config) -> TD3Nets:
     return TD3Nets(
-        actor=DeterministicActor(action_size, cfg.widths),
+        actor=DeterministicActor(action_size, cfg.widths, low=cfg.actor_low(action_size)),
         critic=TwinQ(cfg.widths, layer_norm=cfg.critic_layer_norm),
         actor_tx=optax.adam(cfg.actor_lr),
         critic_tx=optax.adam(cfg.critic_lr),
@@ -121,11 +129,13 @@ def init_agent(key: jax.Array, nets: TD3Nets, obs_size: int, action_size: int) -
 
 def explore(nets: TD3Nets, agent: TD3Agent, obs: jax.Array, key: jax.Array, random_phase: jax.Array,
             noise: float) -> jax.Array:
-    """Behaviour action: uniform during warm-up, else clip(pi(s) + N(0, noise^2), -1, 1)."""
+    """Behaviour action: uniform during warm-up, else clip(pi(s) + N(0, noise^2), low, 1), within the
+    actor's box [low, 1] (``DeterministicActor.low``; -1 by default)."""
     k1, k2 = jax.random.split(key)
-    uniform = jax.random.uniform(k1, (obs.shape[0], nets.actor.action_dim), minval=-1.0, maxval=1.0)
+    low = -1.0 if nets.actor.low is None else nets.actor.action_low()
+    uniform = jax.random.uniform(k1, (obs.shape[0], nets.actor.action_dim), minval=low, maxval=1.0)
     greedy = nets.actor.apply(agent.actor, obs)
-    noisy = jnp.clip(greedy + noise * jax.random.normal(k2, greedy.shape), -1.0, 1.0)
+    noisy = jnp.clip(greedy + noise * jax.random.normal(k2, greedy.shape), low, 1.0)
     return jnp.where(random_phase, uniform, noisy)
 
 
@@ -140,7 +150,7 @@ def td3_update(nets: TD3Nets, agent: TD3Agent, batch: Transition, key: jax.Array
     critic_apply = nets.critic.apply
     (_, c_metrics), c_grads = jax.value_and_grad(td3_critic_loss, has_aux=True)(
         agent.critic, agent.critic_target, agent.actor_target, batch, key, cfg.gamma, cfg.policy_noise,
-        cfg.noise_clip, actor_apply, critic_apply)
+        cfg.noise_clip, actor_apply, critic_apply, -1.0 if nets.actor.low is None else nets.actor.action_low())
     c_upd, critic_opt = nets.critic_tx.update(c_grads, agent.critic_opt, agent.critic)
     critic = optax.apply_updates(agent.critic, c_upd)
 

@@ -53,15 +53,31 @@ class MLP(nn.Module):
 
 
 class DeterministicActor(nn.Module):
-    """TD3 actor: a = tanh(MLP(s)) in [-1, 1]^action_dim."""
+    """TD3 actor: a = tanh(MLP(s)) in [-1, 1]^action_dim; with ``low`` (per coordinate, each in
+    [-1, 1)), a = c0 + c1 tanh(MLP(s)) in [low, 1], c0 = (1 + low) / 2, c1 = (1 - low) / 2."""
 
     action_dim: int
     hidden: Sequence[int] = (256, 256)
     activation: Activation = nn.relu
+    low: tuple[float, ...] | None = None
+    """The smallest action of each coordinate; None: -1 for all (plain tanh)."""
 
     @nn.compact
     def __call__(self, obs: jax.Array) -> jax.Array:
-        return jnp.tanh(MLP(self.hidden, self.action_dim, self.activation)(obs))
+        a = jnp.tanh(MLP(self.hidden, self.action_dim, self.activation)(obs))
+        if self.low is None:
+            return a
+        c0, c1 = self.affine()
+        return c0 + c1 * a
+
+    def affine(self) -> tuple[jax.Array, jax.Array]:
+        """(c0, c1) of a = c0 + c1 tanh(·): (0, 1) per coordinate without ``low``."""
+        low = jnp.full((self.action_dim,), -1.0) if self.low is None else jnp.asarray(self.low, jnp.float32)
+        return (1.0 + low) / 2.0, (1.0 - low) / 2.0
+
+    def action_low(self) -> jax.Array:
+        """The smallest action of each coordinate, [action_dim]."""
+        return jnp.full((self.action_dim,), -1.0) if self.low is None else jnp.asarray(self.low, jnp.float32)
 
 
 class QNetwork(nn.Module):

@@ -43,11 +43,13 @@ def target_policy_action(
     actor_apply: ActorApply,
     policy_noise: float,
     noise_clip: float,
+    low: float | jax.Array = -1.0,
 ) -> jax.Array:
-    """Target policy smoothing: clip(pi'(s') + clip(eps, -c, c), -1, 1), eps ~ N(0, sigma^2)."""
+    """Target policy smoothing: clip(pi'(s') + clip(eps, -c, c), low, 1), eps ~ N(0, sigma^2); ``low``:
+    the actor's smallest action (per coordinate, or one number)."""
     action = actor_apply(target_actor_params, next_obs)
     noise = jnp.clip(policy_noise * jax.random.normal(key, action.shape, action.dtype), -noise_clip, noise_clip)
-    return jnp.clip(action + noise, -1.0, 1.0)
+    return jnp.clip(action + noise, low, 1.0)
 
 
 def td_target(signal: jax.Array, done: jax.Array, next_q: jax.Array, gamma: float) -> jax.Array:
@@ -74,8 +76,10 @@ def _twin_td_loss(
     actor_apply: ActorApply,
     critic_apply: CriticApply,
     reduce: str,
+    low: float | jax.Array = -1.0,
 ) -> tuple[jax.Array, jax.Array, jax.Array]:
-    next_action = target_policy_action(key, target_actor_params, batch.next_obs, actor_apply, policy_noise, noise_clip)
+    next_action = target_policy_action(key, target_actor_params, batch.next_obs, actor_apply, policy_noise, noise_clip,
+                                       low)
     next_q = reduce_critics(critic_apply(target_critic_params, batch.next_obs, next_action), reduce)
     y = td_target(signal, batch.done, next_q, gamma)
     q = critic_apply(critic_params, batch.obs, batch.action)  # [K, B]
@@ -93,11 +97,13 @@ def td3_critic_loss(
     noise_clip: float,
     actor_apply: ActorApply,
     critic_apply: CriticApply,
+    low: float | jax.Array = -1.0,
 ) -> tuple[jax.Array, dict[str, jax.Array]]:
-    """Clipped double-Q: y = r + gamma (1 - done) min_i Q'_i(s', a~'), loss = sum_i MSE(Q_i(s, a), y)."""
+    """Clipped double-Q: y = r + gamma (1 - done) min_i Q'_i(s', a~'), loss = sum_i MSE(Q_i(s, a), y);
+    ``low``: the actor's smallest action (``target_policy_action``)."""
     loss, q, y = _twin_td_loss(
         critic_params, target_critic_params, target_actor_params, batch, batch.reward, key,
-        gamma, policy_noise, noise_clip, actor_apply, critic_apply, "min",
+        gamma, policy_noise, noise_clip, actor_apply, critic_apply, "min", low,
     )  # fmt: skip
     return loss, {"losses/qf": loss, "values/q": jnp.mean(q), "values/q_target": jnp.mean(y)}
 
