@@ -7,6 +7,7 @@ default changed, the old one: ``FORMER_DEFAULTS``).
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 import typing
@@ -169,7 +170,9 @@ class TrainConfig:
         if self.d2spo.actor_through_safety is None:  # on for one layout, off for the generalist
             object.__setattr__(self, "d2spo", dataclasses.replace(self.d2spo, actor_through_safety=not self.generalist))
         if self.td3.forward_only is None:  # on for the generalist, off for one layout
-            object.__setattr__(self, "td3", dataclasses.replace(self.td3, forward_only=self.generalist))
+            td3 = copy.copy(self.td3)  # checked when it was made: only the None is filled in
+            object.__setattr__(td3, "forward_only", self.generalist)
+            object.__setattr__(self, "td3", td3)
         if not isinstance(self.task, str) or not self.task.strip():
             raise ConfigError("task", f"expected a task name or an LTL formula, got {self.task!r}")
 
