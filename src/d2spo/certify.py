@@ -175,8 +175,7 @@ def _compiled(run: CBFRun, ccfg: CertifyConfig) -> dict[str, Any]:
             state, obs = c
             ka, ks = jax.random.split(k)
             u_rl = lrn.nets.actor.apply(pol.actor, obs)
-            low = -1.0 if lrn.nets.actor.low is None else lrn.nets.actor.action_low()
-            u_rl = jnp.clip(u_rl + noise * jax.random.normal(ka, u_rl.shape), low, 1.0)
+            u_rl = jnp.clip(u_rl + noise * jax.random.normal(ka, u_rl.shape), lrn.nets.actor.action_low(), 1.0)
             u = lrn.execute(pol.safety, obs, u_rl, state.pose)
             state2, obs2, _, _, _, info = env.step_batch(ks, state, u, params)
             ctx = lrn.sensed(info["sensed"])

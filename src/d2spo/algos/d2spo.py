@@ -330,7 +330,7 @@ class D2SPOLearner(TD3Learner):
         def u_rl_fn(o):  # the current RL proposal, with exploration noise, as π_Ω will see it
             u = self.nets.actor.apply(c.agent.actor, o)
             noise = self.cfg.exploration_noise * jax.random.normal(jax.random.fold_in(k_safe, 1), u.shape)
-            return jnp.clip(u + noise, -1.0 if self.nets.actor.low is None else self.nets.actor.action_low(), 1.0)
+            return jnp.clip(u + noise, self.nets.actor.action_low(), 1.0)
 
         new, metrics = update(k_safe, c.safety, c.data, nets=self.safety_nets, cfg=self.cbf_cfg,
                               features_fn=self.features, dt=self.dt, u_rl_fn=u_rl_fn)

@@ -132,7 +132,7 @@ def explore(nets: TD3Nets, agent: TD3Agent, obs: jax.Array, key: jax.Array, rand
     """Behaviour action: uniform during warm-up, else clip(pi(s) + N(0, noise^2), low, 1), within the
     actor's box [low, 1] (``DeterministicActor.low``; -1 by default)."""
     k1, k2 = jax.random.split(key)
-    low = -1.0 if nets.actor.low is None else nets.actor.action_low()
+    low = nets.actor.action_low()
     uniform = jax.random.uniform(k1, (obs.shape[0], nets.actor.action_dim), minval=low, maxval=1.0)
     greedy = nets.actor.apply(agent.actor, obs)
     noisy = jnp.clip(greedy + noise * jax.random.normal(k2, greedy.shape), low, 1.0)
@@ -150,7 +150,7 @@ def td3_update(nets: TD3Nets, agent: TD3Agent, batch: Transition, key: jax.Array
     critic_apply = nets.critic.apply
     (_, c_metrics), c_grads = jax.value_and_grad(td3_critic_loss, has_aux=True)(
         agent.critic, agent.critic_target, agent.actor_target, batch, key, cfg.gamma, cfg.policy_noise,
-        cfg.noise_clip, actor_apply, critic_apply, -1.0 if nets.actor.low is None else nets.actor.action_low())
+        cfg.noise_clip, actor_apply, critic_apply, nets.actor.action_low())
     c_upd, critic_opt = nets.critic_tx.update(c_grads, agent.critic_opt, agent.critic)
     critic = optax.apply_updates(agent.critic, c_upd)
 

@@ -71,13 +71,14 @@ class DeterministicActor(nn.Module):
         return c0 + c1 * a
 
     def affine(self) -> tuple[jax.Array, jax.Array]:
-        """(c0, c1) of a = c0 + c1 tanh(·): (0, 1) per coordinate without ``low``."""
-        low = jnp.full((self.action_dim,), -1.0) if self.low is None else jnp.asarray(self.low, jnp.float32)
+        """(c0, c1) of a = c0 + c1 tanh(·): (0, 1) without ``low``."""
+        low = self.action_low()
         return (1.0 + low) / 2.0, (1.0 - low) / 2.0
 
-    def action_low(self) -> jax.Array:
-        """The smallest action of each coordinate, [action_dim]."""
-        return jnp.full((self.action_dim,), -1.0) if self.low is None else jnp.asarray(self.low, jnp.float32)
+    def action_low(self) -> float | jax.Array:
+        """The smallest action: -1.0 for every coordinate without ``low`` (a plain number, so that
+        clipping to it is the plain [-1, 1] clip), else ``low`` as an [action_dim] array."""
+        return -1.0 if self.low is None else jnp.asarray(self.low, jnp.float32)
 
 
 class QNetwork(nn.Module):
