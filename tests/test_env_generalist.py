@@ -63,6 +63,29 @@ def test_resets_draw_every_layout_and_observations_are_finite(built):
     # phi1's initial state has a target (A1) and forbidden areas (A2, A3)
     assert np.all(np.asarray(obs[:, sl["target"]])[:, 3] == 1.0)
     assert np.all(np.asarray(obs[:, sl["forbidden"]])[:, 3] == 1.0)
+    # the target's distance is the subgoal's path length d, observed as d / (d + 10 m)
+    one = jax.tree.map(lambda a: a[0], states)
+    d = float(subgoal(view(params, one.layout), one.q, one.pose[:2])[0])
+    assert abs(float(obs[0, sl["target"]][0]) - d / (d + 10.0)) < 1e-5
+
+
+def test_observed_distances_beyond_twenty_metres_stay_apart():
+    """A 20 m world's routes run past 40 m. Capped at 20 m (the encoding of runs before 2026-11-27,
+    still read from their config.json), 25 m and 40 m looked alike and a robot stalled there; the
+    ratio keeps every two distances apart, increasing and below 1."""
+    from d2spo.config import TrainConfig, config_from_dict, config_to_dict
+    from d2spo.envs.generalist import observed_distance
+
+    d = jnp.array([0.0, 1.0, 10.0, 20.0, 25.0, 40.0, 80.0])
+    ratio, capped = np.asarray(observed_distance(d)), np.asarray(observed_distance(d, "capped"))
+    assert ratio[0] == 0.0 and np.all(np.diff(ratio) > 0.01) and ratio[-1] < 1.0
+    assert capped[3] == capped[4] == capped[5] == 2.0
+    gen = config_to_dict(TrainConfig(algo="d2spo", generalist=True))
+    assert gen["env"]["distance_obs"] == "ratio"
+    del gen["env"]["distance_obs"]
+    assert config_from_dict(gen).env.distance_obs == "capped"
+    with pytest.raises(ConfigError, match="distance_obs"):
+        EnvConfig(distance_obs="log")
 
 
 def test_subgoal_descends_the_path_rewards_along_it_and_an_ending_episode_draws_a_new_layout(built):

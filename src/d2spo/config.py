@@ -248,6 +248,7 @@ FORMER_DEFAULTS: dict[tuple[str, ...], Any] = {
     ("env", "reward", "shaping_collide_cost"): 10.0,
     ("env", "observe_path"): False,  # the observation had no path direction until 2026-11-25
     ("td3", "forward_only"): False,  # the generalist's actor could propose reverse until 2026-11-27
+    ("env", "distance_obs"): "capped",  # a generalist saw every distance beyond 20 m as 20 m until 2026-11-27
 }
 """Settings whose default has changed, with the value a config.json that does not mention them was
 trained with (the field did not exist yet, and its old behaviour is this value)."""

@@ -10,6 +10,9 @@ from d2spo.fields import check_choice, check_fields
 from d2spo.ltl.labelling import LABEL_MODES
 from d2spo.ltl.reward import PER_STATE, RewardConfig
 
+DISTANCE_OBS = ("ratio", "capped")
+"""How a generalist observes a distance (``EnvConfig.distance_obs``; ``envs.generalist.observed_distance``)."""
+
 
 @dataclass(frozen=True)
 class EnvConfig:
@@ -29,6 +32,9 @@ class EnvConfig:
     """Labelling: 'event' (a letter when the set of areas changes to a non-empty one) or 'step'."""
     observe_path: bool | None = None
     """Observe the shaping path's direction. None: on with the geodesic-per-state metric."""
+    distance_obs: str = "ratio"
+    """A generalist's observed distances d (to the target, to the forbidden area): 'ratio',
+    d / (d + 10 m), distinct at every distance; 'capped', min(d / 10 m, 2), alike beyond 20 m."""
     label_radius: float | None = None
     """Initial labelling radius (m); None: each area's own."""
     collision_terminates: bool = True
@@ -91,6 +97,7 @@ class EnvConfig:
         if self.slip is not None and not (isinstance(self.slip, (int, float)) and 0 <= self.slip < 1):
             raise ConfigError("slip", f"must be in [0, 1), got {self.slip!r}")
         check_choice(self, "label_mode", LABEL_MODES)
+        check_choice(self, "distance_obs", DISTANCE_OBS)
         if self.observe_path and self.reward.shaping_metric != PER_STATE:
             raise ConfigError("observe_path", f"needs --shaping-metric {PER_STATE} (the path is its field), got "
                               f"{self.reward.shaping_metric!r}")

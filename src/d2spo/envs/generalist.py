@@ -20,10 +20,11 @@ and changes two things:
   - ``clearance`` [1]: the distance to the nearest obstacle or wall / H (the paper's b(z, O_s));
     with ``lidar`` it is the CBF's input x, read off the observation (``cbf_input``);
   - ``target`` [4]: the path length to the nearest area whose entry makes progress, round obstacles
-    and round the areas whose entry would reject the task (``layout_bank.nearest``), / ``SCALE``;
+    and round the areas whose entry would reject the task (``layout_bank.nearest``), as
+    ``observed_distance`` encodes it (d / (d + ``SCALE``) by default);
     the direction of steepest descent of that path (forward, left); 1 if there is a target;
   - ``forbidden`` [4]: the distance from the robot to the edge of the nearest area whose entry would
-    reject the task (or undo progress) / ``SCALE``; the direction to its centre (forward, left); 1
+    reject the task (or undo progress), encoded alike; the direction to its centre (forward, left); 1
     if there is one;
   - ``progress`` [1]: the automaton's distance to acceptance (area visits still needed) / its
     largest finite value.
@@ -43,6 +44,7 @@ layouts with its tasks (a zero-shot evaluation, a bank drawn afresh).
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Sequence
 from typing import Any
 
@@ -73,7 +75,7 @@ width plus height (400 for 10 m x 10 m, 800 for 20 m x 20 m), and at least ``GEN
 A task of the training mixture visits at most four areas; at the default robot's 0.1 m per step
 these are about 2.4 half-perimeters of the arena, room for detours round walls."""
 SCALE = 10.0
-"""Metres per unit of the observation's distances."""
+"""The observation's distance scale (m): ``observed_distance``."""
 FAR = -1.0e3
 """Where unused obstacle and area slots go: far outside every arena."""
 AUTO_NUMPY_FIELDS = 48
@@ -116,6 +118,16 @@ N_DISKS = layout_bank.D_MAX
 """Disk obstacles of a view: the bank's slots."""
 WALL = 1.0
 """Thickness (m) of the wall boxes, more than the sensing radius reaches through."""
+
+
+def observed_distance(d: jnp.ndarray, mode: str = "ratio") -> jnp.ndarray:
+    """A distance d (m) as the observation holds it (``EnvConfig.distance_obs``): 'ratio', d / (d +
+    ``SCALE``) in [0, 1), which tells every two distances apart (a 20 m world's routes run to 40 m
+    and more); 'capped', min(d / ``SCALE``, 2), the encoding until 2026-11-27, under which a robot
+    40 m from its target saw what it saw at 20 m and could stall there."""
+    if mode == "capped":
+        return jnp.minimum(d / SCALE, 2.0)
+    return d / (d + SCALE)
 
 
 def wall_boxes(arena: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
@@ -240,7 +252,8 @@ class GeneralistEnv(Env):
             return jnp.stack([c * d[0] + s * d[1], c * d[1] - s * d[0]])
 
         dist, direction, found = subgoal(v, state.q, xy)
-        target = jnp.concatenate([jnp.minimum(dist / SCALE, 2.0)[None], frame(direction), found[None]])
+        seen = functools.partial(observed_distance, mode=self.config.distance_obs)
+        target = jnp.concatenate([seen(dist)[None], frame(direction), found[None]])
         rel = v.area_center - xy  # [N, 2]
         centre = jnp.sqrt(rel[:, 0] * rel[:, 0] + rel[:, 1] * rel[:, 1])
         bank, b = v.bank, state.layout
@@ -249,7 +262,7 @@ class GeneralistEnv(Env):
         j = jnp.argmin(edge)
         has = jnp.isfinite(edge[j])
         toward = jnp.where(has, rel[j] / jnp.maximum(centre[j], 1e-6), 0.0)
-        forbidden = jnp.concatenate([jnp.where(has, jnp.minimum(edge[j] / SCALE, 2.0), 0.0)[None], frame(toward),
+        forbidden = jnp.concatenate([jnp.where(has, seen(edge[j]), 0.0)[None], frame(toward),
                                      has[None]])
         aut = v.aut
         finite = aut.distance[state.q] < UNREACHABLE
