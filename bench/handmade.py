@@ -1,6 +1,6 @@
 """A generalist on the hand-made layouts (tests/data/layouts/handmade), zero-shot: layouts no generator drew.
 
-    python bench/handmade.py --run RUN [--episodes 100] [--out runs/handmade]
+    python bench/handmade.py --run RUN [--episodes 100] [--policy best|last] [--out runs/handmade]
 
 Each layout with areas A1..A4 is evaluated on three tasks: ϕ1 (``phi1``), the reverse tour
 ``F (A3 & F (A2 & F A1))`` and the avoid-until ``!A4 U (A2 & F A3)``; ``lab-12x6`` on
@@ -31,6 +31,8 @@ def main() -> None:
     ap.add_argument("--run", type=Path, required=True, help="a generalist run directory")
     ap.add_argument("--episodes", type=int, default=100)
     ap.add_argument("--out", type=Path, default=Path("runs/handmade"))
+    ap.add_argument("--policy", choices=("best", "last"), default="best",
+                    help="the run's validated policy (best) or its newest checkpoint's (last)")
     args = ap.parse_args()
 
     from d2spo.errors import UserError
@@ -38,7 +40,7 @@ def main() -> None:
     from d2spo.run import load_policy
     from d2spo.zero_shot import generalist_layout, generalist_on, rollouts
 
-    cfg, _, policy, meta = load_policy(args.run)
+    cfg, _, policy, meta = load_policy(args.run, args.policy)
     env_cfg = eval_env_config(cfg, None)
     print(f"{args.run}: its {meta['policy']} policy", flush=True)
     rows = []
