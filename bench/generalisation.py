@@ -296,7 +296,7 @@ def plots(cases: dict, names: list[str], out: Path) -> list[Path]:
 
     tasks = list(cases)
     paths = []
-    fig = Figure(figsize=(max(6.0, 0.7 * len(tasks)), 4.0))
+    fig = Figure(figsize=(max(6.0, 0.7 * len(tasks)), 4.6), layout="constrained")
     FigureCanvasAgg(fig)
     ax = fig.add_subplot()
     x = np.arange(len(tasks))
@@ -310,8 +310,7 @@ def plots(cases: dict, names: list[str], out: Path) -> list[Path]:
     ax.set_ylabel("% of episodes")
     ax.set_ylim(0, 105)
     ax.set_title("Zero-shot on unseen layouts, per task (mean over layouts)")
-    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.3), ncol=3)
-    fig.tight_layout()
+    fig.legend(fontsize=7, loc="outside lower center", ncol=3)  # below the rotated task names
     paths.append(out / "success_per_task.png")
     fig.savefig(paths[-1], dpi=100)
 
