@@ -4,8 +4,10 @@ PYTHON ?= $(shell command -v python3.11 || command -v python3)
 PYEXE  := $(shell .ci/find-python $(PYTHON))
 PYVER  := $(shell $(PYEXE) -c 'import sys; print("%d.%d" % sys.version_info[:2])' 2>/dev/null)
 VENV   ?= .venv
+EXTRAS ?= test,cluster
 PY     := $(VENV)/bin/python
-STAMP  := $(VENV)/.installed-$(PYVER)
+comma  := ,
+STAMP  := $(VENV)/.installed-$(PYVER)-$(subst $(comma),-,$(EXTRAS))
 
 .PHONY: install demo test test-fast smoke bench clean coinstall-check
 
@@ -16,7 +18,7 @@ $(STAMP): pyproject.toml constraints.txt
 	rm -f $(VENV)/.installed-*
 	$(PYEXE) -m venv $(VENV)
 	$(PY) -m pip install --quiet --disable-pip-version-check --upgrade "pip>=24"
-	$(PY) -m pip install --quiet --disable-pip-version-check -c constraints.txt -e ".[test,cluster]"
+	$(PY) -m pip install --quiet --disable-pip-version-check -c constraints.txt -e ".[$(EXTRAS)]"
 	touch $(STAMP)
 
 install: $(STAMP)
