@@ -8,12 +8,16 @@ from pathlib import Path
 # The suite compiles far more than it runs: most tests train a few chunks of a program XLA takes
 # 10-40 s to compile. XLA's backend optimisation level 0 compiles those programs about 3x faster
 # (bench/compile_times.py: the --fast D²SPO chunk 72.7 s -> 24.1 s on a loaded 2-core machine) and
-# computes the same functions; only the machine code is less tuned. Set before the backend starts
+# computes the same functions; only the machine code is less tuned. XLA's CPU fusion emitters off
+# halves backend compiling again (the relaxed D²SPO chunk at level 0: 5.8 s -> 3.2 s; the suite's
+# backend compiling 367 s -> 192 s, its tests 851 s -> 621 s, 2-core AMD family 26, 2026-11-27);
+# the commands keep them, as they run 37% slower without (bench/profile_chunk.py, default level:
+# 1.31 -> 1.79 ms per vectorised step). Set before the backend starts
 # (the first computation); the commands the tests start as child processes inherit it. The
 # product's commands keep XLA's default level. D2SPO_TEST_XLA_OPT=default runs the suite without it.
 if os.environ.get("D2SPO_TEST_XLA_OPT", "0") != "default" and "xla_backend_optimization_level" not in os.environ.get(
         "XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} --xla_backend_optimization_level=0".strip()
+    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} --xla_backend_optimization_level=0 --xla_cpu_use_fusion_emitters=false".strip()
     # ... except D²SPO's init, which pre-trains for thousands of steps: at level 0 phi1's ran 5x
     # slower (16.3 s against 3.0 s) for 4 s less compiling (d2spo/_xla.py, long_running_options)
     os.environ.setdefault("D2SPO_XLA_LONG_RUNNING_LEVEL", "3")

@@ -141,11 +141,12 @@ def test_geodesic_reward_is_bit_identical_to_before_the_per_state_option():
                                      reward=RewardConfig(shaping_metric="geodesic")), task="phi2")
     n = 2
     state, _ = env.reset_batch(jax.random.PRNGKey(3), params, n)
-    # XLA's default optimisation level (3), as the commands compile: the suite's level 0
-    # (tests/conftest.py) computes the same function with other roundings
+    # XLA's default optimisation level (3) and fusion emitters, as the commands compile: the
+    # suite's level 0 without fusion emitters (tests/conftest.py) computes the same function with
+    # other roundings
     a0 = jnp.zeros((n, 2), jnp.float32)
     step = jax.jit(env.step_batch).lower(jax.random.PRNGKey(0), state, a0, params).compile(
-        compiler_options={"xla_backend_optimization_level": 3})
+        compiler_options={"xla_backend_optimization_level": 3, "xla_cpu_use_fusion_emitters": True})
     out = []
     for t in range(40):
         a = jnp.stack([jnp.full((n,), 0.8), jnp.sin(0.13 * t + jnp.arange(n, dtype=jnp.float32))], -1)
