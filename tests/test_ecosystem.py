@@ -141,3 +141,23 @@ def test_a_checkpoint_makes_every_scalar_logged_before_it_durable(tmp_path, monk
     assert [s for s, _ in tb_scalars(tmp_path)["episode/return"]] == list(range(301))
     assert len(list(tmp_path.glob("events.out.tfevents.*"))) == 3
     tb.close()
+
+
+def test_a_resumed_runs_event_files_never_overwrite_the_earlier_sessions_of_the_same_second(tmp_path, monkeypatch):
+    """A run resumed within the second its first session opened its event files: the resumed
+    session's files get names of their own (they once took the first session's names, truncating
+    its first chunks' scalars: tests/test_wandb.py saw TensorBoard start at step 600, W&B at 200)."""
+    from _tb import tb_scalars
+    from tensorboardX import event_file_writer
+
+    from d2spo.record import _tensorboard, durable_tensorboard
+
+    monkeypatch.setattr(event_file_writer.time, "time", lambda: 1_800_000_000.0)  # one second for all
+    for session, steps in enumerate(((0, 1), (2, 3))):
+        tb = _tensorboard(tmp_path)
+        for part, step in enumerate(steps, start=1):
+            tb.add_scalar("charts/label_radius", float(session), step)
+            tb = durable_tensorboard(tb, tmp_path, part)
+        tb.close()
+    assert tb_scalars(tmp_path)["charts/label_radius"] == [(0, 0.0), (1, 0.0), (2, 1.0), (3, 1.0)]
+    assert len(list(tmp_path.glob("events.out.tfevents.1800000000.*"))) == 6

@@ -302,9 +302,13 @@ class Validation:
 
 
 def _tensorboard(path: Path, part: int = 0) -> SummaryWriter:
-    """A writer of a new event file in ``path``; ``part`` > 0 names the file after an earlier one
-    of the same second (``durable_tensorboard``)."""
-    return SummaryWriter(str(path), flush_secs=30, filename_suffix=f".{part:06d}" if part else "")
+    """A writer of a new event file in ``path``, numbered ``part`` (``durable_tensorboard``).
+
+    tensorboardX names the file after the second it opens it in; the nanosecond clock and the part
+    make the name unique, so that a resumed session's files never take (and truncate) the names of
+    the files an earlier session of the run opened in the same second: a short run resumed at
+    once lost its first chunks' scalars that way. Names sort in the order the files were opened."""
+    return SummaryWriter(str(path), flush_secs=30, filename_suffix=f".{time.time_ns():020d}.{part:06d}")
 
 
 def durable_tensorboard(writer: SummaryWriter, path: Path, part: int) -> SummaryWriter:
