@@ -34,9 +34,11 @@ def test_cautious_start_makes_random_exploration_safe():
 
 
 def test_short_run_on_relaxed_learns_to_reach_a1_safely(tmp_path, monkeypatch):
-    """500 episodes of D²SPO on the `relaxed` layout, task F A1 (its first leg; the two-area task
+    """250 episodes of D²SPO on the `relaxed` layout, task F A1 (its first leg; the two-area task
     needs thousands of episodes). The final policy must reach A1 far more often than the untrained
-    one and never collide; training itself stays mostly collision-free. The run compiles its task
+    one and never collide; training itself stays mostly collision-free (seeds 0, 1, 2 under the
+    suite's flags: final completion 1.0, collisions in 0-0.4% of the 250 episodes; 500 episodes
+    were asked before, 2026-11-27). The run compiles its task
     onto the layout once (envs/compiled_task.py): one distance computation, route and set of fields."""
     import dataclasses
 
@@ -51,7 +53,7 @@ def test_short_run_on_relaxed_learns_to_reach_a1_safely(tmp_path, monkeypatch):
                                       "reachable_states": (routes, "reachable_states"),
                                       "state_fields": (compiled_task, "state_fields")})
     # max_steps unset: the step limit follows the route; D²SPO: its barrier's margin is checked too
-    cfg = TrainConfig(algo="d2spo", task="F A1", env=EnvConfig(layout="relaxed"), episodes=500, seed=0,
+    cfg = TrainConfig(algo="d2spo", task="F A1", env=EnvConfig(layout="relaxed"), episodes=250, seed=0,
                       eval_episodes=32, eval_untrained=True,
                       td3=dataclasses.replace(TD3Config(), updates_per_step=2)).check()
     summary = train(cfg, tmp_path / "run")
@@ -66,7 +68,7 @@ def test_short_run_on_relaxed_learns_to_reach_a1_safely(tmp_path, monkeypatch):
 
     with open(tmp_path / "run" / "episodes.csv") as f:
         collided = [int(r["collided"]) for r in csv.DictReader(f)]
-    assert len(collided) == 500 and sum(collided) / 500 <= 0.1
+    assert len(collided) == 250 and sum(collided) / 250 <= 0.1
     # `d2spo eval --runtime-filter True --filter-alpha A --filter-iters N` on the same run
     from d2spo.errors import ConfigError
     from d2spo.evaluate import EvalConfig, evaluate_run
