@@ -11,6 +11,9 @@ STAMP  := $(VENV)/.installed-$(PYVER)-$(subst $(comma),-,$(EXTRAS))
 
 .PHONY: install demo test test-fast smoke bench clean coinstall-check
 
+# pip byte-compiles what it installs, on purpose: with PYTHONDONTWRITEBYTECODE set (these machines
+# set it) Python would otherwise compile jax & co. from source in every process the tests start
+# (--no-compile saved 20 s of install and cost 2.4 s per such process, about 40 s in all, 2026-11-27).
 $(STAMP): pyproject.toml constraints.txt
 	@test -n "$(PYVER)" || { echo "make: no working '$(PYTHON)' on this machine" >&2; exit 2; }
 	@if [ -x $(PY) ] && ! $(PY) -c 'import sys; sys.exit(f"{sys.version_info[0]}.{sys.version_info[1]}" != "$(PYVER)")'; \
@@ -18,9 +21,6 @@ $(STAMP): pyproject.toml constraints.txt
 	rm -f $(VENV)/.installed-*
 	$(PYEXE) -m venv $(VENV)
 	$(PY) -m pip install --quiet --disable-pip-version-check --upgrade "pip>=24"
-	# pip byte-compiles what it installs, on purpose: with PYTHONDONTWRITEBYTECODE set (these machines
-	# set it) Python would otherwise compile jax & co. from source in every process the tests start
-	# (--no-compile saved 20 s of install and cost 2.4 s per such process: 40 s in all, 2026-11-27)
 	$(PY) -m pip install --quiet --disable-pip-version-check -c constraints.txt -e ".[$(EXTRAS)]"
 	touch $(STAMP)
 
