@@ -39,7 +39,11 @@ smoke: $(STAMP)
 	$(PY) -m pytest -x tests/test_ltl_parser.py tests/test_env_geometry.py \
 	  tests/test_env_gym.py::test_gymnasium_env_checker_passes_without_a_warning
 	rm -rf $(VENV)/smoke_run
-	$(VENV)/bin/d2spo train --task relaxed --layout relaxed --episodes 50 --eval-episodes 10 --out $(VENV)/smoke_run
+	$(VENV)/bin/d2spo train --task relaxed --layout relaxed --episodes 50 --eval-episodes 10 --out $(VENV)/smoke_run \
+	  > $(VENV)/smoke.log 2>&1 || { cat $(VENV)/smoke.log; exit 1; }
+	@cat $(VENV)/smoke.log
+	@# a warning in a bare install is a dependency the package forgot (filelock, for the compile cache)
+	@! grep -n "warning" $(VENV)/smoke.log
 
 # d2spo beside safety-gymnasium 1.0.0 in one throwaway venv (needs PyPI; docs/env.md says what it shows).
 coinstall-check:
