@@ -265,7 +265,7 @@ def test_eval_rates_measure_the_distance_driven():
 
 
 
-def test_validation_keeps_the_earliest_best_policy_and_a_resume_keeps_it(tmp_path):
+def test_validation_keeps_the_latest_best_policy_and_a_resume_keeps_it(tmp_path):
     """``RunRecord.validate`` (the generalist's model selection) with a stub validation: every
     ``validate_every`` episodes a score is recorded; the kept policy is the first of the highest."""
     from flax import serialization
@@ -300,9 +300,9 @@ def test_validation_keeps_the_earliest_best_policy_and_a_resume_keeps_it(tmp_pat
         metas[len(run.writer)] = json.loads(json.dumps(run.meta))
     assert [e["episodes"] for e in run.meta["validation"]] == [10, 20, 30, 40]
     assert [e["success_rate"] for e in run.meta["validation"]] == [0.2, 0.5, 0.5, 0.3]
-    assert run.meta["best"]["episodes"] == 20  # the first of the two 0.5s
+    assert run.meta["best"]["episodes"] == 30  # the later of the two 0.5s: equals go to the longer-trained
     kept = serialization.from_bytes({"w": np.zeros(2, np.float32)}, best_policy_path(out).read_bytes())
-    np.testing.assert_array_equal(kept["w"], [1.0, 1.0])
+    np.testing.assert_array_equal(kept["w"], [2.0, 2.0])
     again = RunRecord(cfg, out, metas[20], Checkpoints(out, "x"), validation=Stub())
     assert again.next_validation == 30 and again.meta["best"]["episodes"] == 20
 

@@ -205,7 +205,8 @@ class RunRecord:
 
     def validate(self, policy) -> None:
         """Run the validation (``Validation``) on ``policy`` and keep it as DIR/policy-best.msgpack if
-        it fails fewer validation episodes than every earlier one; the scores go into the counters."""
+        it fails no more validation episodes than every earlier one (of equals, the latest: it has
+        trained longer); the scores go into the counters."""
         n_done = len(self.writer)
         history = self.meta.setdefault("validation", [])
         if history and history[-1]["episodes"] == n_done:
@@ -213,7 +214,7 @@ class RunRecord:
         t = time.perf_counter()
         entry = {"episodes": n_done, **self.validation(policy)}
         best = self.meta.get("best")
-        if best is None or entry["success_rate"] > best["success_rate"]:
+        if best is None or entry["success_rate"] >= best["success_rate"]:
             atomic_write_bytes(best_policy_path(self.out), serialization.to_bytes(jax.device_get(policy)))
             self.meta["best"] = entry
         history.append(entry)
