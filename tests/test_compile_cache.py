@@ -95,3 +95,18 @@ def test_an_unwritable_cache_directory_is_one_warning(tmp_path):
     assert res.returncode == 0, res.stderr
     assert "dir None" in res.stdout
     assert "d2spo: warning: the compilation cache is off" in res.stderr
+
+
+@pytest.mark.parametrize(("detail", "said"), [
+    ("'jit_f': RuntimeError: Please install the `filelock` package to set `jax_compilation_cache_max_size`",
+     "the compilation cache could not be used"),
+    ("'jit_f': XlaRuntimeError: INVALID_ARGUMENT: could not deserialize executable",
+     "a damaged compilation cache entry was ignored"),
+])
+def test_a_cache_that_cannot_be_used_is_not_called_damaged(capsys, detail, said):
+    from d2spo.console import _CACHE_READ_ERROR, show_warning
+
+    show_warning(UserWarning(f"{_CACHE_READ_ERROR} {detail}"), UserWarning, "x.py", 1)
+    err = capsys.readouterr().err
+    assert err.startswith(f"d2spo: warning: {said} and the program compiled afresh (")
+    assert detail in err and err.count("\n") == 1

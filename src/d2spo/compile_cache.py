@@ -13,7 +13,8 @@ Where it lives (``cache_dir``):
 
 A cache JAX was already told to use (``JAX_COMPILATION_CACHE_DIR``, or ``jax.config`` before the
 command) is kept. The cache is capped at ``MAX_BYTES`` (least recently used entries go first). A
-damaged entry is a miss: JAX warns and compiles afresh (``tests/test_compile_cache.py``); a cache
+damaged entry is a miss: JAX warns and compiles afresh (``tests/test_compile_cache.py``; an entry that
+cannot be read for another reason, a missing package, is named so, not called damaged); a cache
 directory that cannot be made turns the cache off with one warning.
 """
 

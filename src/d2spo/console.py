@@ -29,15 +29,18 @@ def show_warning(message, category, filename, lineno, file=None, line=None) -> N
     """``warnings.showwarning`` for the CLI: a D2SPOWarning (RunDirWarning, TaskWarning) is one line on stderr."""
     if issubclass(category, D2SPOWarning):
         print(f"d2spo: warning: {message}", file=sys.stderr)
-    elif str(message).startswith(_CACHE_READ_ERROR):  # JAX's line for a damaged compilation cache entry
-        print(f"d2spo: warning: a damaged compilation cache entry was ignored and the program compiled afresh "
-              f"({str(message)[len(_CACHE_READ_ERROR):].strip()})", file=sys.stderr)
+    elif str(message).startswith(_CACHE_READ_ERROR):  # JAX's line when a cache entry cannot be read
+        detail = str(message)[len(_CACHE_READ_ERROR):].strip()
+        what = ("the compilation cache could not be used" if _CACHE_SETUP.search(detail)
+                else "a damaged compilation cache entry was ignored")  # a missing package is not damage
+        print(f"d2spo: warning: {what} and the program compiled afresh ({detail})", file=sys.stderr)
     else:
         _PLAIN_SHOWWARNING(message, category, filename, lineno, file, line)
 
 
 _PLAIN_SHOWWARNING = warnings.showwarning
 _CACHE_READ_ERROR = "Error reading persistent compilation cache entry for"
+_CACHE_SETUP = re.compile(r"[Pp]lease install|No module named")
 
 _BOX = re.compile(r"[╭╮╰╯│─]+")
 _CONFIG_ERROR = re.compile(r"^Error parsing [^-\s]\S*: ")
