@@ -267,7 +267,7 @@ def test_eval_rates_measure_the_distance_driven():
 
 def test_validation_keeps_the_latest_best_policy_and_a_resume_keeps_it(tmp_path):
     """``RunRecord.validate`` (the generalist's model selection) with a stub validation: every
-    ``validate_every`` episodes a score is recorded; the kept policy is the first of the highest."""
+    ``validate_every`` episodes a score is recorded; the kept policy is the last of the highest."""
     from flax import serialization
 
     from d2spo.checkpoint import Checkpoints
@@ -305,6 +305,23 @@ def test_validation_keeps_the_latest_best_policy_and_a_resume_keeps_it(tmp_path)
     np.testing.assert_array_equal(kept["w"], [2.0, 2.0])
     again = RunRecord(cfg, out, metas[20], Checkpoints(out, "x"), validation=Stub())
     assert again.next_validation == 30 and again.meta["best"]["episodes"] == 20
+
+
+def test_validation_prefers_success_then_speed_then_the_later_policy():
+    from d2spo.record import better_validation
+
+    def v(success, steps="absent"):
+        return {"success_rate": success} if steps == "absent" else {"success_rate": success, "mean_steps_success": steps}
+
+    assert better_validation(v(0.9, 300.0), v(0.8, 100.0))  # success first, however slow
+    assert not better_validation(v(0.8, 100.0), v(0.9, 300.0))
+    assert better_validation(v(0.9, 120.0), v(0.9, 150.0))  # of equal success, the faster
+    assert not better_validation(v(0.9, 150.0), v(0.9, 120.0))
+    assert better_validation(v(0.9, 150.0), v(0.9, 150.0))  # equal in both: the later
+    assert better_validation(v(0.9, 150.0), v(0.9))  # a validation of an older run has no steps
+    assert better_validation(v(0.9), v(0.9))
+    assert not better_validation(v(0.0, None), v(0.0, 10.0))  # None: no success to time
+    assert better_validation(v(0.0, None), v(0.0, None))
 
 
 def test_the_generalists_episodes_default_and_validation_seeds():

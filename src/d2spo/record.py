@@ -205,8 +205,8 @@ class RunRecord:
 
     def validate(self, policy) -> None:
         """Run the validation (``Validation``) on ``policy`` and keep it as DIR/policy-best.msgpack if
-        it fails no more validation episodes than every earlier one (of equals, the latest: it has
-        trained longer); the scores go into the counters."""
+        it is at least as good as every earlier one (``better_validation``); the scores go into the
+        counters."""
         n_done = len(self.writer)
         history = self.meta.setdefault("validation", [])
         if history and history[-1]["episodes"] == n_done:
@@ -214,7 +214,7 @@ class RunRecord:
         t = time.perf_counter()
         entry = {"episodes": n_done, **self.validation(policy)}
         best = self.meta.get("best")
-        if best is None or entry["success_rate"] >= best["success_rate"]:
+        if best is None or better_validation(entry, best):
             atomic_write_bytes(best_policy_path(self.out), serialization.to_bytes(jax.device_get(policy)))
             self.meta["best"] = entry
         history.append(entry)
@@ -276,11 +276,27 @@ class RunRecord:
         return summary
 
 
+def better_validation(entry: dict, best: dict) -> bool:
+    """Whether a validation ``entry`` replaces the kept ``best``: more successful episodes; of equal
+    success, fewer steps to success on average (the faster policy, as LTL benchmarks rank agents;
+    validations before 2026-11-27 have no ``mean_steps_success`` and tie on it; None: no success); of
+    equals in both, the later one, which has trained longer."""
+    if entry["success_rate"] != best["success_rate"]:
+        return entry["success_rate"] > best["success_rate"]
+
+    def steps(e: dict) -> float:
+        s = e.get("mean_steps_success")
+        return math.inf if s is None else s
+
+    return steps(entry) <= steps(best)
+
+
 class Validation:
     """The generalist's model selection (``TrainConfig.validation_layouts``): ``policy -> rates`` of
     ``validation_episodes`` deterministic episodes on the held-out layouts random:VALIDATION_SEED ..,
     the training task(s), the same episodes (key) every time. ``success_rate`` is the fraction of
-    episodes that complete the task without a collision: what the best policy is chosen by."""
+    episodes that complete the task without a collision, ``mean_steps_success`` their mean length:
+    what the best policy is chosen by (``better_validation``)."""
 
     def __init__(self, cfg: TrainConfig, env, params, learner):
         n = cfg.validation_layouts
@@ -298,8 +314,9 @@ class Validation:
         collided, completed, *rest = self.rollout(self.params, policy, self.key)
         out = rates(collided, completed, *rest)
         ok = np.asarray(completed) & ~np.asarray(collided)
-        return {"success_rate": float(np.mean(ok)), "completion_rate": out["completion_rate"],
-                "safety_rate": out["safety_rate"]}
+        steps = float(np.asarray(rest[1])[ok].mean()) if ok.any() else None
+        return {"success_rate": float(np.mean(ok)), "mean_steps_success": steps,
+                "completion_rate": out["completion_rate"], "safety_rate": out["safety_rate"]}
 
 
 def _tensorboard(path: Path, part: int = 0) -> SummaryWriter:
