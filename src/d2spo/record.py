@@ -311,10 +311,10 @@ class Validation:
         self.key = jax.random.PRNGKey(cfg.seed + 20_000)
 
     def __call__(self, policy) -> dict:
-        collided, completed, *rest = self.rollout(self.params, policy, self.key)
-        out = rates(collided, completed, *rest)
+        collided, completed, ret, length, *rest = self.rollout(self.params, policy, self.key)
+        out = rates(collided, completed, ret, length, *rest)
         ok = np.asarray(completed) & ~np.asarray(collided)
-        steps = float(np.asarray(rest[1])[ok].mean()) if ok.any() else None
+        steps = float(np.asarray(length)[ok].mean()) if ok.any() else None
         return {"success_rate": float(np.mean(ok)), "mean_steps_success": steps,
                 "completion_rate": out["completion_rate"], "safety_rate": out["safety_rate"]}
 
