@@ -97,10 +97,10 @@ class TrainConfig:
     20 m, pillars, 4-12 labelled areas, ZoneEnv's zones among them) or random (square 5-10 m, A1..A4)."""
     generalist_tasks: int | None = None
     """With --generalist: also train on N random reach-avoid tasks; 0: --task alone. None: 16."""
-    validation_layouts: int = 64
+    validation_layouts: int = 16
     """With --generalist: keep the policy that does best on N held-out layouts; 0: the last."""
-    validation_episodes: int = 2048
-    """With --generalist: episodes of each validation (256 on 16 layouts until 2026-11-28)."""
+    validation_episodes: int = 256
+    """With --generalist: episodes of each validation."""
     validate_every: int = 250
     """With --generalist: validate every N training episodes."""
     eval_untrained: bool = False
