@@ -293,7 +293,8 @@ def better_validation(entry: dict, best: dict) -> bool:
 
 class Validation:
     """The generalist's model selection (``TrainConfig.validation_layouts``): ``policy -> rates`` of
-    ``validation_episodes`` deterministic episodes on the held-out layouts random:VALIDATION_SEED ..,
+    ``validation_episodes`` deterministic episodes on the held-out layouts WORLD:VALIDATION_SEED ..
+    (WORLD: ``generalist_world``),
     the training task(s), the same episodes (key) every time. ``success_rate`` is the fraction of
     episodes that complete the task without a collision, ``mean_steps_success`` their mean length:
     what the best policy is chosen by (``better_validation``)."""
