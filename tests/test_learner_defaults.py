@@ -66,3 +66,26 @@ def test_the_generalists_actor_proposes_forward_motion_and_old_runs_keep_theirs(
     assert d["td3"]["forward_only"] is True and config_from_dict(d).td3.forward_only is True
     del d["td3"]["forward_only"]
     assert config_from_dict(d).td3.forward_only is False
+
+
+def test_the_exploration_noise_is_constant_unless_a_final_value_is_given():
+    """``td3.exploration_noise_final``: None keeps TD3's constant noise (the same Python float, so the
+    default program is traced as before); set, the noise falls on a straight line to it over the
+    run's episodes and stays there."""
+    import jax.numpy as jnp
+
+    assert TD3Config().noise_at(jnp.int32(5000), 20000) == 0.2
+    cfg = TD3Config(exploration_noise=0.2, exploration_noise_final=0.05)
+    at = [float(cfg.noise_at(jnp.int32(e), 20000)) for e in (0, 10000, 20000, 25000)]
+    assert at == pytest.approx([0.2, 0.125, 0.05, 0.05])
+    with pytest.raises(ConfigError, match="exploration_noise_final"):
+        TD3Config(exploration_noise_final=-0.1)
+
+
+def test_td3_lag_refuses_an_annealed_exploration_noise(capsys):
+    """Its loop's behaviour hook sees no episode count: one line, exit 2, not a constant noise in silence."""
+    with pytest.raises(SystemExit) as e:  # refused while the flags are parsed
+        main(["train", "--algo", "td3-lag", "--td3-lag.td3.exploration-noise-final", "0.05", "--out", "/nonexistent/x"])
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "td3_lag.td3.exploration_noise_final" in err[0]

@@ -299,7 +299,8 @@ class D2SPOLearner(TD3Learner):
         """One vectorised step without UPDATE(Ω, Θ): (carry, log, the step's key for the update). The
         log holds the update's metrics as NaN (their shapes traced once per learner)."""
         def act(k, random_phase):
-            u_rl = explore(self.nets, c.agent, c.obs, k["act"], random_phase, self.cfg.exploration_noise)
+            u_rl = explore(self.nets, c.agent, c.obs, k["act"], random_phase,
+                           self.cfg.noise_at(c.td3.episodes, self.total_episodes))
             ctx = self.filter_context(c.env_state) if self.d2.runtime_filter else None
             return u_rl, self.execute(c.safety, c.obs, u_rl, c.env_state.pose, ctx)
 
@@ -329,7 +330,8 @@ class D2SPOLearner(TD3Learner):
         batch (metrics NaN)."""
         def u_rl_fn(o):  # the current RL proposal, with exploration noise, as π_Ω will see it
             u = self.nets.actor.apply(c.agent.actor, o)
-            noise = self.cfg.exploration_noise * jax.random.normal(jax.random.fold_in(k_safe, 1), u.shape)
+            std = self.cfg.noise_at(c.td3.episodes, self.total_episodes)
+            noise = std * jax.random.normal(jax.random.fold_in(k_safe, 1), u.shape)
             return jnp.clip(u + noise, self.nets.actor.action_low(), 1.0)
 
         new, metrics = update(k_safe, c.safety, c.data, nets=self.safety_nets, cfg=self.cbf_cfg,

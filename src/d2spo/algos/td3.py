@@ -56,6 +56,9 @@ class TD3Config:
     """Actor and targets update every this many critic updates."""
     exploration_noise: float = 0.2
     """Gaussian exploration noise std (action units)."""
+    exploration_noise_final: float | None = None
+    """When set, the exploration noise falls linearly from ``exploration_noise`` to this over the
+    run's episodes (``noise_at``), so the last episodes act near the greedy policy; None: constant."""
     batch_size: int = 128
     """Minibatch size of each update."""
     buffer_size: int = 300_000
@@ -75,14 +78,22 @@ class TD3Config:
         ``forward_only``, else None (-1 everywhere)."""
         return (0.0,) + (-1.0,) * (action_size - 1) if self.forward_only else None
 
+    def noise_at(self, episodes: jax.Array, total_episodes: int) -> jax.Array | float:
+        """The exploration noise std after ``episodes`` of ``total_episodes`` finished episodes:
+        ``exploration_noise``, or with ``exploration_noise_final`` the straight line between the two."""
+        if self.exploration_noise_final is None:
+            return self.exploration_noise
+        done = jnp.minimum(1.0, episodes.astype(jnp.float32) / max(1, total_episodes))
+        return self.exploration_noise + (self.exploration_noise_final - self.exploration_noise) * done
+
     @property
     def widths(self) -> tuple[int, ...]:
         """The hidden widths in use: ``hidden``, or ``DEFAULT_WIDTHS`` when it is None."""
         return DEFAULT_WIDTHS if self.hidden is None else self.hidden
 
     def __post_init__(self) -> None:
-        check_fields(self, "td3", nullable=("hidden", "forward_only"), widths=("hidden",), lr=("actor_lr", "critic_lr"), discount=("gamma",),
-                     rate=("tau",), non_negative=("policy_noise", "noise_clip", "exploration_noise"),
+        check_fields(self, "td3", nullable=("hidden", "forward_only", "exploration_noise_final"), widths=("hidden",), lr=("actor_lr", "critic_lr"), discount=("gamma",),
+                     rate=("tau",), non_negative=("policy_noise", "noise_clip", "exploration_noise", "exploration_noise_final"),
                      count=("policy_delay", "batch_size", "buffer_size", "updates_per_step"),
                      natural=("learning_starts",), flag=("critic_layer_norm", "forward_only"))
 
@@ -212,7 +223,7 @@ class TD3Learner:
                  total_episodes: int):
         self.env, self.params, self.cfg = env, params, cfg
         self.anneal = AnnealSchedule.for_run(anneal, total_episodes)
-        self.num_envs, self.chunk_steps = num_envs, chunk_steps
+        self.num_envs, self.chunk_steps, self.total_episodes = num_envs, chunk_steps, total_episodes
         self.nets = make_nets(env.action_size, cfg)
 
     # -- shared with D2SPO --------------------------------------------------------------
@@ -236,7 +247,8 @@ class TD3Learner:
 
     def _iteration(self, c: TD3Carry):
         def act(k, random_phase):
-            action = explore(self.nets, c.agent, c.obs, k["act"], random_phase, self.cfg.exploration_noise)
+            action = explore(self.nets, c.agent, c.obs, k["act"], random_phase,
+                             self.cfg.noise_at(c.episodes, self.total_episodes))
             return action, action
 
         s = explore_and_store(c, ("act", "env", "update"), act, self.env, self.params, self.anneal, self.num_envs,

@@ -29,6 +29,7 @@ from d2spo.algos.common.lagrange import LagrangeConfig, LagrangeState
 from d2spo.algos.common.td3_losses import cost_critic_loss, soft_update, td3_actor_loss, td3_critic_loss
 from d2spo.algos.offpolicy import OffPolicyLoop, delayed
 from d2spo.algos.td3 import TD3Agent, TD3Config, explore, init_agent, make_nets
+from d2spo.errors import ConfigError
 from d2spo.ltl.anneal import AnnealConfig
 
 
@@ -49,6 +50,9 @@ class TD3LagConfig:
 
     def __post_init__(self) -> None:
         check_cost_options(self, "td3_lag")
+        if self.td3.exploration_noise_final is not None:  # the loop's behaviour hook sees no episode count
+            raise ConfigError("td3_lag.td3.exploration_noise_final", "is for td3, tlgrl, d2spo and sl; "
+                              "td3-lag explores with the constant td3_lag.td3.exploration_noise")
 
 
 @struct.dataclass
