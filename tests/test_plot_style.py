@@ -120,6 +120,27 @@ def test_evaluation_figure_has_one_panel_per_layout_and_no_empty_one(n, rows):
             "trajectory: out of time (x: end)"} <= set(legend)
 
 
+def test_a_patrols_panels_give_its_visits_not_a_completion_no_episode_reaches():
+    """A recurrence's per-layout rates carry ``route_optimal_visits``: its panels read as ``d2spo eval``
+    prints them, and the legend names a patrol's normal end (the step limit), not "out of time"."""
+    paths, rates = _paths(2)
+    rates = [{**r, "completion_rate": 0.0, "accepting_visits_per_episode": 14.83, "route_optimal_visits": 26,
+              "visit_fraction": 14.83 / 26} for r in rates]
+    fig = plots.draw_evaluation_figure(paths, rates, "run")
+    titles = [ax.get_title() for ax in fig.axes]
+    assert all(": 67% safe\n14.8 of 26 route-optimal visits (57%)\n" in t for t in titles), titles
+    assert not any("completed" in t for t in titles)
+    legend = _legend_texts(fig)
+    assert "trajectory: ran to the step limit, as a patrol does (x: end)" in legend
+    assert "trajectory: out of time (x: end)" not in legend and "trajectory: task completed (x: end)" not in legend
+    fig.canvas.draw()
+    for ax in fig.axes:  # titles fit their panel's width
+        assert ax.title.get_window_extent().width <= 1.05 * ax.get_window_extent().width, ax.get_title()
+    # a co-safe task's panels are as before
+    co = plots.draw_evaluation_figure(*_paths(1), "run")
+    assert co.axes[0].get_title().startswith("random:11: 33% completed, 67% safe")
+
+
 def test_reward_curves_name_every_line_and_band_with_units(tmp_path):
     ax = Figure().add_subplot()
     x = np.arange(5) + 10

@@ -113,10 +113,28 @@ def draw_trajectories(ax, poses, collided, completed) -> None:
         draw_trajectory(ax, xy, color=OUTCOME_COLORS[outcome])
 
 
-def outcome_handles() -> list[Line2D]:
-    """Legend entries of ``draw_trajectories``' colours."""
-    return [Line2D([], [], color=c, marker="x", markevery=[1], label=f"trajectory: {OUTCOME_NAMES[k]} (x: end)")
-            for k, c in OUTCOME_COLORS.items()]
+RECURRENCE_OUTCOME_NAMES = {**OUTCOME_NAMES, "neither": "ran to the step limit, as a patrol does"}
+"""``OUTCOME_NAMES`` for a recurrence (a patrol), which no episode completes: its safe episodes end
+at the step limit, and its score is the accepting visits of the panel titles."""
+
+
+def outcome_handles(recurrence: bool = False) -> list[Line2D]:
+    """Legend entries of ``draw_trajectories``' colours (``recurrence``: a patrol's names)."""
+    names = RECURRENCE_OUTCOME_NAMES if recurrence else OUTCOME_NAMES
+    return [Line2D([], [], color=c, marker="x", markevery=[1], label=f"trajectory: {names[k]} (x: end)")
+            for k, c in OUTCOME_COLORS.items() if not (recurrence and k == "completed")]
+
+
+def rates_title(rates: Mapping) -> str:
+    """A panel's outcome in words: "C% completed, S% safe", or for a recurrence (``rates`` with
+    ``route_optimal_visits``) "S% safe" and, on a second line, "V of N route-optimal visits (F%)"."""
+    safe = f"{rates['safety_rate']:.0%} safe"
+    best = rates.get("route_optimal_visits")
+    if best is None:
+        return f"{rates['completion_rate']:.0%} completed, {safe}"
+    frac = rates.get("visit_fraction")
+    share = "" if frac is None else f" ({frac:.0%})"
+    return f"{safe}\n{rates['accepting_visits_per_episode']:.1f} of {best} route-optimal visits{share}"
 
 
 def policy_figure(path: Path, learner, policy, env, params, episodes: int = 8, seed: int = 0,
@@ -180,7 +198,9 @@ def draw_evaluation_figure(paths: Sequence[tuple], per_layout: Sequence[dict], s
     """For each of the first ``EVAL_PLOT_LAYOUTS`` layouts, the layout and the trajectories of its
     first episodes (``paths``: (Layout, poses, collided, completed) per layout, from
     ``evaluate_run(keep_paths=k)``), titled with that layout's rates over all its episodes; one
-    panel per layout (``panel_grid``) and one legend under the panels that names every mark."""
+    panel per layout (``panel_grid``) and one legend under the panels that names every mark. A
+    recurrence's panels give its accepting visits per episode against the route-optimal count
+    (``rates_title``), as ``d2spo eval`` prints them, instead of a completion no episode reaches."""
     shown = list(zip(paths, per_layout, strict=True))[:EVAL_PLOT_LAYOUTS]
     ncols = 2 if len(shown) == 4 else 3
     nrows = -(-len(shown) // min(ncols, len(shown)))
@@ -190,10 +210,11 @@ def draw_evaluation_figure(paths: Sequence[tuple], per_layout: Sequence[dict], s
     for ax, ((layout, poses, collided, completed), rates) in zip(panel_grid(fig, len(shown), ncols), shown):
         draw_layout(layout, ax, show_sensing=False)
         draw_trajectories(ax, poses, collided, completed)
-        ax.set_title(f"{layout.name}: {rates['completion_rate']:.0%} completed, {rates['safety_rate']:.0%} safe\n"
+        ax.set_title(f"{layout.name}: {rates_title(rates)}\n"
                      f"({rates['episodes']} episodes; {poses.shape[0]} drawn)", fontsize=9)
         handles.update(zip(*reversed(ax.get_legend_handles_labels())))
-    handles.update({h.get_label(): h for h in outcome_handles()})
+    recurrence = any("route_optimal_visits" in rates for _, rates in shown)
+    handles.update({h.get_label(): h for h in outcome_handles(recurrence)})
     fig.legend(handles=list(handles.values()), loc="outside lower center", ncol=2, fontsize=8, frameon=False)
     fig.suptitle(suptitle, fontsize=11)
     return fig
