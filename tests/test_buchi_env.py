@@ -18,6 +18,7 @@ from d2spo.errors import ConfigError
 from d2spo.ltl import Automaton, BuchiTask, NoDeterministicBuchi, task_automaton
 from d2spo.ltl.reward import RewardConfig
 from d2spo.record import visits_per_episode
+from d2spo.runio import read_episodes
 
 NEVER = "G !A4 & F A1"
 PATROL = "G F A1 & G F A3 & G !A4"
@@ -176,23 +177,44 @@ def test_accepting_visits_survive_a_resume_and_reach_tensorboard(tmp_path):
     logs = [_visit_log(done, visit), _visit_log(done, visit[::-1])]
     (tmp_path / "a").mkdir()
     (tmp_path / "b").mkdir()
-    whole = RunRecord(cfg, tmp_path / "a", None, checkpoints=None)
+    whole = RunRecord(cfg, tmp_path / "a", None, checkpoints=None, visits=True)
     for log in logs:
         whole.record(log, None)
-    first = RunRecord(cfg, tmp_path / "b", None, checkpoints=None)
+    first = RunRecord(cfg, tmp_path / "b", None, checkpoints=None, visits=True)
     first.record(logs[0], None)
     meta = json.loads(json.dumps(first.meta))  # as a checkpoint keeps it
-    resumed = RunRecord(cfg, tmp_path / "b", meta, checkpoints=None)
+    resumed = RunRecord(cfg, tmp_path / "b", meta, checkpoints=None, visits=True)
     resumed.record(logs[1], None)
     # first chunk: env 0 ends at step 1 after 2 visits, env 1 at step 3 after 3, env 0 has 1 more
     # in its unfinished episode; second chunk: env 0 ends at step 1 after that 1 + 1, env 1 at step 3
     # after 3 (without the carried count the resumed run would say 1 for episode 2)
     assert whole.visits == resumed.visits == [2, 3, 2, 3]
+    # ... and episodes.csv ends each row with them, the resumed file byte for byte the whole one's
+    csv_a, csv_b = (tmp_path / d / "episodes.csv" for d in "ab")
+    assert csv_a.read_bytes() == csv_b.read_bytes()
+    assert csv_a.read_text().splitlines()[0].endswith(",end_y,accepting_visits")
+    assert [r[-1] for r in read_episodes(csv_a)] == [2, 3, 2, 3]
     whole.tb.close()
     from _tb import tb_scalars
 
     values = tb_scalars(tmp_path / "a" / "tb")["episode/accepting_visits"]
     assert values == [(0, 2.0), (1, 3.0), (2, 2.0), (3, 3.0)]
+
+
+def test_a_patrol_file_without_the_visits_column_resumes_without_it(tmp_path):
+    """A patrol trained before episodes.csv had the column keeps its columns when it resumes; a
+    co-safe task's file never has it."""
+    from d2spo.runio import EPISODE_FIELDS, EpisodeWriter
+
+    path = tmp_path / "episodes.csv"
+    old = EpisodeWriter(path)  # the columns before
+    old.append([(0, 1.0, 0.0, 0, 0, 0, 5, 0.0, 0.0)])
+    resumed = EpisodeWriter(path, keep_rows=1, visits=True)
+    assert not resumed.visits and path.read_text().splitlines()[0] == ",".join(EPISODE_FIELDS)
+    new = EpisodeWriter(tmp_path / "new.csv", visits=True)
+    new.append([(0, 1.0, 0.0, 0, 0, 0, 5, 0.0, 0.0, 4)])
+    assert EpisodeWriter(tmp_path / "new.csv", keep_rows=1).visits  # the file's columns, not the caller's
+    assert read_episodes(tmp_path / "new.csv") == [(0, 1.0, 0.0, 0, 0, 0, 5, 0.0, 0.0, 4)]
 
 
 def test_the_printed_automaton_names_the_accepting_visits():

@@ -114,7 +114,8 @@ class RunRecord:
     has one; ``train_seeds`` one per seed."""
 
     def __init__(self, cfg: TrainConfig, out: Path, meta: dict | None, checkpoints: Checkpoints,
-                 overhead: dict | None = None, validation: Validation | None = None, wandb: WandbRun | None = None):
+                 overhead: dict | None = None, validation: Validation | None = None, wandb: WandbRun | None = None,
+                 visits: bool = False):
         self.cfg, self.out, self.checkpoints, self.validation = cfg, Path(out), checkpoints, validation
         self.wandb = wandb
         self.meta = dict(meta or {"episodes": 0, "env_steps": 0, "chunks": 0, "wall_seconds": 0.0})
@@ -122,7 +123,8 @@ class RunRecord:
         # written before these were counted): compiling the learner, and the rest (building the env).
         for k, v in (overhead or {}).items():
             self.meta[k] = self.meta.get(k, 0.0) + v
-        self.writer = EpisodeWriter(self.out / "episodes.csv", keep_rows=self.meta["episodes"])
+        # a Büchi task with accepting visits (``visits``, a patrol): each row ends with the episode's
+        self.writer = EpisodeWriter(self.out / "episodes.csv", keep_rows=self.meta["episodes"], visits=visits)
         self.tb, self.tb_part = _tensorboard(self.out / "tb"), 0
         every = cfg.checkpoint_every
         self.next_ckpt = (self.meta["episodes"] // every + 1) * every
@@ -152,13 +154,15 @@ class RunRecord:
                      if last is not None else f"no checkpoint was written in {self.out} before it")
             raise NaNError(f"training stopped at episode {len(writer)}: {problem}; episodes.csv holds the "
                            f"episodes before it and {where}")
-        writer.append(rows)
         counts = None
         if log.accepting_visit is not None:  # a Büchi task (``ltl.buchi_task``)
             counts, self.visit_run = visits_per_episode(log.accepting_visit, log.done, self.visit_run)
             counts = counts[:len(rows)]
             self.visits = (self.visits + counts)[-self.visits_kept:]
             meta["visits"], meta["visit_run"] = list(self.visits), self.visit_run.tolist()
+        if writer.visits:
+            rows = [row + (int(c),) for row, c in zip(rows, counts, strict=True)]
+        writer.append(rows)
         meta["chunks"] += 1
         meta["env_steps"] += cfg.chunk_steps * cfg.num_envs
         meta["episodes"] = len(writer)

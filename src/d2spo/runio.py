@@ -40,7 +40,10 @@ except ImportError:  # pragma: no cover - not on Windows
     fcntl = None
 
 EPISODE_FIELDS = ("episode", "return", "cost", "collided", "completed", "completed_relaxed", "length", "end_x", "end_y")
-_INT_COLUMNS = (0, 3, 4, 5, 6)
+VISITS_FIELD = "accepting_visits"
+"""The column after ``EPISODE_FIELDS`` in a Büchi task's episodes.csv (one with accepting visits, a
+patrol): the episode's accepting visits. A task without them (every co-safe task) has no such column."""
+_INT_COLUMNS = (0, 3, 4, 5, 6, 9)
 
 
 def _named(e: OSError, path: Path) -> OSError:
@@ -214,19 +217,24 @@ class EpisodeWriter:
     """Appends finished episodes to episodes.csv and keeps them in memory for the summary.
 
     ``keep_rows`` > 0 resumes: the file must hold at least that many valid rows (the episodes
-    before the checkpoint); they are kept byte for byte and whatever follows them is dropped."""
+    before the checkpoint); they are kept byte for byte and whatever follows them is dropped.
+    ``visits``: the rows end with the episode's accepting visits (``VISITS_FIELD``; a patrol); a
+    resumed file keeps the columns it has."""
 
-    def __init__(self, path: Path, keep_rows: int = 0):
-        self.path = Path(path)
+    def __init__(self, path: Path, keep_rows: int = 0, visits: bool = False):
+        self.path, self.visits = Path(path), visits
+        fields = EPISODE_FIELDS + ((VISITS_FIELD,) if visits else ())
         if keep_rows > 0:
             header, lines, self.rows = _read_rows(self.path, keep_rows)
+            # the file's columns go on: a patrol trained before the column existed resumes without it
+            self.visits = header.rstrip(b"\r\n").endswith(b"," + VISITS_FIELD.encode())
             if len(self.rows) < keep_rows:
                 raise RunDirError(f"{self.path}: holds {len(self.rows)} episodes but the checkpoint was taken "
                                   f"after {keep_rows}; it was truncated or edited, so the run cannot resume")
             data = header + b"".join(lines)
         else:
             self.rows = []
-            data = _csv_bytes([EPISODE_FIELDS])
+            data = _csv_bytes([fields])
         atomic_write_bytes(self.path, data)
 
     def append(self, rows: list[tuple]) -> None:
@@ -270,25 +278,28 @@ def read_episodes(path: Path) -> list[tuple]:
 
 
 def _read_rows(path: Path, limit: int | None) -> tuple[bytes, list[bytes], list[tuple]]:
-    """(header line, the first ``limit`` row lines, their parsed rows); lines after them are not read."""
+    """(header line, the first ``limit`` row lines, their parsed rows); lines after them are not read.
+    The header is ``EPISODE_FIELDS``, or those and ``VISITS_FIELD`` (a patrol's file)."""
     if not path.is_file():
         raise RunDirError(f"{path.parent}: no episodes.csv")
     lines = path.read_bytes().splitlines(keepends=True)
-    if not lines or lines[0].rstrip(b"\r\n") != ",".join(EPISODE_FIELDS).encode():
+    headers = {",".join(EPISODE_FIELDS + extra).encode(): len(EPISODE_FIELDS + extra) for extra in ((), (VISITS_FIELD,))}
+    width = headers.get(lines[0].rstrip(b"\r\n")) if lines else None
+    if width is None:
         head = lines[0][:80].decode(errors="replace").strip() if lines else ""
         raise RunDirError(f"{path}: not an episodes.csv (header {head!r})")
     body = lines[1:] if limit is None else lines[1:1 + limit]
-    rows = [_parse_row(path, i, line) for i, line in enumerate(body)]
+    rows = [_parse_row(path, i, line, width) for i, line in enumerate(body)]
     return lines[0], body, rows
 
 
-def _parse_row(path: Path, i: int, line: bytes) -> tuple:
+def _parse_row(path: Path, i: int, line: bytes, width: int) -> tuple:
     where = f"{path}, line {i + 2}"
     if not line.endswith(b"\n"):
         raise RunDirError(f"{where}: the row is cut short (the file is damaged)")
     try:
         fields = line.decode("ascii").rstrip("\r\n").split(",")
-        if len(fields) != len(EPISODE_FIELDS):
+        if len(fields) != width:
             raise ValueError
         row = tuple(int(v) if j in _INT_COLUMNS else float(v) for j, v in enumerate(fields))
     except ValueError:

@@ -80,7 +80,7 @@ def _train_locked(cfg: TrainConfig, out: Path, built, resume: bool, progress: Pr
             untrained = jax.tree_util.tree_map(jnp.copy, learner.policy(carry))  # ``chunk`` donates the carry
         overhead = _compiled(chunk, carry, t_enter, t_compile, [progress], [meta], cfg)
         validation = Validation(cfg, env, params, learner) if cfg.generalist and cfg.validation_layouts else None
-        run = RunRecord(cfg, out, meta, checkpoints, overhead, validation, wandb)
+        run = RunRecord(cfg, out, meta, checkpoints, overhead, validation, wandb, visits=params.aut.visit is not None)
         redraw = Redraw(cfg, env) if cfg.generalist and cfg.generalist_redraw else None
         if redraw is not None:  # a resumed run's bank as its checkpoint left it
             chunk.params = redraw.apply(chunk.params, run.meta.get("redrawn", {}))
@@ -231,7 +231,8 @@ def _train_seeds_locked(cfgs: list[TrainConfig], outs: list[Path], built, progre
         sinks = [None if s_ is not None else stack.enter_context(wandb_run(c, o, continuing=m is not None))
                  for c, o, m, s_ in zip(cfgs, outs, metas, summaries)]
         overhead = _compiled(chunk, carry, t_enter, t_compile, progress, metas, cfgs[0])
-        runs = [None if s_ is not None else RunRecord(c, o, m, Checkpoints(o, p), overhead, wandb=w)
+        runs = [None if s_ is not None else RunRecord(c, o, m, Checkpoints(o, p), overhead, wandb=w,
+                                                      visits=params.aut.visit is not None)
                 for c, o, m, s_, p, w in zip(cfgs, outs, metas, summaries, prints, sinks)]
         chunks_this_call = 0
         while any(s_ is None for s_ in summaries):
