@@ -123,7 +123,7 @@ class RunRecord:
         # written before these were counted): compiling the learner, and the rest (building the env).
         for k, v in (overhead or {}).items():
             self.meta[k] = self.meta.get(k, 0.0) + v
-        # a Büchi task with accepting visits (``visits``, a patrol): each row ends with the episode's
+        # a Büchi task with accepting visits (``visits``, a patrol): each row ends with its count
         self.writer = EpisodeWriter(self.out / "episodes.csv", keep_rows=self.meta["episodes"], visits=visits)
         self.tb, self.tb_part = _tensorboard(self.out / "tb"), 0
         every = cfg.checkpoint_every
