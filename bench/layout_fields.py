@@ -53,11 +53,11 @@ def main() -> None:
     lb.fields_numpy(*one(0), grid=g)  # compiles the step costs (shared by both solvers)
     ref, t_np = zip(*(_timed(lb.fields_numpy, *one(k), grid=g) for k in range(n)), strict=True)
 
-    single = lambda k: lb._fields_batch(*[a[k:k + 1] for a in arrays], g)  # noqa: E731
+    single = lambda k: lb.fields_batch(*[a[k:k + 1] for a in arrays], g)  # noqa: E731
     _, compile_one = _timed(single, 0)
     out1, t_one = zip(*(_timed(single, k) for k in range(n)), strict=True)
     c = min(args.chunk, n)
-    batch = lambda s: lb._fields_batch(*[a[s:s + c] for a in arrays], g)  # noqa: E731
+    batch = lambda s: lb.fields_batch(*[a[s:s + c] for a in arrays], g)  # noqa: E731
     _, compile_chunk = _timed(batch, 0)
     t_chunk = [_timed(batch, s)[1] / c for s in range(0, n - c + 1, c)]
     got = np.concatenate([np.asarray(o) for o in out1])
