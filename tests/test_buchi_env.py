@@ -114,6 +114,33 @@ def test_the_route_optimal_visits_follow_the_lap_between_two_areas(tmp_path):
     assert routes.visit_lengths(aut, layout, "event", 0.15, lengths[2] - 0.01) == lengths[:2]
 
 
+def test_a_gap_the_barriers_margin_closes_gives_no_visits_keeping_it():
+    """A wall across a 6 m x 3 m arena with a 0.45 m gap between A1 and A2: a robot of radius 0.15
+    fits through (the route-optimal count is the laps), one that keeps the barrier's 0.3 m does not
+    (``route_optimal_visits_margin`` 0), which ``d2spo eval`` then names; on the open arena the two
+    counts agree."""
+    from types import SimpleNamespace
+
+    from d2spo.envs.compiled_task import compile_task
+    from d2spo.envs.workspace import Area, Layout, Obstacle
+    from d2spo.rollout import visit_optimum
+
+    areas = (Area("A1", (1.0, 1.5), 0.4), Area("A2", (5.0, 1.5), 0.4))
+    gap = 0.45  # the wall spans y in [0, 1.275] and [1.725, 3]
+    wall = (Obstacle((3.0, (1.5 - gap / 2) / 2), (0.1, (1.5 - gap / 2) / 2)),
+            Obstacle((3.0, 3.0 - (1.5 - gap / 2) / 2), (0.1, (1.5 - gap / 2) / 2)))
+    cfg = SimpleNamespace(dt=0.1, v_max=0.95, v_gain=1.0)
+    aut = task_automaton("GF A1 & GF A2")
+    walled = compile_task(aut, Layout("gap", (6.0, 3.0), (1.0, 1.5, 0.0), wall, areas), "event", 0.15)
+    out = visit_optimum(walled, 600, cfg, 2.0, margin=0.3)
+    assert out["route_optimal_visits"] >= 5 and out["route_optimal_visits_margin"] == 0 and out["margin"] == 0.3
+    assert out["visit_fraction"] == pytest.approx(2.0 / out["route_optimal_visits"])
+    open_ = compile_task(aut, Layout("open", (6.0, 3.0), (1.0, 1.5, 0.0), (), areas), "event", 0.15)
+    both = visit_optimum(open_, 600, cfg, 2.0, margin=0.3)
+    assert both["route_optimal_visits_margin"] == both["route_optimal_visits"] >= 5
+    assert "route_optimal_visits_margin" not in visit_optimum(open_, 600, cfg, 2.0)  # no barrier, no margin
+
+
 def test_an_episode_too_short_for_one_visit_is_refused_before_training():
     from d2spo.envs.preflight import preflight
 

@@ -105,7 +105,9 @@ def print_evaluation(res: dict, path: Path, filter_asked: bool | None) -> None:
     def visits(r: dict) -> str:
         best, frac = r.get("route_optimal_visits"), r.get("visit_fraction")
         of = f" of {best}" if best is not None else ""
-        return f"{r['accepting_visits_per_episode']:.2f}{of}" + ("" if frac is None else f" ({100 * frac:.1f}%)")
+        kept = r.get("route_optimal_visits_margin")
+        margin = "" if kept is None or kept == best else f"; {kept} keeping {r['margin']:g} m"
+        return f"{r['accepting_visits_per_episode']:.2f}{of}" + ("" if frac is None else f" ({100 * frac:.1f}%{margin})")
 
     def row(name: str, r: dict, **style) -> None:
         t.add_row(name, f"{100 * r['safety_rate']:.2f}%", visits(r) if recurrence else f"{100 * r['completion_rate']:.2f}%",
@@ -122,6 +124,10 @@ def print_evaluation(res: dict, path: Path, filter_asked: bool | None) -> None:
     if recurrence:  # a Büchi task: scored by its accepting visits too
         optimum = "" if res.get("visit_fraction") is None else f" ({100 * res['visit_fraction']:.1f}% of the route-optimal count)"
         print(f"accepting visits per episode: {res['accepting_visits_per_episode']:.2f}{optimum}")
+        closed = [r["layout"] for r in per if r.get("route_optimal_visits_margin") == 0 and r.get("route_optimal_visits")]
+        if closed:  # as training's barrier-margin warning: a hint where to look, not a bound
+            print(f"every route to a visit passes closer than the barrier's margin ({per[0]['margin']:g} m), where "
+                  f"the barrier may hold the robot back, on: {', '.join(closed)}")
     print(f"wrote {path}")
 
 

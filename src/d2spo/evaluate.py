@@ -242,7 +242,7 @@ def _specialist_rollouts(cfg: TrainConfig, learner, policy, ecfg: EvalConfig, ov
         res = compiled[shape](params, policy, jax.random.PRNGKey(ecfg.seed))
         results.append(rates(*res))
         results[-1].update(visit_optimum(env.task, params.max_steps, env.config,
-                                          results[-1].get("accepting_visits_per_episode")))
+                                          results[-1].get("accepting_visits_per_episode"), barrier_margin(cfg)))
         if keep_paths:
             poses, collided, completed = (np.asarray(a[:keep_paths]) for a in (res[4], res[0], res[1]))
             results[-1]["paths"] = (env.layout, poses, collided, completed)
@@ -258,8 +258,15 @@ def _generalist_rollouts(run_dir: Path, cfg: TrainConfig, ecfg: EvalConfig, env_
     checked = [zero_shot.generalist_layout(env_cfg, name, task, cfg.cbf.d) for name in layouts]
     env, params, learner, limit = zero_shot.generalist_on(cfg, env_cfg, task, checked)
     _, _, policy, meta = load_policy(run_dir, ecfg.policy, learner)
-    results = zero_shot.rollouts(env, params, learner, policy, checked, ecfg.episodes, ecfg.seed, limit, keep_paths)
+    results = zero_shot.rollouts(env, params, learner, policy, checked, ecfg.episodes, ecfg.seed, limit, keep_paths,
+                                 barrier_margin(cfg))
     return results, limit, meta["policy"]
+
+
+def barrier_margin(cfg: TrainConfig) -> float | None:
+    """The margin d a run's learned barrier keeps from obstacles (D²SPO and SL: ``cbf.d``, with the
+    runtime filter on or off, as training's barrier-margin check), else None."""
+    return cfg.cbf.d if has_runtime_filter(cfg.algo) else None
 
 
 def layout_sha256(layout: str) -> str | None:

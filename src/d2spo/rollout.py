@@ -87,15 +87,25 @@ def rates(collided, completed, ret, length, poses=None, visits=None) -> dict:
     return out
 
 
-def visit_optimum(task, max_steps: int, cfg, visits: float | None) -> dict:
+def visit_optimum(task, max_steps: int, cfg, visits: float | None, margin: float | None = None) -> dict:
     """For a recurrence compiled on one layout (``task``, a ``CompiledTask``; None for a bank of
     layouts): its route-optimal visits per episode of ``max_steps`` steps under the resolved env
     config ``cfg`` (``CompiledTask.optimal_visits``) and ``visits`` (the mean per episode) as a
-    fraction of it; {} for any other task."""
+    fraction of it; {} for any other task. With ``margin`` (the barrier's margin d of a learner that
+    keeps it) wider than the robot's radius, also ``route_optimal_visits_margin``: the same count
+    on routes that keep ``margin`` from every obstacle and wall: a layout whose every route passes
+    closer, where the barrier may hold the robot back (as training's barrier-margin warning says), is
+    flagged. A hint, not a bound: a robot may still pass a little closer than d (grid routes at 0.29 m
+    have been driven)."""
     if task is None or task.distance is None or not task.recurrence:
         return {}
-    best = task.optimal_visits(int(max_steps), cfg.dt, cfg.v_max * cfg.v_gain)
-    return {"route_optimal_visits": best, "visit_fraction": None if visits is None or best == 0 else visits / best}
+    v = cfg.v_max * cfg.v_gain
+    best = task.optimal_visits(int(max_steps), cfg.dt, v)
+    out = {"route_optimal_visits": best, "visit_fraction": None if visits is None or best == 0 else visits / best}
+    if margin is not None and margin > task.robot_radius:
+        out["margin"] = float(margin)
+        out["route_optimal_visits_margin"] = task.optimal_visits(int(max_steps), cfg.dt, v, radius=margin)
+    return out
 
 
 def random_proposal_safety(learner, carry, env, params, shielded: bool, episodes: int = 64, seed: int = 3) -> float:

@@ -71,11 +71,12 @@ def generalist_on(cfg: TrainConfig, env_cfg, task: str, checked: list[tuple[Layo
 
 
 def rollouts(env, params, learner, policy, checked: list[tuple[Layout, int]], episodes: int, seed: int, limit: int,
-             keep_paths: int = 0) -> list[dict]:
+             keep_paths: int = 0, margin: float | None = None) -> list[dict]:
     """Rates per layout of the generalist ``policy`` on the ``checked`` layouts: one compiled
     rollout; each layout swaps its one-layout bank into ``params``. With ``keep_paths`` each layout's
     rates also hold ``"paths"``: (Layout, poses [k, T + 1, 3], collided [k], completed [k]) of its
-    first ``keep_paths`` episodes."""
+    first ``keep_paths`` episodes. ``margin``: the barrier's margin d, for a patrol's
+    ``route_optimal_visits_margin`` (``rollout.visit_optimum``)."""
     run = make_rollout(learner, env, episodes, limit)
     results = []
     for k, (lay, _) in enumerate(checked):
@@ -86,7 +87,8 @@ def rollouts(env, params, learner, policy, checked: list[tuple[Layout, int]], ep
         if params.aut.visit is not None and isinstance(env.automaton, Automaton):  # a Büchi task's visits
             # against what a perfect robot would make on this layout in ``limit`` steps
             task = compile_task(env.automaton, lay, env.config.label_mode, env.config.robot_radius)
-            results[-1].update(visit_optimum(task, limit, env.config, results[-1]["accepting_visits_per_episode"]))
+            results[-1].update(visit_optimum(task, limit, env.config, results[-1]["accepting_visits_per_episode"],
+                                             margin))
         if keep_paths:
             poses, collided, completed = (np.asarray(a[:keep_paths]) for a in (res[4], res[0], res[1]))
             results[-1]["paths"] = (lay, poses, collided, completed)

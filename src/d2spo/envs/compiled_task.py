@@ -88,12 +88,15 @@ class CompiledTask:
                                        visits)
         return lengths[-1] if len(lengths) == visits else math.inf
 
-    def optimal_visits(self, max_steps: int, dt: float, v_max: float) -> int:
+    def optimal_visits(self, max_steps: int, dt: float, v_max: float, radius: float | None = None) -> int:
         """A recurrence's route-optimal visit count: the accepting visits of the shortest routes that fit
         in ``max_steps`` steps of ``dt`` at ``v_max`` (``routes.visit_lengths``; turning and braking
-        ignored, and the grid's 8 directions allowed for: an upper bound on what a robot can score)."""
+        ignored, and the grid's 8 directions allowed for: an upper bound on what a robot can score).
+        ``radius``: routes that keep this far from every obstacle and wall (default: the robot's radius;
+        the barrier's margin d gives what a robot that keeps d can make)."""
         reach = max_steps * dt * v_max * routes.OCTILE_EXCESS
-        return len(routes.visit_lengths(self.automaton, self.layout, self.label_mode, self.robot_radius, reach))
+        r = self.robot_radius if radius is None else radius
+        return len(routes.visit_lengths(self.automaton, self.layout, self.label_mode, r, reach))
 
     @cached_property
     def reached(self) -> tuple[bool, ...]:
