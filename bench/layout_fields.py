@@ -22,7 +22,7 @@ import numpy as np
 from d2spo.config import GENERALIST_TASKS
 from d2spo.envs import layout_bank as lb
 from d2spo.envs import world
-from d2spo.envs.generalist import task_plan
+from d2spo.envs.task_plan import task_plan
 from d2spo.ltl.tasks import reach_avoid_tasks
 
 

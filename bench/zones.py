@@ -76,7 +76,8 @@ def train_seed(runs: Path, seed: int, quick: bool) -> Path:
 def evaluate_seed(run: Path, episodes: int, keep_paths: int) -> dict:
     from d2spo.algos.generalist import build_generalist
     from d2spo.envs import layout_bank
-    from d2spo.envs.generalist import slot_max_steps, view
+    from d2spo.envs.generalist import view
+    from d2spo.envs.task_plan import slot_max_steps
     from d2spo.envs.zones import zones_layout
     from d2spo.rollout import make_rollout
     from d2spo.run import load_policy

@@ -308,7 +308,7 @@ class Validation:
         self.layouts = f"{cfg.generalist_world}:{VALIDATION_SEED}..{VALIDATION_SEED + n - 1}"
         tasks = len(env.plan.names)  # every layout with every task of the mixture
         layouts = [load_layout(f"{cfg.generalist_world}:{s}") for s in range(VALIDATION_SEED, VALIDATION_SEED + n)]
-        limit = cfg.env.max_steps  # None: each layout's own (envs.generalist.slot_max_steps)
+        limit = cfg.env.max_steps  # None: each layout's own (envs.task_plan.slot_max_steps)
         bank = env.bank([lay for lay in layouts for _ in range(tasks)], [t for _ in layouts for t in range(tasks)],
                         limit)
         self.params = view(params.replace(bank=bank), jnp.zeros((), jnp.int32))

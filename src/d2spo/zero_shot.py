@@ -30,9 +30,10 @@ from d2spo.algos.generalist import build_generalist
 from d2spo.config import TrainConfig
 from d2spo.envs import layout_bank
 from d2spo.envs.compiled_task import compile_task
-from d2spo.envs.generalist import slot_max_steps, view
+from d2spo.envs.generalist import view
 from d2spo.envs.nav import make_env
 from d2spo.envs.preflight import preflight
+from d2spo.envs.task_plan import slot_max_steps
 from d2spo.envs.workspace import Layout
 from d2spo.ltl.automaton import Automaton
 from d2spo.ltl.reward import PER_STATE
@@ -63,7 +64,7 @@ def generalist_on(cfg: TrainConfig, env_cfg, task: str, checked: list[tuple[Layo
     """(env, params, learner, episode limit) of the generalist trained with ``cfg``, built once for
     ``task`` alone under the dynamics of ``env_cfg``, on the first of the ``checked`` layouts; the
     limit is the longest any of them needs (``generalist_layout``), and at least what training
-    gives each (its ``max_steps``, else ``envs.generalist.slot_max_steps``)."""
+    gives each (its ``max_steps``, else ``envs.task_plan.slot_max_steps``)."""
     limit = max(max(cfg.env.max_steps or slot_max_steps(lay), n) for lay, n in checked)
     cfg = dataclasses.replace(cfg, env=env_cfg, task=task, generalist_tasks=0)
     env, params, learner = build_generalist(cfg, [checked[0][0]], limit)

@@ -101,7 +101,7 @@ def build_generalist(cfg, layouts, max_steps: int | None, tasks_of=None):
     ``layouts`` (or a bank of this config's task mixture) for ``cfg.task`` and
     ``cfg.generalist_tasks`` random reach-avoid sequences (slot k paired with task tasks_of[k],
     default k modulo their number), every episode at most ``max_steps`` long (None: each slot's
-    ``envs.generalist.slot_max_steps``). The layouts' own radii label the areas (no annealing)."""
+    ``envs.task_plan.slot_max_steps``). The layouts' own radii label the areas (no annealing)."""
     tasks = [cfg.task, *reach_avoid_tasks(cfg.generalist_tasks)] if cfg.generalist_tasks else cfg.task
     env, params = make_generalist_env(cfg.env_config(), tasks, layouts, max_steps, tasks_of)
     anneal = dataclasses.replace(cfg.anneal, enabled=False)
