@@ -44,8 +44,8 @@ def test_ctrl_c_while_compiling_exits_at_once_with_one_line(tmp_path):
 def test_an_interrupt_swallowed_on_its_way_still_ends_the_command():
     """The `d2spo` command's SIGINT handler raises KeyboardInterrupt and, should that be swallowed
     (Python ignores exceptions raised in garbage-collection callbacks), exits 130 with one line."""
-    code = ("import os, signal, time\nfrom d2spo import cli\ncli.INTERRUPT_GRACE = 0.5\n"
-            "signal.signal(signal.SIGINT, cli._interrupted)\n"
+    code = ("import os, signal, time\nfrom d2spo import interrupts\ninterrupts.GRACE = 0.5\n"
+            "signal.signal(signal.SIGINT, interrupts.interrupted)\n"
             "try:\n    os.kill(os.getpid(), signal.SIGINT)\n    time.sleep(5)\nexcept KeyboardInterrupt:\n    pass\n"
             "time.sleep(30)\n")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
@@ -55,9 +55,9 @@ def test_an_interrupt_swallowed_on_its_way_still_ends_the_command():
 def test_an_interrupt_python_cannot_raise_ends_the_command_at_once():
     """A KeyboardInterrupt raised where Python can only report it ("Exception ignored in ...": a
     finaliser, XLA's garbage-collection callback) ends the `d2spo` command at once with 130 and
-    its one line (``cli._leave_if_interrupt_swallowed``), not after the watchdog's grace."""
-    code = ("import sys, time\nfrom d2spo import cli\ncli.INTERRUPT_GRACE = 60.0\n"
-            "sys.unraisablehook = cli._leave_if_interrupt_swallowed\n"
+    its one line (``interrupts.leave_if_swallowed``), not after the watchdog's grace."""
+    code = ("import sys, time\nfrom d2spo import interrupts\ninterrupts.GRACE = 60.0\n"
+            "sys.unraisablehook = interrupts.leave_if_swallowed\n"
             "class Held:\n    def __del__(self):\n        raise KeyboardInterrupt\n"
             "Held()\ntime.sleep(10)\n")
     start = time.monotonic()

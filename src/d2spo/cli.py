@@ -14,10 +14,8 @@ import io
 import json
 import os
 import re
-import signal
 import sys
 import threading
-import time
 import warnings
 from pathlib import Path
 from typing import Annotated, Union
@@ -25,7 +23,7 @@ from typing import Annotated, Union
 import tyro
 from rich.console import Console
 
-from d2spo import compile_cache
+from d2spo import compile_cache, interrupts
 from d2spo.certify import CertifyConfig, certify_run, load_cbf_run, write_outputs
 from d2spo.cli_docs import DocsCmd
 from d2spo.cli_export import ExportCmd
@@ -351,46 +349,10 @@ def parse(args: list[str]):
         raise
 
 
-INTERRUPT_GRACE = 10.0
-"""Seconds the `d2spo` command waits, after Ctrl-C, for its KeyboardInterrupt to end it (closing
-what it holds, a Ray cluster say) before it leaves anyway (``_interrupted``)."""
-
-
-def _interrupted(signum, frame) -> None:
-    """The `d2spo` command's SIGINT handler: KeyboardInterrupt as usual, and a watchdog that exits
-    130 with one line after ``INTERRUPT_GRACE`` seconds. The exception can land in a
-    garbage-collection callback (XLA's), where Python prints it as "Exception ignored" and carries
-    on compiling: seen on a loaded 2-core machine, where the command then ran on."""
-
-    def leave() -> None:  # pragma: no cover - only when the KeyboardInterrupt was swallowed
-        time.sleep(INTERRUPT_GRACE)
-        error("interrupted")
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(130)
-
-    threading.Thread(target=leave, name="d2spo-interrupt-watchdog", daemon=True).start()
-    raise KeyboardInterrupt
-
-
-def _leave_if_interrupt_swallowed(unraisable) -> None:
-    """``sys.unraisablehook`` of the `d2spo` command: a KeyboardInterrupt that Python could not
-    raise (it landed in a callback, XLA's garbage-collection one say, and would be printed as
-    "Exception ignored") ends the command at once with the usual line and 130, instead of after
-    the watchdog's ``INTERRUPT_GRACE`` seconds; anything else goes to Python's own hook."""
-    if isinstance(unraisable.exc_value, KeyboardInterrupt):
-        error("interrupted")
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(130)
-    sys.__unraisablehook__(unraisable)
-
-
 def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else list(argv)
     if argv is None and threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGINT, _interrupted)
-        sys.unraisablehook = _leave_if_interrupt_swallowed
+        interrupts.install()
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("always", D2SPOWarning)
