@@ -20,6 +20,7 @@ import jax
 import numpy as np
 
 from d2spo.config import GENERALIST_TASKS
+from d2spo.envs import bank_fields as bf
 from d2spo.envs import layout_bank as lb
 from d2spo.envs import world
 from d2spo.envs.task_plan import task_plan
@@ -37,7 +38,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--layouts", type=int, default=16, help="slots timed per solver (world:0..N-1)")
     ap.add_argument("--chunk", type=int, default=16, help="slots per vmapped JAX call")
-    ap.add_argument("--grid", type=int, default=lb.G)
+    ap.add_argument("--grid", type=int, default=bf.G)
     ap.add_argument("--bank", type=int, default=256, help="slots in the bank timed at the end (0: none)")
     args = ap.parse_args()
     n, g = args.layouts, args.grid
@@ -50,14 +51,14 @@ def main() -> None:
     arrays = lb._slot_args(bank)
     one = lambda k: [a[k] for a in arrays]  # noqa: E731
 
-    lb.fields_numpy(*one(0), grid=g)  # compiles the step costs (shared by both solvers)
-    ref, t_np = zip(*(_timed(lb.fields_numpy, *one(k), grid=g) for k in range(n)), strict=True)
+    bf.fields_numpy(*one(0), grid=g)  # compiles the step costs (shared by both solvers)
+    ref, t_np = zip(*(_timed(bf.fields_numpy, *one(k), grid=g) for k in range(n)), strict=True)
 
-    single = lambda k: lb.fields_batch(*[a[k:k + 1] for a in arrays], g)  # noqa: E731
+    single = lambda k: bf.fields_batch(*[a[k:k + 1] for a in arrays], g)  # noqa: E731
     _, compile_one = _timed(single, 0)
     out1, t_one = zip(*(_timed(single, k) for k in range(n)), strict=True)
     c = min(args.chunk, n)
-    batch = lambda s: lb.fields_batch(*[a[s:s + c] for a in arrays], g)  # noqa: E731
+    batch = lambda s: bf.fields_batch(*[a[s:s + c] for a in arrays], g)  # noqa: E731
     _, compile_chunk = _timed(batch, 0)
     t_chunk = [_timed(batch, s)[1] / c for s in range(0, n - c + 1, c)]
     got = np.concatenate([np.asarray(o) for o in out1])

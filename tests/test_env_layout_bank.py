@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from d2spo.envs import generator, geodesic
+from d2spo.envs import bank_fields, generator, geodesic
 from d2spo.envs import layout_bank as lb
 from d2spo.envs.workspace import Area, DiskObstacle, Layout
 from d2spo.errors import ConfigError
@@ -55,7 +55,7 @@ def test_open_field_is_the_straight_distance_to_the_disk(bank):
     spacing = 5.0 / (GRID - 1)
     ys, xs = np.mgrid[0:GRID, 0:GRID] * spacing
     straight = np.maximum(np.hypot(xs - 1.0, ys - 2.5) - 0.4, 0.0)
-    away = (np.minimum.reduce([xs, ys, 5 - xs, 5 - ys]) >= lb.CLEARANCE)  # off the walls' costly band
+    away = (np.minimum.reduce([xs, ys, 5 - xs, 5 - ys]) >= bank_fields.CLEARANCE)  # off the walls' costly band
     assert np.all(field[away] >= straight[away] - 1e-4)
     # an 8-neighbour path is at most 8.2% longer than the segment, plus under a step at the disk
     assert np.all(field[away] <= straight[away] * math.sqrt(4 - 2 * math.sqrt(2)) + spacing)

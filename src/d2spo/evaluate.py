@@ -29,7 +29,15 @@ from d2spo.fields import check_choice, check_fields, field_docstring
 from d2spo.inputs import sha256_of
 from d2spo.memory import check_eval_memory
 from d2spo.rollout import make_rollout, rates, visit_optimum
-from d2spo.run import POLICY_CHOICES, build, check_layout_unchanged, load_policy, load_run_config, preflight_checks
+from d2spo.run import (
+    POLICY_CHOICES,
+    barrier_margin,
+    build,
+    check_layout_unchanged,
+    load_policy,
+    load_run_config,
+    preflight_checks,
+)
 from d2spo.runio import atomic_write_json
 
 DynamicsOverrides = dataclasses.make_dataclass(
@@ -261,12 +269,6 @@ def _generalist_rollouts(run_dir: Path, cfg: TrainConfig, ecfg: EvalConfig, env_
     results = zero_shot.rollouts(env, params, learner, policy, checked, ecfg.episodes, ecfg.seed, limit, keep_paths,
                                  barrier_margin(cfg))
     return results, limit, meta["policy"]
-
-
-def barrier_margin(cfg: TrainConfig) -> float | None:
-    """The margin d a run's learned barrier keeps from obstacles (D²SPO and SL: ``cbf.d``, with the
-    runtime filter on or off, as training's barrier-margin check), else None."""
-    return cfg.cbf.d if has_runtime_filter(cfg.algo) else None
 
 
 def layout_sha256(layout: str) -> str | None:

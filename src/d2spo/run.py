@@ -113,7 +113,14 @@ def preflight_checks(cfg: TrainConfig, env, params) -> None:
     """The checks before a run of ``cfg`` on (env, params), training or evaluation
     (``envs.preflight.preflight``): the task can be done, within an episode, and, for a learner that
     executes π_Ω (D²SPO, SL), keeping the barrier's margin ``cfg.cbf.d``."""
-    preflight(env, params, repr(cfg.task), margin=cfg.cbf.d if has_runtime_filter(cfg.algo) else 0.0)
+    preflight(env, params, repr(cfg.task), margin=barrier_margin(cfg) or 0.0)
+
+
+def barrier_margin(cfg: TrainConfig) -> float | None:
+    """The margin d a run's learned barrier keeps from obstacles (D²SPO and SL: ``cbf.d``, with the
+    runtime filter on or off), else None: what the run-start barrier-margin check and a patrol's
+    ``route_optimal_visits_margin`` (``d2spo eval``) hold routes to."""
+    return cfg.cbf.d if has_runtime_filter(cfg.algo) else None
 
 
 def default_out(cfg: TrainConfig) -> Path:

@@ -59,13 +59,7 @@ from d2spo.envs.geometry import Geometry
 from d2spo.envs.layout_bank import LayoutBank
 from d2spo.envs.nav import Env, EnvState
 from d2spo.envs.params import EnvParams, robot_fields
-from d2spo.envs.task_plan import (  # noqa: F401 - slot_max_steps and the constants, named here too
-    GENERALIST_MAX_STEPS,
-    STEPS_PER_METRE,
-    TaskPlan,
-    slot_max_steps,
-    task_plan,
-)
+from d2spo.envs.task_plan import TaskPlan, task_plan
 from d2spo.envs.workspace import Layout
 from d2spo.errors import ConfigError
 from d2spo.ltl.automaton import UNREACHABLE, Automaton, AutomatonArrays

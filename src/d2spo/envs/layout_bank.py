@@ -35,8 +35,8 @@ of nodes with clearance > 0.19 m > the robot radius (cost 2x), while the wall ma
 >= 0.4 m of 100x nodes that no step (0.3 m diagonally) jumps (docs/layouts.md, "Field bank").
 
 The step costs and the two solvers that give the same fields live in ``envs.bank_fields``
-(``fields_numpy``: scipy's Dijkstra; ``fields_jax``: pure JAX sweeps); the grid and cost constants
-are theirs, named here too.
+(``fields_numpy``: scipy's Dijkstra; ``fields_jax``: pure JAX sweeps), with the grid and cost
+constants named above (``G``, ``CLEARANCE``, ``CLEARANCE_COST``, ``COLLIDE_COST``).
 """
 
 from __future__ import annotations
@@ -49,17 +49,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from d2spo.envs.bank_fields import (  # noqa: F401 - the grid and its costs, named here too
-    CLEARANCE,
-    CLEARANCE_COST,
-    COLLIDE_COST,
-    MAX_SWEEPS,
-    ROBOT_RADIUS,
-    TOL,
-    G,
-    fields_batch,
-    fields_numpy,
-)
+from d2spo.envs.bank_fields import G, fields_batch, fields_numpy
 from d2spo.envs.workspace import Layout
 from d2spo.errors import ConfigError
 
