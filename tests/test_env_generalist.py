@@ -4,6 +4,7 @@ subgoal observation; shared labels, disks and rectangular arenas."""
 from __future__ import annotations
 
 import dataclasses
+import re
 
 import jax
 import jax.numpy as jnp
@@ -242,8 +243,8 @@ def test_the_generalists_cbf_input_is_layout_free(built):
 
 
 def test_the_generalist_takes_tasks_no_finite_run_completes(built):
-    """A "never" part completes as a monitor does; a recurrence runs alone with its accepting visits
-    (the subgoal after a visit is the next one); a recurrence in a task mixture is refused."""
+    """A "never" part completes as a monitor does; a recurrence runs with its accepting visits (the
+    subgoal after a visit is the next one), alone or in a mixture beside tasks that complete."""
     bank, _, _ = built
     _, never = make_generalist_env(EnvConfig(preset="ideal"), "G !A4 & F A1", bank)
     assert never.aut.visit is None and bool(never.aut.accepting.any())
@@ -256,8 +257,57 @@ def test_the_generalist_takes_tasks_no_finite_run_completes(built):
     assert np.asarray(patrol.bank.target)[0, local, :4].tolist() == [
         [True, False, False, False], [False, False, True, False]]
     assert np.asarray(patrol.bank.forbidden)[0, local, 3].all()
-    with pytest.raises(ConfigError, match="scored by accepting visits"):
-        make_generalist_env(EnvConfig(), ["phi1", "patrol2"], bank)
+    mixed_env, mixed = make_generalist_env(EnvConfig(preset="ideal"), ["phi1", "patrol2"], bank)
+    assert mixed_env.plan.recurrent == (False, True) and mixed.aut.visit is not None
+    lo = mixed_env.plan.offsets[1]  # patrol2's states follow phi1's
+    union_aps, own = mixed_env.automaton.aps, env.automaton
+    read = [own.letter([p for i, p in enumerate(union_aps) if w >> i & 1 and p in own.aps]) for w in range(16)]
+    np.testing.assert_array_equal(np.asarray(mixed.aut.visit)[lo:], np.asarray(patrol.aut.visit)[:, read])
+    assert not np.asarray(mixed.aut.visit)[:lo].any()  # phi1 completes: no visits in its states
+    assert bool(mixed.aut.accepting[:lo].any()) and not bool(mixed.aut.accepting[lo:].any())
+
+
+def test_a_union_keeps_each_patrols_accepting_visits():
+    """Over random words, each component of a union with patrols visits exactly where it does alone."""
+    from d2spo.ltl import task_automaton
+    from d2spo.ltl.automaton import union
+    from d2spo.ltl.buchi_task import BuchiTask
+
+    parts = [task_automaton(f) for f in ("(!A2 U A1) & F A2", "G F A1 & G F A3 & G !A4", "G (A2 -> F A4) & G F A2")]
+    aut, initials = union(parts)
+    assert isinstance(aut, BuchiTask) and not isinstance(union(parts[:1])[0], BuchiTask)
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        word = [int(x) for x in rng.integers(0, 16, size=8)]
+        for a, q0 in zip(parts, initials):
+            mine = [a.letter([p for i, p in enumerate(aut.aps) if w >> i & 1 and p in a.aps]) for w in word]
+            own, joint = a.run(mine), aut.run(word, start=q0)
+            own_visits = [bool(getattr(a, "visits", None) and a.visits[q][b]) for q, b in zip([a.initial, *own], mine)]
+            joint_visits = [aut.visits[q][b] for q, b in zip([q0, *joint], word)]
+            assert own_visits == joint_visits
+
+
+def test_random_patrols_are_distinct_recurrences_and_never_the_suites():
+    from d2spo.config import TrainConfig
+    from d2spo.ltl import task_automaton
+    from d2spo.ltl.buchi_task import BuchiTask
+    from d2spo.ltl.tasks import MAX_PATROLS, TASKS, patrol_tasks
+
+    tasks = patrol_tasks(MAX_PATROLS, seed=0)
+    assert tasks == patrol_tasks(MAX_PATROLS, seed=0) != patrol_tasks(MAX_PATROLS, seed=1)
+    assert len(set(tasks)) == MAX_PATROLS == len(patrol_tasks(MAX_PATROLS + 1))  # every distinct one over A1..A4
+    suite = {TASKS[t] for t in ("patrol2", "patrol3", "respond")}
+    for f in tasks:
+        a = task_automaton(f)
+        assert isinstance(a, BuchiTask) and not a.accepting and any(map(any, a.visits)), f
+        assert f not in suite
+        visited = {int(x) for x in re.findall(r"G F A(\d)", f)} | {int(x) for x in re.findall(r"F A(\d)\)", f)}
+        never = {int(x) for x in re.findall(r"G !A(\d)", f)}
+        assert (visited, never) not in [({1, 3}, {4}), ({1, 2, 3}, {4}), ({1, 2}, set())], f
+    with pytest.raises(ConfigError, match="generalist_patrols"):
+        TrainConfig(generalist_patrols=2)
+    with pytest.raises(ConfigError, match="generalist_patrols"):
+        TrainConfig(generalist=True, generalist_patrols=MAX_PATROLS + 1)
 
 
 def test_every_area_of_a_label_is_a_target_and_either_completes():

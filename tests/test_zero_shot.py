@@ -261,3 +261,35 @@ def test_layout_seeds_walks_every_drawn_family_and_is_refused_elsewhere():
     for layout in ("paper", None, "worlds:3", "tests/data/layouts/handmade/corridor-5.json"):
         with pytest.raises(ConfigError, match="layout_seeds: only applies with a drawn layout"):
             EvalConfig(layout=layout, layout_seeds=2)
+
+
+def test_the_validation_scores_a_patrol_by_its_visits_against_the_slots_optimum():
+    """With patrols in the mixture (``--generalist-patrols``) a validation episode of a patrol scores
+    its visits over its slot's route-optimal count (at most 1, 0 with a collision); one of a task that
+    completes scores 1 when it completes safely."""
+    from d2spo.envs.compiled_task import compile_task
+    from d2spo.envs.layouts import load
+    from d2spo.ltl import task_automaton
+    from d2spo.ltl.tasks import patrol_tasks
+    from d2spo.record import Validation
+
+    cfg = dataclasses.replace(_cfg(), generalist_tasks=0, generalist_patrols=1, validation_layouts=1,
+                              validation_episodes=4, generalist_world="random")
+    env, params, learner = build_generalist(cfg, [generator.generate(3)], None)
+    assert env.plan.recurrent == (False, True)
+    val = Validation(cfg, env, params, learner)
+    lay = load("random:50000")
+    limit = int(np.asarray(val.params.bank.max_steps)[1])
+    own = compile_task(task_automaton(patrol_tasks(1)[0]), lay, env.config.label_mode, env.config.robot_radius)
+    best = own.optimal_visits(limit, env.config.dt, env.config.v_max * env.config.v_gain)
+    assert best > 0 and val.optimum.tolist() == [0, best]
+    # slots 0 (phi1) and 1 (the patrol): completed safely, collided, a patrol at half and at twice its optimum
+    collided = np.array([False, True, False, False])
+    completed = np.array([True, True, False, False])
+    visits = np.array([0, 0, best // 2, 2 * best])
+    slot = np.array([0, 0, 1, 1])
+    val.rollout = lambda *_: (collided, completed, np.zeros(4), np.array([100, 50, 400, 400]), np.zeros((4, 2, 3)),
+                              visits, slot)
+    out = val(None)
+    assert out["success_rate"] == pytest.approx((1 + 0 + (best // 2) / best + 1) / 4)
+    assert out["mean_steps_success"] == 100.0

@@ -30,6 +30,7 @@ from d2spo.errors import ConfigError, json_trouble
 from d2spo.fields import check_fields
 from d2spo.inputs import read_regular
 from d2spo.ltl.anneal import AnnealConfig
+from d2spo.ltl.tasks import MAX_PATROLS
 from d2spo.memory import check_memory
 from d2spo.safety.cbf import CBFConfig
 
@@ -97,6 +98,9 @@ class TrainConfig:
     20 m, pillars, 4-12 labelled areas, ZoneEnv's zones among them) or random (square 5-10 m, A1..A4)."""
     generalist_tasks: int | None = None
     """With --generalist: also train on N random reach-avoid tasks; 0: --task alone. None: 16."""
+    generalist_patrols: int = 0
+    """With --generalist: also train on N random patrols and responses (``ltl.tasks.patrol_tasks``;
+    never the suite's patrol2, patrol3, respond), scored by their accepting visits; 0: none."""
     validation_layouts: int = 16
     """With --generalist: keep the policy that does best on N held-out layouts; 0: the last."""
     validation_episodes: int = 256
@@ -153,7 +157,13 @@ class TrainConfig:
         check_fields(self, count=("episodes", "num_envs", "chunk_steps", "checkpoint_every", "window",
                                   "generalist_layouts", "validation_episodes", "validate_every"),
                      seed=("seed",), counts=("snapshots",),
-                     natural=("eval_episodes", "generalist_tasks", "validation_layouts"), flag=("fast", "wandb"))
+                     natural=("eval_episodes", "generalist_tasks", "generalist_patrols", "validation_layouts"),
+                     flag=("fast", "wandb"))
+        if self.generalist_patrols and not self.generalist:
+            raise ConfigError("generalist_patrols", "trains the generalist's task mixture; add --generalist")
+        if self.generalist_patrols > MAX_PATROLS:
+            raise ConfigError("generalist_patrols", f"at most {MAX_PATROLS} distinct patrols exist over A1..A4, "
+                              f"got {self.generalist_patrols}")
         project = self.wandb_project
         if not (isinstance(project, str) and 0 < len(project) <= 128) or set(project) & set(WANDB_FORBIDDEN):
             raise ConfigError("wandb_project", f"a W&B project name is 1 to 128 characters without "

@@ -22,9 +22,11 @@ from tensorboardX import SummaryWriter
 from d2spo.algos.base import ChunkLog
 from d2spo.checkpoint import Checkpoints
 from d2spo.config import VALIDATION_SEED, TrainConfig
+from d2spo.envs.compiled_task import compile_task
 from d2spo.envs.generalist import view
 from d2spo.envs.layouts import load as load_layout
 from d2spo.errors import NaNError
+from d2spo.ltl import task_automaton, task_formula
 from d2spo.rollout import make_rollout, rates, visit_optimum
 from d2spo.run import best_policy_path, load_best_policy, save_snapshot, snapshot_path
 from d2spo.runio import EpisodeWriter, atomic_write_bytes, atomic_write_json, window_rates
@@ -299,9 +301,12 @@ class Validation:
     """The generalist's model selection (``TrainConfig.validation_layouts``): ``policy -> rates`` of
     ``validation_episodes`` deterministic episodes on the held-out layouts WORLD:VALIDATION_SEED ..
     (WORLD: ``generalist_world``),
-    the training task(s), the same episodes (key) every time. ``success_rate`` is the fraction of
-    episodes that complete the task without a collision, ``mean_steps_success`` their mean length:
-    what the best policy is chosen by (``better_validation``)."""
+    the training task(s), the same episodes (key) every time. ``success_rate`` is the mean score of
+    the episodes: 1 for one that completes its task without a collision, and for a patrol of the
+    mixture (``--generalist-patrols``) its accepting visits as a fraction of its slot's
+    route-optimal count (at most 1; 0 with a collision); ``mean_steps_success`` is the mean length
+    of the successful episodes of tasks that complete: what the best policy is chosen by
+    (``better_validation``)."""
 
     def __init__(self, cfg: TrainConfig, env, params, learner):
         n = cfg.validation_layouts
@@ -312,15 +317,34 @@ class Validation:
         bank = env.bank([lay for lay in layouts for _ in range(tasks)], [t for _ in layouts for t in range(tasks)],
                         limit)
         self.params = view(params.replace(bank=bank), jnp.zeros((), jnp.int32))
-        self.rollout = make_rollout(learner, env, cfg.validation_episodes, int(np.max(np.asarray(bank.max_steps))))
+        self.recurrent = any(env.plan.recurrent)
+        self.rollout = make_rollout(learner, env, cfg.validation_episodes, int(np.max(np.asarray(bank.max_steps))),
+                                    with_slot=self.recurrent)
         self.key = jax.random.PRNGKey(cfg.seed + 20_000)
+        self.optimum = np.zeros(len(layouts) * tasks)  # per slot: a patrol's route-optimal visits (else 0)
+        if self.recurrent:
+            limits = np.asarray(bank.max_steps)
+            resolved = env.config
+            for s, (lay, t) in enumerate((lay, t) for lay in layouts for t in range(tasks)):
+                if env.plan.recurrent[t]:
+                    task = compile_task(task_automaton(task_formula(env.plan.names[t])), lay, resolved.label_mode,
+                                        resolved.robot_radius)
+                    self.optimum[s] = task.optimal_visits(int(limits[s]), resolved.dt,
+                                                          resolved.v_max * resolved.v_gain)
 
     def __call__(self, policy) -> dict:
         collided, completed, ret, length, *rest = self.rollout(self.params, policy, self.key)
+        slot = np.asarray(rest.pop()) if self.recurrent else None
         out = rates(collided, completed, ret, length, *rest)
         ok = np.asarray(completed) & ~np.asarray(collided)
         steps = float(np.asarray(length)[ok].mean()) if ok.any() else None
-        return {"success_rate": float(np.mean(ok)), "mean_steps_success": steps,
+        score = ok.astype(float)
+        if slot is not None:  # a patrol's episode: its visits against its slot's optimum
+            best = self.optimum[slot]
+            patrol = best > 0
+            visits = np.asarray(rest[1], float)
+            score = np.where(patrol, np.minimum(visits / np.maximum(best, 1.0), 1.0) * ~np.asarray(collided), score)
+        return {"success_rate": float(np.mean(score)), "mean_steps_success": steps,
                 "completion_rate": out["completion_rate"], "safety_rate": out["safety_rate"]}
 
 

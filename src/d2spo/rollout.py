@@ -26,12 +26,14 @@ def acting_on(learner: Learner, params) -> Learner:
     return other
 
 
-def make_rollout(learner: Learner, env, episodes: int, max_steps: int, slot_per_episode: bool = False):
+def make_rollout(learner: Learner, env, episodes: int, max_steps: int, slot_per_episode: bool = False,
+                 with_slot: bool = False):
     """A jitted ``(params, policy, key) -> (collided, completed, return, length, poses)``: ``episodes``
     envs in parallel, one deterministic episode each; poses are [E, T + 1, 3]. The env params are an
     argument, so one compilation serves every layout with the same array shapes. For a Büchi task
     (``params.aut.visit`` set) the tuple ends with each episode's accepting visits [E] too.
-    ``slot_per_episode`` (a generalist's env): episode e starts in slot e of the bank, not a drawn one."""
+    ``slot_per_episode`` (a generalist's env): episode e starts in slot e of the bank, not a drawn one;
+    ``with_slot`` (a generalist's env): the tuple ends with each episode's slot [E] too."""
 
     def one(params, policy, key, e):
         lrn = acting_on(learner, params)
@@ -57,7 +59,8 @@ def make_rollout(learner: Learner, env, episodes: int, max_steps: int, slot_per_
         (_, _, _, ret, length, collided, completed, *visits), poses = jax.lax.scan(
             body, init, jax.random.split(k1, max_steps))
         start = state.pose
-        return collided, completed, ret, length, jnp.concatenate([start[None], poses], 0), *visits
+        slot = (state.layout,) if with_slot else ()
+        return collided, completed, ret, length, jnp.concatenate([start[None], poses], 0), *visits, *slot
 
     @jax.jit
     def run(params, policy, key):

@@ -239,7 +239,8 @@ def load_policy(run_dir: Path, which: str = "best", learner=None):
     cfg = load_run_config(run_dir)
     if learner is None:
         # a generalist's checkpoint holds no layout: a one-layout bank gives the same shapes, fast
-        _, _, learner = build(dataclasses.replace(cfg, generalist_layouts=1, generalist_tasks=0) if cfg.generalist else cfg)
+        _, _, learner = build(dataclasses.replace(cfg, generalist_layouts=1, generalist_tasks=0, generalist_patrols=0)
+                              if cfg.generalist else cfg)
     shared = _shared_best(run_dir) if which == "best" else None
     if shared is not None and not has_checkpoint(run_dir):  # a finished generalist copied without them
         return cfg, learner, load_best_policy(run_dir, learner), shared

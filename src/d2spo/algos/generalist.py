@@ -30,7 +30,7 @@ from d2spo.envs.generalist import N_BOXES, N_DISKS, make_generalist_env, view_ge
 from d2spo.envs.geometry import Geometry
 from d2spo.envs.sensors import Sensed
 from d2spo.errors import ConfigError
-from d2spo.ltl.tasks import reach_avoid_tasks
+from d2spo.ltl.tasks import patrol_tasks, reach_avoid_tasks
 
 BEYOND = 1.0e3
 SYNTHETIC_SIDE = (5.0, 20.0)
@@ -99,10 +99,12 @@ class LayoutBank:
 def build_generalist(cfg, layouts, max_steps: int | None, tasks_of=None):
     """(env, params, learner) of a generalist config (``TrainConfig``, ``generalist`` set) on
     ``layouts`` (or a bank of this config's task mixture) for ``cfg.task`` and
-    ``cfg.generalist_tasks`` random reach-avoid sequences (slot k paired with task tasks_of[k],
+    ``cfg.generalist_tasks`` random reach-avoid sequences and ``cfg.generalist_patrols`` random
+    recurrences (slot k paired with task tasks_of[k],
     default k modulo their number), every episode at most ``max_steps`` long (None: each slot's
     ``envs.task_plan.slot_max_steps``). The layouts' own radii label the areas (no annealing)."""
-    tasks = [cfg.task, *reach_avoid_tasks(cfg.generalist_tasks)] if cfg.generalist_tasks else cfg.task
+    mixture = [*reach_avoid_tasks(cfg.generalist_tasks), *patrol_tasks(cfg.generalist_patrols)]
+    tasks = [cfg.task, *mixture] if mixture else cfg.task
     env, params = make_generalist_env(cfg.env_config(), tasks, layouts, max_steps, tasks_of)
     anneal = dataclasses.replace(cfg.anneal, enabled=False)
     learner = D2SPOLearner(env, params, cfg.td3, cfg.cbf, anneal, cfg.num_envs, cfg.chunk_steps, cfg.episodes,

@@ -59,6 +59,9 @@ class TaskPlan:
     """int [Q, letters]: ``state_fields.letter_roles`` of the union."""
     needs: tuple[frozenset, ...]
     """Per task, the propositions a layout paired with it must carry."""
+    recurrent: tuple[bool, ...]
+    """Per task, whether it is a recurrence (a patrol: no episode completes it, it runs to its
+    slot's limit and is scored by its accepting visits; ``ltl.buchi_task``)."""
 
     @property
     def states(self) -> int:
@@ -112,9 +115,6 @@ def task_plan(tasks: Sequence[Any], label_mode: str) -> TaskPlan:
         a = task_automaton(task_formula(t)) if isinstance(t, str) else t
         if not isinstance(a, Automaton):
             raise ConfigError("task", "the generalist needs task names, formulas or Automaton objects")
-        if len(tasks) > 1 and isinstance(a, BuchiTask) and any(map(any, a.visits)):
-            raise ConfigError("task", f"{t if isinstance(t, str) else 'a task'} is scored by accepting visits; "
-                              "a task mixture holds tasks that complete only (train or evaluate it alone)")
         automata.append(a)
         names.append(t if isinstance(t, str) else "a task")
     aut, initials = union(automata) if len(automata) > 1 else (automata[0], [automata[0].initial])
@@ -123,8 +123,9 @@ def task_plan(tasks: Sequence[Any], label_mode: str) -> TaskPlan:
     distance = aut.distances(singles)
     for name, q0 in zip(names, initials, strict=True):
         if distance[q0] is None:
-            raise ConfigError("task", f"{name} cannot be completed entering one area at a time, as the generalist's "
-                              "layouts (areas that never overlap) need")
+            raise ConfigError("task", f"{name} cannot be completed (nor a patrol's visit made) entering one area at "
+                              "a time, as the generalist's layouts (areas that never overlap) need")
     roles = state_fields.letter_roles(aut, distance, label_mode == "event")
+    recurrent = tuple(isinstance(a, BuchiTask) and not a.accepting and any(map(any, a.visits)) for a in automata)
     return TaskPlan(aut, tuple(names), offsets, tuple(int(q) for q in initials), tuple(singles), tuple(distance), roles,
-                    tuple(frozenset(a.aps) for a in automata))
+                    tuple(frozenset(a.aps) for a in automata), recurrent)

@@ -242,22 +242,32 @@ def union(automata: Iterable[Automaton]) -> tuple[Automaton, list[int]]:
     state in it. Component k's states are shifted by the states of the ones before it; a letter of
     the union is read by component k through the propositions it knows. An agent that starts in
     component k's initial state runs exactly automaton k (the generalist trains on a mixture of
-    tasks this way: ``envs.generalist``). The union's own ``initial`` is the first component's."""
+    tasks this way: ``envs.generalist``). The union's own ``initial`` is the first component's.
+    When a component is a Büchi task with accepting visits (``ltl.buchi_task.BuchiTask``), the union
+    is one too: its visits are each component's, read through the same letters (none in a monitor's
+    states), so that a mixture may hold patrols beside tasks that complete."""
     automata = list(automata)
     if not automata:
         raise ValueError("union of no automata")
     aps = tuple(sorted(set().union(*(a.aps for a in automata))))
-    delta, accepting, rejecting, names, initials = [], set(), set(), [], []
+    delta, accepting, rejecting, names, initials, visits = [], set(), set(), [], [], []
     offset = 0
     for a in automata:
         read = [a.letter([p for i, p in enumerate(aps) if letter >> i & 1 and p in a.aps]) for letter in range(1 << len(aps))]
         delta += [tuple(offset + a.delta[q][read[letter]] for letter in range(len(read))) for q in range(a.n_states)]
+        marks = getattr(a, "visits", None) or [(False,) * a.n_letters] * a.n_states
+        visits += [tuple(bool(marks[q][b]) for b in read) for q in range(a.n_states)]
         accepting |= {offset + q for q in a.accepting}
         rejecting |= {offset + q for q in a.rejecting}
         names += list(a.state_formulas)
         initials.append(offset + a.initial)
         offset += a.n_states
-    return Automaton(aps, initials[0], frozenset(accepting), frozenset(rejecting), tuple(delta), tuple(names)), initials
+    parts = (aps, initials[0], frozenset(accepting), frozenset(rejecting), tuple(delta), tuple(names))
+    if any(map(any, visits)):
+        from d2spo.ltl.buchi_task import BuchiTask  # it builds on this module
+
+        return BuchiTask(*parts, visits=tuple(visits)), initials
+    return Automaton(*parts), initials
 
 
 def _dot_escape(text: str) -> str:

@@ -90,3 +90,50 @@ def reach_avoid_tasks(n: int, seed: int = 0, areas: int = 4, longest: int = 4) -
         if f not in out:
             out.append(f)
     return out
+
+
+HELD_OUT_RECURRENCES: frozenset = frozenset({
+    (frozenset({1, 3}), frozenset({4})),  # patrol2
+    (frozenset({1, 2, 3}), frozenset({4})),  # patrol3
+    (frozenset({1, 2}), frozenset()),  # respond: G (A1 -> F A2) & G F A1 holds where G F A1 & G F A2 does
+})
+"""The suite's recurrences as (areas visited again and again, areas never entered), which
+``patrol_tasks`` never draws in any wording: a generalist meets them zero-shot."""
+
+
+MAX_PATROLS = 23
+"""Distinct recurrences ``patrol_tasks`` can draw over A1..A4: 18 patrols of two areas, 8 of three
+(each without or with one "never" area), less the suite's three (a response's runs are a patrol's)."""
+
+
+def patrol_tasks(n: int, seed: int = 0, areas: int = 4) -> list[str]:
+    """``n`` distinct random recurrences over A1 .. A{areas} (fewer when fewer exist: ``MAX_PATROLS``
+    over four), a deterministic function of ``seed``,
+    none of them one of the suite's in any wording (``HELD_OUT_RECURRENCES``): patrols of two or three areas
+    (``G F A1 & G F A2``), half of them with one other area never entered (``& G !A4``), and
+    responses (``G (A1 -> F A2) & G F A1``). Each has a deterministic Büchi automaton and no
+    completed state: it runs to the episode limit and is scored by its accepting visits. The
+    generalist trains on them beside the reach-avoid sequences (``--generalist-patrols``)."""
+    rng = np.random.default_rng(seed)
+    out: list[str] = []
+    seen: set = set()
+    for _ in range(100 * n):
+        if len(out) == n:
+            break
+        kind = rng.choice(["patrol", "patrol", "respond"])
+        if kind == "respond":
+            a, b = (int(x) for x in rng.choice(np.arange(1, areas + 1), size=2, replace=False))
+            key = (frozenset({a, b}), frozenset())  # the same runs as G F Aa & G F Ab
+            f = f"G (A{a} -> F A{b}) & G F A{a}"
+        else:
+            k = int(rng.integers(2, 4)) if areas > 2 else 2
+            visit = sorted(int(x) for x in rng.choice(np.arange(1, areas + 1), size=k, replace=False))
+            rest = [a for a in range(1, areas + 1) if a not in visit]
+            never = [int(rng.choice(rest))] if rest and rng.random() < 0.5 else []
+            key = (frozenset(visit), frozenset(never))
+            f = " & ".join([f"G F A{a}" for a in visit] + [f"G !A{a}" for a in never])
+        if key in HELD_OUT_RECURRENCES or key in seen:
+            continue
+        seen.add(key)
+        out.append(f)
+    return out
