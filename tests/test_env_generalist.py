@@ -180,6 +180,17 @@ def test_the_generalist_flag_is_for_d2spo():
     TrainConfig(anneal=AnnealConfig(enabled=False)).check()
 
 
+def _component_runs(aut, parts, initials, seed: int, length: int, words: int = 200):
+    """For random words over the union ``aut``'s letters, per component a: (word, a, its initial state
+    q0 in the union, the word as a reads it, a's own run, the union's run from q0)."""
+    rng = np.random.default_rng(seed)
+    for _ in range(words):
+        word = [int(x) for x in rng.integers(0, 1 << len(aut.aps), size=length)]
+        for a, q0 in zip(parts, initials):
+            mine = [a.letter([p for i, p in enumerate(aut.aps) if w >> i & 1 and p in a.aps]) for w in word]
+            yield word, a, q0, mine, a.run(mine), aut.run(word, start=q0)
+
+
 def test_a_union_runs_each_automaton_from_its_own_initial_state():
     from d2spo.ltl import translate
     from d2spo.ltl.automaton import union
@@ -187,14 +198,9 @@ def test_a_union_runs_each_automaton_from_its_own_initial_state():
     parts = [translate("(!A2 U A1) & F A2"), translate("F (A3 & X A1)"), translate("!A4 U A2")]
     aut, initials = union(parts)
     assert aut.aps == ("A1", "A2", "A3", "A4") and len(initials) == 3
-    rng = np.random.default_rng(0)
-    for _ in range(200):
-        word = [int(x) for x in rng.integers(0, 16, size=6)]
-        for a, q0 in zip(parts, initials):
-            mine = [a.letter([p for i, p in enumerate(aut.aps) if w >> i & 1 and p in a.aps]) for w in word]
-            own, joint = a.run(mine), aut.run(word, start=q0)
-            assert [a.status(q) for q in own] == [aut.status(q) for q in joint]
-            assert [q - q0 + a.initial for q in joint] == own  # component k's states, shifted
+    for word, a, q0, mine, own, joint in _component_runs(aut, parts, initials, seed=0, length=6):
+        assert [a.status(q) for q in own] == [aut.status(q) for q in joint]
+        assert [q - q0 + a.initial for q in joint] == own  # component k's states, shifted
 
 
 def test_random_reach_avoid_tasks_are_distinct_doable_and_reproducible():
@@ -276,15 +282,10 @@ def test_a_union_keeps_each_patrols_accepting_visits():
     parts = [task_automaton(f) for f in ("(!A2 U A1) & F A2", "G F A1 & G F A3 & G !A4", "G (A2 -> F A4) & G F A2")]
     aut, initials = union(parts)
     assert isinstance(aut, BuchiTask) and not isinstance(union(parts[:1])[0], BuchiTask)
-    rng = np.random.default_rng(3)
-    for _ in range(200):
-        word = [int(x) for x in rng.integers(0, 16, size=8)]
-        for a, q0 in zip(parts, initials):
-            mine = [a.letter([p for i, p in enumerate(aut.aps) if w >> i & 1 and p in a.aps]) for w in word]
-            own, joint = a.run(mine), aut.run(word, start=q0)
-            own_visits = [bool(getattr(a, "visits", None) and a.visits[q][b]) for q, b in zip([a.initial, *own], mine)]
-            joint_visits = [aut.visits[q][b] for q, b in zip([q0, *joint], word)]
-            assert own_visits == joint_visits
+    for word, a, q0, mine, own, joint in _component_runs(aut, parts, initials, seed=3, length=8):
+        own_visits = [bool(getattr(a, "visits", None) and a.visits[q][b]) for q, b in zip([a.initial, *own], mine)]
+        joint_visits = [aut.visits[q][b] for q, b in zip([q0, *joint], word)]
+        assert own_visits == joint_visits
 
 
 def test_random_patrols_are_distinct_recurrences_and_never_the_suites():

@@ -26,7 +26,6 @@ from d2spo.envs.compiled_task import compile_task
 from d2spo.envs.generalist import view
 from d2spo.envs.layouts import load as load_layout
 from d2spo.errors import NaNError
-from d2spo.ltl import task_automaton, task_formula
 from d2spo.rollout import make_rollout, rates, visit_optimum
 from d2spo.run import best_policy_path, load_best_policy, save_snapshot, snapshot_path
 from d2spo.runio import EpisodeWriter, atomic_write_bytes, atomic_write_json, window_rates
@@ -327,23 +326,21 @@ class Validation:
             resolved = env.config
             for s, (lay, t) in enumerate((lay, t) for lay in layouts for t in range(tasks)):
                 if env.plan.recurrent[t]:
-                    task = compile_task(task_automaton(task_formula(env.plan.names[t])), lay, resolved.label_mode,
-                                        resolved.robot_radius)
+                    task = compile_task(env.plan.automata[t], lay, resolved.label_mode, resolved.robot_radius)
                     self.optimum[s] = task.optimal_visits(int(limits[s]), resolved.dt,
                                                           resolved.v_max * resolved.v_gain)
 
     def __call__(self, policy) -> dict:
         collided, completed, ret, length, *rest = self.rollout(self.params, policy, self.key)
-        slot = np.asarray(rest.pop()) if self.recurrent else None
-        out = rates(collided, completed, ret, length, *rest)
+        out = rates(collided, completed, ret, length, *rest[:2])  # poses, and a Büchi task's visits
         ok = np.asarray(completed) & ~np.asarray(collided)
         steps = float(np.asarray(length)[ok].mean()) if ok.any() else None
         score = ok.astype(float)
-        if slot is not None:  # a patrol's episode: its visits against its slot's optimum
-            best = self.optimum[slot]
-            patrol = best > 0
-            visits = np.asarray(rest[1], float)
-            score = np.where(patrol, np.minimum(visits / np.maximum(best, 1.0), 1.0) * ~np.asarray(collided), score)
+        if self.recurrent:  # a patrol's episode: its visits against its slot's optimum
+            _, visits, slot = rest
+            best = self.optimum[np.asarray(slot)]
+            frac = np.minimum(np.asarray(visits, float) / np.maximum(best, 1.0), 1.0) * ~np.asarray(collided)
+            score = np.where(best > 0, frac, score)
         return {"success_rate": float(np.mean(score)), "mean_steps_success": steps,
                 "completion_rate": out["completion_rate"], "safety_rate": out["safety_rate"]}
 

@@ -24,7 +24,7 @@ from d2spo.envs.env_config import EnvConfig
 from d2spo.envs.state_fields import StateFields, letter_roles, state_fields
 from d2spo.envs.workspace import Layout
 from d2spo.ltl.automaton import Automaton, AutomatonArrays
-from d2spo.ltl.buchi_task import BuchiTask
+from d2spo.ltl.buchi_task import is_recurrence
 
 
 @dataclass(frozen=True, eq=False)
@@ -71,7 +71,7 @@ class CompiledTask:
     def recurrence(self) -> bool:
         """Whether the task is a recurrence (``ltl.buchi_task``): no state completes it, it is scored by
         its accepting visits."""
-        return isinstance(self.automaton, BuchiTask) and not self.automaton.accepting and self.arrays.visit is not None
+        return is_recurrence(self.automaton)
 
     @cached_property
     def route_length(self) -> float:

@@ -19,7 +19,7 @@ from d2spo.envs.workspace import Layout
 from d2spo.errors import ConfigError
 from d2spo.ltl import task_automaton, task_formula
 from d2spo.ltl.automaton import Automaton, union
-from d2spo.ltl.buchi_task import BuchiTask
+from d2spo.ltl.buchi_task import is_recurrence
 
 N_AREAS = layout_bank.N_AREAS
 """Area slots per layout."""
@@ -45,10 +45,10 @@ class TaskPlan:
 
     automaton: Automaton
     """The union of the tasks' automata (one task: its own)."""
+    automata: tuple[Automaton, ...]
+    """Each task's own automaton (``ltl.task_automaton``), in order."""
     names: tuple[str, ...]
     """The tasks, as given (names or formulas; ``"a task"`` for an automaton object)."""
-    offsets: tuple[int, ...]
-    """Task t's states are offsets[t] .. offsets[t + 1] - 1 of ``automaton`` (T + 1 entries)."""
     initials: tuple[int, ...]
     """Task t's initial state in ``automaton``."""
     singles: tuple[int, ...]
@@ -57,11 +57,22 @@ class TaskPlan:
     """Per state of ``automaton``, its distance to acceptance over ``singles`` (None: unreachable)."""
     roles: np.ndarray
     """int [Q, letters]: ``state_fields.letter_roles`` of the union."""
-    needs: tuple[frozenset, ...]
-    """Per task, the propositions a layout paired with it must carry."""
-    recurrent: tuple[bool, ...]
-    """Per task, whether it is a recurrence (a patrol: no episode completes it, it runs to its
-    slot's limit and is scored by its accepting visits; ``ltl.buchi_task``)."""
+
+    @property
+    def offsets(self) -> tuple[int, ...]:
+        """Task t's states are offsets[t] .. offsets[t + 1] - 1 of ``automaton`` (T + 1 entries)."""
+        return tuple(int(x) for x in np.cumsum([0] + [a.n_states for a in self.automata]))
+
+    @property
+    def needs(self) -> tuple[frozenset, ...]:
+        """Per task, the propositions a layout paired with it must carry."""
+        return tuple(frozenset(a.aps) for a in self.automata)
+
+    @property
+    def recurrent(self) -> tuple[bool, ...]:
+        """Per task, whether it is a recurrence (a patrol: no episode completes it, it runs to its
+        slot's limit and is scored by its accepting visits; ``ltl.buchi_task.is_recurrence``)."""
+        return tuple(is_recurrence(a) for a in self.automata)
 
     @property
     def states(self) -> int:
@@ -118,7 +129,6 @@ def task_plan(tasks: Sequence[Any], label_mode: str) -> TaskPlan:
         automata.append(a)
         names.append(t if isinstance(t, str) else "a task")
     aut, initials = union(automata) if len(automata) > 1 else (automata[0], [automata[0].initial])
-    offsets = tuple(int(x) for x in np.cumsum([0] + [a.n_states for a in automata]))
     singles = [0] + [aut.letter([a]) for a in aut.aps]  # a bank's areas never overlap
     distance = aut.distances(singles)
     for name, q0 in zip(names, initials, strict=True):
@@ -126,6 +136,5 @@ def task_plan(tasks: Sequence[Any], label_mode: str) -> TaskPlan:
             raise ConfigError("task", f"{name} cannot be completed (nor a patrol's visit made) entering one area at "
                               "a time, as the generalist's layouts (areas that never overlap) need")
     roles = state_fields.letter_roles(aut, distance, label_mode == "event")
-    recurrent = tuple(isinstance(a, BuchiTask) and not a.accepting and any(map(any, a.visits)) for a in automata)
-    return TaskPlan(aut, tuple(names), offsets, tuple(int(q) for q in initials), tuple(singles), tuple(distance), roles,
-                    tuple(frozenset(a.aps) for a in automata), recurrent)
+    return TaskPlan(aut, tuple(automata), tuple(names), tuple(int(q) for q in initials), tuple(singles),
+                    tuple(distance), roles)

@@ -67,6 +67,12 @@ class BuchiTask(Automaton):
         return arrays._replace(visit=jnp.asarray(self.visits, dtype=jnp.bool_).reshape(self.n_states, self.n_letters))
 
 
+def is_recurrence(aut: Automaton) -> bool:
+    """Whether ``aut`` is a recurrence (a patrol): a ``BuchiTask`` with accepting visits and no
+    completed state, so no episode completes it; it runs to the step limit, scored by its visits."""
+    return isinstance(aut, BuchiTask) and not aut.accepting and any(map(any, aut.visits))
+
+
 def buchi_task(dba: BuchiAutomaton) -> BuchiTask:
     """``dba`` as the environment runs it (``BuchiTask``); its completed states over every letter."""
     done = dba.completed_states()
