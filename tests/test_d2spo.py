@@ -137,6 +137,23 @@ def test_one_compiled_rollout_serves_every_random_layout():
     assert not jnp.array_equal(shared(params0, policy, key)[4], alone[4], equal_nan=True)
 
 
+def test_the_carry_template_has_the_shapes_of_the_pretraining_init():
+    """``run.carry_template`` traces ``init_template`` (no cautious start) for speed: it must give
+    exactly the structure, shapes and dtypes of the ``init`` that pre-trains, or a checkpoint or a
+    snapshot would load into the wrong template."""
+    from d2spo.run import carry_template
+
+    cfg = TrainConfig(algo="d2spo", task="F A1", env=EnvConfig(layout="relaxed"), episodes=10, num_envs=2).check()
+    _, _, learner = build(cfg)
+    assert learner.d2.pretrain
+    full = jax.eval_shape(learner.init, jax.random.PRNGKey(3))
+    template = carry_template(learner)
+    assert jax.tree_util.tree_structure(template) == jax.tree_util.tree_structure(full)
+    assert [(x.shape, x.dtype) for x in jax.tree_util.tree_leaves(template)] == \
+        [(x.shape, x.dtype) for x in jax.tree_util.tree_leaves(full)]
+    assert carry_template(learner) is template  # traced once per learner
+
+
 def test_a_checkpoint_holds_the_d2spo_carry_as_one_flat_dict():
     """``D2SPOCarry`` holds a ``TD3Carry``; its checkpoint keeps the flat layout, in the order that
     older checkpoints hold it, and restores to the nested carry."""

@@ -35,39 +35,44 @@ def make_rollout(learner: Learner, env, episodes: int, max_steps: int, slot_per_
     ``slot_per_episode`` (a generalist's env): episode e starts in slot e of the bank, not a drawn one;
     ``with_slot`` (a generalist's env): the tuple ends with each episode's slot [E] too."""
 
-    def one(params, policy, key, e):
+    def run(params, policy, key):
+        # Time outside, episodes inside: ``lax.scan`` over steps of the vmapped (act, step). The
+        # other nesting, ``vmap`` of a per-episode scan, computes the same arrays but makes JAX
+        # batch the scan's whole body again until its carry settles: tracing it cost seconds per
+        # rollout (about 100 s of the test suite's 2-core time, 2026-11-28).
         lrn = acting_on(learner, params)
-        k0, k1 = jax.random.split(key)
-        state, obs = env.reset_in_slot(k0, params, e) if slot_per_episode else env.reset(k0, params)
+        k0, k1 = jnp.moveaxis(jax.vmap(jax.random.split)(jax.random.split(key, episodes)), 1, 0)
+        if slot_per_episode:
+            state, obs = jax.vmap(env.reset_in_slot, in_axes=(0, None, 0))(k0, params, jnp.arange(episodes, dtype=jnp.int32))
+        else:
+            state, obs = jax.vmap(env.reset, in_axes=(0, None))(k0, params)
+        act = jax.vmap(lrn.act, in_axes=(None, 0, 0, 0))
+        step = jax.vmap(env.step, in_axes=(0, 0, 0, None))
 
         def body(c, k):
             (state, obs, alive, ret, length, collided, completed), visits = c[:7], c[7:]
-            a = lrn.act(policy, obs, state, k)
-            state2, obs2, r, _, done, info = env.step(k, state, a, params)
+            a = act(policy, obs, state, k)
+            state2, obs2, r, _, done, info = step(k, state, a, params)
             if visits:
                 visits = (visits[0] + (alive & info["accepting_visit"]).astype(jnp.int32),)
             ret = ret + jnp.where(alive, r, 0.0)
             length = length + alive.astype(jnp.int32)
             collided = collided | (alive & info["collided"])
             completed = completed | (alive & info["completed"])
-            pose = jnp.where(alive, info["next_pose"], jnp.full_like(info["next_pose"], jnp.nan))
+            pose = jnp.where(alive[:, None], info["next_pose"], jnp.full_like(info["next_pose"], jnp.nan))
             return (state2, obs2, alive & ~done, ret, length, collided, completed, *visits), pose
 
-        init = (state, obs, jnp.bool_(True), jnp.float32(0.0), jnp.int32(0), jnp.bool_(False), jnp.bool_(False))
+        false = jnp.zeros(episodes, bool)
+        init = (state, obs, ~false, jnp.zeros(episodes, jnp.float32), jnp.zeros(episodes, jnp.int32), false, false)
         if params.aut.visit is not None:
-            init = (*init, jnp.int32(0))
-        (_, _, _, ret, length, collided, completed, *visits), poses = jax.lax.scan(
-            body, init, jax.random.split(k1, max_steps))
-        start = state.pose
+            init = (*init, jnp.zeros(episodes, jnp.int32))
+        step_keys = jnp.moveaxis(jax.vmap(lambda k: jax.random.split(k, max_steps))(k1), 1, 0)  # [T, E, 2]
+        (_, _, _, ret, length, collided, completed, *visits), poses = jax.lax.scan(body, init, step_keys)
+        poses = jnp.concatenate([state.pose[None], poses], 0)  # [T + 1, E, 3]
         slot = (state.layout,) if with_slot else ()
-        return collided, completed, ret, length, jnp.concatenate([start[None], poses], 0), *visits, *slot
+        return collided, completed, ret, length, jnp.moveaxis(poses, 1, 0), *visits, *slot
 
-    @jax.jit
-    def run(params, policy, key):
-        return jax.vmap(one, in_axes=(None, None, 0, 0))(params, policy, jax.random.split(key, episodes),
-                                                          jnp.arange(episodes, dtype=jnp.int32))
-
-    return run
+    return jax.jit(run)
 
 
 def rates(collided, completed, ret, length, poses=None, visits=None) -> dict:

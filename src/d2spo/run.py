@@ -176,7 +176,8 @@ def carry_template(learner):
         return _TEMPLATES[learner]
     except (KeyError, TypeError):  # TypeError: a learner that cannot be weakly referenced
         pass
-    template = jax.eval_shape(learner.init, jax.random.PRNGKey(0))
+    init = getattr(learner, "init_template", learner.init)  # the same shapes, traced faster (D²SPO)
+    template = jax.eval_shape(init, jax.random.PRNGKey(0))
     try:
         _TEMPLATES[learner] = template
     except TypeError:

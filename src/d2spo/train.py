@@ -25,7 +25,15 @@ from d2spo.config import TrainConfig, config_to_dict
 from d2spo.errors import ConfigError, RunDirWarning
 from d2spo.record import ProgressFn, RunRecord, Validation
 from d2spo.rollout import acting_on
-from d2spo.run import RESUME_REMEDY, build, check_layout_unchanged, group_dir, preflight_checks, prepare_dir
+from d2spo.run import (
+    RESUME_REMEDY,
+    build,
+    carry_template,
+    check_layout_unchanged,
+    group_dir,
+    preflight_checks,
+    prepare_dir,
+)
 from d2spo.runio import RunLock, read_json, remove_tmp_files
 from d2spo.wandb_log import require_wandb, wandb_run
 
@@ -65,7 +73,7 @@ def _train_locked(cfg: TrainConfig, out: Path, built, resume: bool, progress: Pr
     chunk = learner_program(learner, "chunk", donate=True)
     meta = None
     if resume and has_checkpoint(out):
-        carry, meta = checkpoints.load(jax.eval_shape(learner.init, key))
+        carry, meta = checkpoints.load(carry_template(learner))
         checkpoints.tidy()
         carry = jax.tree_util.tree_map(jnp.asarray, carry)
     with wandb_run(cfg, out, continuing=meta is not None) as wandb:  # None without --wandb
@@ -215,7 +223,8 @@ def _train_seeds_locked(cfgs: list[TrainConfig], outs: list[Path], built, progre
     progress = progress or [None] * len(cfgs)
     if resume:
         remove_tmp_files(group)
-        carry, gmeta = checkpoints.load(jax.eval_shape(jax.vmap(learner.init), keys))
+        template = jax.eval_shape(jax.vmap(getattr(learner, "init_template", learner.init)), keys)  # run.carry_template
+        carry, gmeta = checkpoints.load(template)
         checkpoints.tidy()
         carry = jax.tree_util.tree_map(jnp.asarray, carry)
         metas = gmeta["runs"]

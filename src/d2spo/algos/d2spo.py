@@ -255,10 +255,19 @@ class D2SPOLearner(TD3Learner):
         return bool(self.d2.pretrain)
 
     def init(self, key: jax.Array) -> D2SPOCarry:
+        return self._init(key, self.d2.pretrain)
+
+    def init_template(self, key: jax.Array) -> D2SPOCarry:
+        """``init`` without the cautious start's pre-training, which changes values, not shapes: what
+        ``jax.eval_shape`` needs for a carry's template (``run.carry_template``) at a fraction of the
+        tracing (the pre-training's loops are most of ``init``'s program)."""
+        return self._init(key, False)
+
+    def _init(self, key: jax.Array, pretrain: bool) -> D2SPOCarry:
         base = super().init(key)
         k_s, k_pre, k_data = jax.random.split(jax.random.fold_in(key, 7), 3)
         safety = init_safety_state(k_s, self.safety_nets, self.cbf_cfg, self.n_features, self.env.action_size)
-        if self.d2.pretrain:
+        if pretrain:
             pre = sd.synthetic_pretrain_data(k_data, self.features, self.synthetic_sample,
                                              self.cbf_cfg.pretrain_samples, cfg=self.cbf_cfg)
             prior = None
@@ -273,7 +282,7 @@ class D2SPOLearner(TD3Learner):
             obs=jnp.zeros((self.env.observation_size,)), action=jnp.zeros((self.env.action_size,)),
             u_rl=jnp.zeros((self.env.action_size,)))
         data = sd.init_safety_data(self.cbf_cfg, example, self.n_features)
-        if self.d2.pretrain:
+        if pretrain:
             data = sd.seed_unsafe(data, pre)  # X_L has the synthetic ring samples from the first update
         return D2SPOCarry(base, safety, data)
 
