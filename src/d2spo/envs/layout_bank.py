@@ -191,7 +191,9 @@ def with_fields(bank: LayoutBank, method: str = "jax", chunk: int = 16, grid: in
     ``fields_numpy`` (one at a time)."""
     if bank.target.shape[1] == 0:
         raise ConfigError("bank", "the bank's slots have no task states yet (layout_bank.pair)")
-    args = _slot_args(bank)
+    # on the host: slicing and padding device arrays eagerly compiles a program per shape (seconds
+    # of a 2-core machine's time per bank), and copies are exact
+    args = [np.asarray(a) for a in _slot_args(bank)]
     n = bank.size
     if method == "jax":
         out = []
@@ -199,7 +201,7 @@ def with_fields(bank: LayoutBank, method: str = "jax", chunk: int = 16, grid: in
             part = [a[s:s + chunk] for a in args]
             short = chunk - part[0].shape[0]
             if short:  # one compiled shape: pad the last call with copies of its first slot
-                part = [jnp.concatenate([a, jnp.repeat(a[:1], short, axis=0)]) for a in part]
+                part = [np.concatenate([a, np.repeat(a[:1], short, axis=0)]) for a in part]
             out.append(fields_batch(*part, grid)[:chunk - short])
     elif method == "numpy":
         out = [fields_numpy(*(a[k] for a in args), grid=grid)[None] for k in range(n)]

@@ -11,6 +11,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import jax.numpy as jnp
+import numpy as np
 
 from d2spo.fields import check_choice, check_fields
 from d2spo.ltl.automaton import UNREACHABLE, AutomatonArrays
@@ -129,13 +130,16 @@ def progress_reward(
 
 def progress_areas(aut: AutomatonArrays, area_bits) -> jnp.ndarray:
     """bool [Q, N]: entering area i alone from state q gets strictly closer to acceptance, or is a
-    Büchi task's accepting visit (after which the distance restarts)."""
-    area_bits = jnp.asarray(area_bits)
-    nxt = aut.delta[:, area_bits]  # [Q, N]
-    closer = aut.distance[nxt] < aut.distance[:, None]
+    Büchi task's accepting visit (after which the distance restarts). Computed on the host (integer
+    gathers and comparisons, exact): it is built once per env, and eagerly on the device each of its
+    operations compiled a program."""
+    area_bits = np.asarray(area_bits)
+    delta, distance = np.asarray(aut.delta), np.asarray(aut.distance)
+    nxt = delta[:, area_bits]  # [Q, N]
+    closer = distance[nxt] < distance[:, None]
     if aut.visit is not None:
-        closer = closer | aut.visit[:, area_bits]
-    return closer & (area_bits[None, :] != 0)
+        closer = closer | np.asarray(aut.visit)[:, area_bits]
+    return jnp.asarray(closer & (area_bits[None, :] != 0))
 
 
 def distance_to_progress(advance: jnp.ndarray, q: jnp.ndarray, center_dist: jnp.ndarray, radius: jnp.ndarray
