@@ -22,6 +22,8 @@ import os
 import time
 from pathlib import Path
 
+import pytest
+
 EVENTS = {
     "trace": "/jax/core/compile/jaxpr_trace_duration",
     "lower": "/jax/core/compile/jaxpr_to_mlir_module_duration",
@@ -52,19 +54,14 @@ def _record(nodeid: str, wall: float) -> None:
         f.write(json.dumps(row) + "\n")
 
 
-try:
-    import pytest
-
-    @pytest.hookimpl(hookwrapper=True)
-    def pytest_runtest_protocol(item, nextitem):
-        _durations.clear()
-        _current[0] = item.nodeid
-        t = time.perf_counter()
-        yield
-        _current[0] = None
-        _record(item.nodeid, time.perf_counter() - t)
-except ImportError:  # the summary needs no pytest
-    pass
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item, nextitem):
+    _durations.clear()
+    _current[0] = item.nodeid
+    t = time.perf_counter()
+    yield
+    _current[0] = None
+    _record(item.nodeid, time.perf_counter() - t)
 
 
 def summarise(directory: Path, top: int) -> str:

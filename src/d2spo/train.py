@@ -223,7 +223,8 @@ def _train_seeds_locked(cfgs: list[TrainConfig], outs: list[Path], built, progre
     progress = progress or [None] * len(cfgs)
     if resume:
         remove_tmp_files(group)
-        template = jax.eval_shape(jax.vmap(getattr(learner, "init_template", learner.init)), keys)  # run.carry_template
+        template = jax.tree_util.tree_map(lambda s: jax.ShapeDtypeStruct((len(cfgs), *s.shape), s.dtype),
+                                          carry_template(learner))  # vmap's: a leading seed axis on every leaf
         carry, gmeta = checkpoints.load(template)
         checkpoints.tidy()
         carry = jax.tree_util.tree_map(jnp.asarray, carry)
