@@ -61,6 +61,7 @@ _SHARED_PROGRAMS = {
     "test_run_faults.py": "tiny-run",  # the shapes of test_train.tiny()
     "test_train.py": "tiny-run",
     "test_wandb.py": "tiny-run",  # test_train.tiny() with --wandb
+    "test_memo.py": "tiny-run",
     "test_reproduce.py": "small-reproduce",  # _reproduce.small_config
     "test_fault_battery.py": "small-reproduce",
     "test_certify_run.py": "tiny-d2spo",  # _tiny.tiny_cfg

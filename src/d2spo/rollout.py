@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from d2spo import memo
 from d2spo.algos.base import Learner
 
 
@@ -33,7 +34,14 @@ def make_rollout(learner: Learner, env, episodes: int, max_steps: int, slot_per_
     argument, so one compilation serves every layout with the same array shapes. For a Büchi task
     (``params.aut.visit`` set) the tuple ends with each episode's accepting visits [E] too.
     ``slot_per_episode`` (a generalist's env): episode e starts in slot e of the bank, not a drawn one;
-    ``with_slot`` (a generalist's env): the tuple ends with each episode's slot [E] too."""
+    ``with_slot`` (a generalist's env): the tuple ends with each episode's slot [E] too.
+    Made once per learner and arguments in a process (``d2spo.memo``): a second evaluation of the
+    same learner runs the program already compiled."""
+    return memo.per_object(learner, ("rollout", env, episodes, max_steps, slot_per_episode, with_slot),
+                           lambda: _make_rollout(learner, env, episodes, max_steps, slot_per_episode, with_slot))
+
+
+def _make_rollout(learner: Learner, env, episodes: int, max_steps: int, slot_per_episode: bool, with_slot: bool):
 
     def run(params, policy, key):
         # Time outside, episodes inside: ``lax.scan`` over steps of the vmapped (act, step). The

@@ -10,6 +10,7 @@ checkpoints, the lock) are described in docs/runs.md.
 from __future__ import annotations
 
 import dataclasses
+import json
 import warnings
 import weakref
 from pathlib import Path
@@ -17,6 +18,7 @@ from pathlib import Path
 import jax
 from flax import serialization
 
+from d2spo import memo
 from d2spo.algos import has_runtime_filter, make_learner
 from d2spo.algos.generalist import build_generalist
 from d2spo.checkpoint import has_checkpoint, load_checkpoint, run_fingerprint
@@ -29,7 +31,27 @@ from d2spo.runio import atomic_write_bytes, atomic_write_json, read_json, remove
 
 
 def build(cfg: TrainConfig):
-    """(env, env_params, learner) for a config. Raises ConfigError on bad input."""
+    """(env, env_params, learner) for a config. Raises ConfigError on bad input.
+
+    Built once per process for a config (seed aside: no learner reads it) and its layout file's
+    content (``d2spo.memo``): the learner returned again brings the programs JAX traced and
+    compiled for it, so a second run of the config starts at once."""
+    key = _build_key(cfg)
+    return _build(cfg) if key is None else memo.built(key, lambda: _build(cfg))
+
+
+def _build_key(cfg: TrainConfig) -> str | None:
+    """What a build depends on: the config with its seed set aside, and the layout file's bytes;
+    None for a layout file that cannot be read (the build says why, as without the memo)."""
+    file = None if cfg.generalist else layouts.layout_file(cfg.layout)
+    try:
+        digest = None if file is None else sha256_of(file, _layout_error)
+    except ConfigError:
+        return None
+    return json.dumps([config_to_dict(dataclasses.replace(cfg, seed=0)), digest], sort_keys=True)
+
+
+def _build(cfg: TrainConfig):
     if cfg.generalist:
         return _build_generalist(cfg)
     env, params = make_env(cfg.env_config(), task=cfg.task)

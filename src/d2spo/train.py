@@ -18,6 +18,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 
+from d2spo import memo
 from d2spo._xla import long_running_options
 from d2spo.algos.generalist import Redraw
 from d2spo.checkpoint import Checkpoints, fingerprint, has_checkpoint, run_fingerprint
@@ -118,8 +119,9 @@ class _ParamsArgument:
             fn = getattr(acting_on(learner, params), name)
             return (jax.vmap(fn) if vmapped else fn)(x)
 
-        self.params = learner.params
-        self.fn = jax.jit(run, donate_argnums=(0,) if donate else (), compiler_options=options)
+        self.params = learner.params  # a redraw replaces this wrapper's, never the learner's
+        self.fn = memo.per_object(learner, ("params-argument", name, vmapped, donate, _options_key(options)),
+                                  lambda: jax.jit(run, donate_argnums=(0,) if donate else (), compiler_options=options))
 
     def __call__(self, x):
         return self.fn(x, self.params)
@@ -136,8 +138,17 @@ def learner_program(learner, name: str, vmapped: bool = False, donate: bool = Fa
     options = long_running_options() if name == "init" and getattr(learner, "long_init", False) else None
     if getattr(learner, "params_as_argument", False):
         return _ParamsArgument(learner, name, vmapped, donate, options)
-    fn = getattr(learner, name)
-    return jax.jit(jax.vmap(fn) if vmapped else fn, donate_argnums=0 if donate else (), compiler_options=options)
+
+    def jitted():
+        fn = getattr(learner, name)
+        return jax.jit(jax.vmap(fn) if vmapped else fn, donate_argnums=0 if donate else (), compiler_options=options)
+
+    # one jitted function per learner and kind: traced and compiled once in this process (d2spo.memo)
+    return memo.per_object(learner, ("program", name, vmapped, donate, _options_key(options)), jitted)
+
+
+def _options_key(options: dict | None) -> tuple | None:
+    return None if options is None else tuple(sorted(options.items()))
 
 
 def _compiling(progress: list[ProgressFn | None], metas: list[dict | None], cfg: TrainConfig) -> float:
