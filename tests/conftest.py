@@ -32,8 +32,10 @@ if os.environ.get("D2SPO_TEST_XLA_OPT", "0") != "default" and "xla_backend_optim
     os.environ.setdefault("D2SPO_XLA_LONG_RUNNING_LEVEL", "2")
 
 import jax  # noqa: E402
+import pytest  # noqa: E402
 
 import d2spo  # noqa: E402, F401  (sets XLA flags before the first computation starts the backend: d2spo/_xla.py)
+from d2spo import memo  # noqa: E402
 
 _CACHE = Path(os.environ.get("D2SPO_TEST_JAX_CACHE", Path(__file__).resolve().parent.parent / ".pytest_cache" / "jax"))
 jax.config.update("jax_compilation_cache_dir", str(_CACHE))
@@ -70,8 +72,19 @@ _SHARED_PROGRAMS = {
 
 
 def pytest_collection_modifyitems(config, items):
-    import pytest
-
     for item in items:
         name = Path(str(item.fspath)).name
         item.add_marker(pytest.mark.xdist_group(_SHARED_PROGRAMS.get(name, name)))
+
+
+@pytest.fixture(autouse=True)
+def _memo_fresh_around_patches(request):
+    """A test that patches (``monkeypatch``) neither reuses an earlier test's builds and programs
+    (``d2spo.memo``: they would not see its patches) nor leaves its own, built under its patches,
+    to a later test."""
+    patches = "monkeypatch" in request.fixturenames
+    if patches:
+        memo.clear()
+    yield
+    if patches:
+        memo.clear()
