@@ -60,8 +60,28 @@ def test_a_resumed_run_rebuilds_the_same_bank_from_its_meta(built):
 
 
 def test_the_redraw_count_is_checked():
-    with pytest.raises(ConfigError, match="generalist_redraw: expected 0 .. generalist_layouts"):
+    with pytest.raises(ConfigError, match="generalist_redraw: expected 0 .. the bank's slots"):
         _cfg(generalist_redraw=5)
+    assert _cfg(generalist_redraw=8, generalist_pairings=2).generalist_redraw == 8  # 4 layouts x 2 slots
     assert dataclasses.replace(_cfg(), generalist_redraw=0).generalist_redraw == 0
     assert layout_bank.N_AREAS >= 12
 
+
+
+def test_pairings_give_each_layout_consecutive_slots_with_the_next_tasks():
+    from d2spo.run import build
+
+    _, params, _ = build(_cfg(generalist_pairings=2))  # the mixture: phi1 and one random task
+    bank = jax.device_get(params.bank)
+    assert bank.arena.shape[0] == 8
+    assert bank.task.tolist() == [0, 1] * 4
+    for n in range(4):  # layout world:n in slots 2n and 2n+1
+        lay = layouts.load(f"world:{n}")
+        for slot in (2 * n, 2 * n + 1):
+            np.testing.assert_allclose(bank.arena[slot], lay.arena, rtol=1e-6)
+        assert not np.array_equal(bank.fields[2 * n], bank.fields[2 * n + 1])  # each its own task's fields
+
+
+def test_more_pairings_than_tasks_is_refused():
+    with pytest.raises(ConfigError, match="generalist_pairings: at most the mixture's 2 tasks"):
+        _cfg(generalist_pairings=3)

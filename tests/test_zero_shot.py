@@ -293,3 +293,22 @@ def test_the_validation_scores_a_patrol_by_its_visits_against_the_slots_optimum(
     out = val(None)
     assert out["success_rate"] == pytest.approx((1 + 0 + (best // 2) / best + 1) / 4)
     assert out["mean_steps_success"] == 100.0
+
+
+def test_a_generalist_trained_with_pairings_evaluates_zero_shot(tmp_path, capsys):
+    """``--generalist-pairings`` sizes only the training bank: ``d2spo eval`` of such a run builds
+    its one-task generalist as for any other (the pairing is not checked against a mixture of one)."""
+    from d2spo.checkpoint import Checkpoints, run_fingerprint
+    from d2spo.config import config_to_dict
+
+    cfg = dataclasses.replace(_cfg(), generalist_tasks=1, generalist_pairings=2)
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "config.json").write_text(json.dumps(config_to_dict(cfg)))
+    _, _, learner = build_generalist(cfg, [generator.generate(3)], 400)
+    shapes = jax.eval_shape(learner.init, jax.random.PRNGKey(0))
+    Checkpoints(out, run_fingerprint(out)).save(jax.tree_util.tree_map(lambda t: jnp.zeros(t.shape, t.dtype), shapes),
+                                                {"episodes": 0, "env_steps": 0, "chunks": 0, "wall_seconds": 0.0})
+    assert _main(["eval", str(out), "--task", "phi2", "--layout", "random:11", "--episodes", "2",
+                  "--runtime-filter", "False"]) == 0
+    assert "completion" in capsys.readouterr().out

@@ -93,6 +93,10 @@ class TrainConfig:
     generalist_redraw: int = 0
     """With --generalist: after every chunk, this many bank slots no environment is in get fresh
     layouts (WORLD:REDRAW_SEED ..., each keeping its slot's task); 0: the bank stays fixed."""
+    generalist_pairings: int = 1
+    """With --generalist: slots per layout, each paired with the next task of the mixture in turn
+    (layout n runs tasks n*P .. n*P+P-1 modulo the mixture's size), so a layout is seen with P tasks
+    and a task with P times as many layouts; the bank has generalist_layouts * P slots."""
     generalist_world: str = "world"
     """With --generalist: the layout family it trains and validates on: world (rectangular arenas to
     20 m, pillars, 4-12 labelled areas, ZoneEnv's zones among them) or random (square 5-10 m, A1..A4)."""
@@ -155,7 +159,8 @@ class TrainConfig:
         if self.generalist_tasks is None:
             object.__setattr__(self, "generalist_tasks", GENERALIST_TASKS if self.generalist else 0)
         check_fields(self, count=("episodes", "num_envs", "chunk_steps", "checkpoint_every", "window",
-                                  "generalist_layouts", "validation_episodes", "validate_every"),
+                                  "generalist_layouts", "generalist_pairings", "validation_episodes",
+                                  "validate_every"),
                      seed=("seed",), counts=("snapshots",),
                      natural=("eval_episodes", "generalist_tasks", "generalist_patrols", "validation_layouts"),
                      flag=("fast", "wandb"))
@@ -171,9 +176,14 @@ class TrainConfig:
         if self.generalist_world not in GENERALIST_WORLDS:
             raise ConfigError("generalist_world", f"expected one of {', '.join(GENERALIST_WORLDS)}, "
                               f"got {self.generalist_world!r}")
-        if not 0 <= self.generalist_redraw <= self.generalist_layouts:
-            raise ConfigError("generalist_redraw", f"expected 0 .. generalist_layouts ({self.generalist_layouts}), "
-                              f"got {self.generalist_redraw}")
+        slots = self.generalist_layouts * self.generalist_pairings
+        if not 0 <= self.generalist_redraw <= slots:
+            raise ConfigError("generalist_redraw", f"expected 0 .. the bank's slots (generalist_layouts * "
+                              f"generalist_pairings = {slots}), got {self.generalist_redraw}")
+        mixture = 1 + self.generalist_tasks + self.generalist_patrols
+        if self.generalist and self.generalist_pairings > mixture:
+            raise ConfigError("generalist_pairings", f"at most the mixture's {mixture} tasks (--task, "
+                              f"generalist_tasks, generalist_patrols), got {self.generalist_pairings}")
         if self.generalist and self.generalist_layouts > VALIDATION_SEED:
             raise ConfigError("generalist_layouts", f"at most {VALIDATION_SEED}: the layouts from "
                               f"{self.generalist_world}:{VALIDATION_SEED} on are the validation set")

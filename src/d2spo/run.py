@@ -62,9 +62,10 @@ def _build(cfg: TrainConfig):
 
 def _build_generalist(cfg: TrainConfig):
     """(env, params, learner) of ``--generalist``: the layouts WORLD:0 .. WORLD:N-1 (WORLD: its
-    ``generalist_world``), slot k paired with task k modulo the mixture's size
-    (``algos.generalist.build_generalist``)."""
-    drawn = [layouts.load(f"{cfg.generalist_world}:{s}") for s in range(cfg.generalist_layouts)]
+    ``generalist_world``), each in ``generalist_pairings`` consecutive slots, slot k paired with task
+    k modulo the mixture's size (``algos.generalist.build_generalist``)."""
+    drawn = [layouts.load(f"{cfg.generalist_world}:{s}") for s in range(cfg.generalist_layouts)
+             for _ in range(cfg.generalist_pairings)]
     return build_generalist(cfg, drawn, cfg.env.max_steps)  # None: each layout's slot_max_steps
 
 
@@ -262,7 +263,8 @@ def load_policy(run_dir: Path, which: str = "best", learner=None):
     cfg = load_run_config(run_dir)
     if learner is None:
         # a generalist's checkpoint holds no layout: a one-layout bank gives the same shapes, fast
-        _, _, learner = build(dataclasses.replace(cfg, generalist_layouts=1, generalist_tasks=0, generalist_patrols=0)
+        _, _, learner = build(dataclasses.replace(cfg, generalist_layouts=1, generalist_tasks=0, generalist_patrols=0,
+                                                  generalist_pairings=1)
                               if cfg.generalist else cfg)
     shared = _shared_best(run_dir) if which == "best" else None
     if shared is not None and not has_checkpoint(run_dir):  # a finished generalist copied without them

@@ -66,7 +66,8 @@ def generalist_on(cfg: TrainConfig, env_cfg, task: str, checked: list[tuple[Layo
     limit is the longest any of them needs (``generalist_layout``), and at least what training
     gives each (its ``max_steps``, else ``envs.task_plan.slot_max_steps``)."""
     limit = max(max(cfg.env.max_steps or slot_max_steps(lay), n) for lay, n in checked)
-    cfg = dataclasses.replace(cfg, env=env_cfg, task=task, generalist_tasks=0, generalist_patrols=0)
+    cfg = dataclasses.replace(cfg, env=env_cfg, task=task, generalist_tasks=0, generalist_patrols=0,
+                              generalist_pairings=1)
     env, params, learner = build_generalist(cfg, [checked[0][0]], limit)
     return env, params, learner, limit
 

@@ -125,7 +125,7 @@ class Redraw:
     def __init__(self, cfg, env):
         self.cfg, self.env = cfg, env
         self.per_chunk = int(cfg.generalist_redraw)
-        self.size = int(cfg.generalist_layouts)
+        self.size = int(cfg.generalist_layouts) * int(cfg.generalist_pairings)
 
     def apply(self, params, assigned: dict[str, int]) -> object:
         """``params`` with slot s holding layout WORLD:seed for every ("s", seed) of ``assigned``."""
