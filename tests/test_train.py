@@ -69,6 +69,7 @@ def test_outputs_and_summary(tmp_path, capsys):
     # `d2spo eval` on it: prints and writes the rates, with the distance driven
     from d2spo.cli import main
 
+    capsys.readouterr()  # from here on stderr is the CLI's alone (train() above may warn the plain way)
     assert main(["eval", str(run), "--episodes", "4", "--plot", str(tmp_path / "ev.png")]) == 0
     assert (tmp_path / "ev.png").read_bytes()[:4] == b"\x89PNG"
     ev = json.loads((run / "eval-relaxed-default.json").read_text())
