@@ -294,7 +294,7 @@ def config_from_dict(data: dict) -> TrainConfig:
 
 
 _SHAPING_FIELDS = ("shaping", "shaping_metric", "shaping_clearance", "shaping_clearance_cost", "shaping_collide_cost",
-                   "shaping_gamma")
+                   "shaping_neighbours", "shaping_gamma")
 
 
 def effective_config(cfg: TrainConfig) -> dict:

@@ -70,6 +70,11 @@ class RewardConfig:
     shaping_collide_cost: float = 100.0
     """With 'geodesic-per-state': the multiplier where a node is closer than the robot's radius to an
     obstacle or a wall (the robot would collide there), so no path cuts a wall."""
+    shaping_neighbours: int = 8
+    """With 'geodesic-per-state': the grid moves of the fields' shortest paths. 8 (the default): the
+    8-neighbourhood, whose path lengths exceed the straight segment by up to 8.2% (at 22.5 deg), so
+    every monotone path inside a 45-degree cone is as short as the straight one; 16: knight moves
+    (1, 2) too, at most 2.7% over, a field closer to the Euclidean path length (``envs.state_fields``)."""
     shaping_gamma: float = 1.0
     """Discount in the shaping term gamma * Phi(s') - Phi(s). 1 (not the learner's 0.99): with
     gamma < 1 standing still far from the goal earns (1 - gamma) |Phi| > c_n per step."""
@@ -85,6 +90,7 @@ class RewardConfig:
                      fraction=("shaping_gamma",))
         check_choice(self, "mode", ("progress", "sparse"), "reward")
         check_choice(self, "shaping_metric", SHAPING_METRICS, "reward")
+        check_choice(self, "shaping_neighbours", (8, 16), "reward")
 
     @property
     def shaped(self) -> bool:
@@ -98,7 +104,8 @@ class RewardConfig:
     def field_costs(self, robot_radius: float) -> dict[str, float]:
         """``envs.state_fields.state_fields``'s keyword arguments for this reward and robot."""
         return dict(clearance=self.clearance(robot_radius), robot_radius=robot_radius,
-                    clearance_cost=self.shaping_clearance_cost, collide_cost=self.shaping_collide_cost)
+                    clearance_cost=self.shaping_clearance_cost, collide_cost=self.shaping_collide_cost,
+                    neighbours=self.shaping_neighbours)
 
 
 def progress_reward(
