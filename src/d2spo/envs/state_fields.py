@@ -49,8 +49,9 @@ from d2spo.ltl.buchi_task import BuchiTask
 NEUTRAL, TARGET, FORBIDDEN = 0, 1, 2
 """Roles of a letter read in a state."""
 _SHIFTS8 = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0)]
-_SHIFTS16 = _SHIFTS8 + [(dy, dx) for dy in (-2, -1, 1, 2) for dx in (-2, -1, 1, 2) if abs(dy) != abs(dx)]
-"""The 8-neighbourhood and knight moves: a grid path at most 2.7% longer than the segment it follows."""
+_SHIFTS = {8: tuple(_SHIFTS8),
+           16: tuple(_SHIFTS8) + tuple((dy, dx) for dy in (-2, -1, 1, 2) for dx in (-2, -1, 1, 2) if abs(dy) != abs(dx))}
+"""The grid moves per ``neighbours``: 16 adds knight moves, a path at most 2.7% longer than its segment."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -116,7 +117,7 @@ def _pairs(ny: int, nx: int, shifts) -> list[tuple[np.ndarray, np.ndarray, float
 
 
 def _field(roles: np.ndarray, letters: np.ndarray, mult: np.ndarray, gap: np.ndarray, in_area: np.ndarray,
-           event: bool, margin: float, spacing: float, penalty: float, shifts=tuple(_SHIFTS8)) -> np.ndarray:
+           event: bool, margin: float, spacing: float, penalty: float, shifts=_SHIFTS[8]) -> np.ndarray:
     """One state's field [ny, nx]; ``roles`` [2**n_aps] are that state's letter roles; ``shifts`` the grid moves."""
     ny, nx = letters.shape
     n = ny * nx
@@ -196,10 +197,10 @@ def state_fields(aut: Automaton, layout: Layout, roles: np.ndarray, label_mode: 
     gap = np.maximum(centre_dist - radius, 0.0)
     in_area = centre_dist <= radius
     penalty = geodesic.BLOCKED_COST * math.hypot(w, h)
-    if neighbours not in (8, 16):
-        raise ConfigError("reward.shaping_neighbours", f"must be 8 or 16, got {neighbours!r}")
-    shifts = tuple(_SHIFTS8 if neighbours == 8 else _SHIFTS16)
-    fields = np.stack([_field(roles[q], letters, mult, gap, in_area, event, clearance, spacing, penalty, shifts)
+    if neighbours not in _SHIFTS:
+        raise ConfigError("reward.shaping_neighbours", f"must be one of {list(_SHIFTS)}, got {neighbours!r}")
+    fields = np.stack([_field(roles[q], letters, mult, gap, in_area, event, clearance, spacing, penalty,
+                              _SHIFTS[neighbours])
                        for q in range(aut.n_states)])
     return StateFields(targets=named_areas(aut, layout, roles, TARGET), forbidden=named_areas(aut, layout, roles, FORBIDDEN),
                        field=fields, target_cells=roles[:, letters] == TARGET,
