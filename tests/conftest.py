@@ -71,6 +71,7 @@ _SHARED_PROGRAMS = {
 }
 
 
+@pytest.hookimpl(tryfirst=True)  # before xdist's hook reads the group into each test's id
 def pytest_collection_modifyitems(config, items):
     for item in items:
         name = Path(str(item.fspath)).name
