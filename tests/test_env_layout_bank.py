@@ -143,3 +143,22 @@ def test_pack_refuses_what_a_bank_cannot_hold():
         lb.pack([Layout("r", (5.0, 5.0), (4.0, 4.0, 0.0), (), overlap)])
     with pytest.raises(ConfigError, match="no task states"):
         lb.with_fields(lb.pack([HAND]))
+
+
+def test_a_slots_field_is_the_same_bit_for_bit_alone_and_among_others():
+    """A bank is solved in calls of the next power of two slots up to 16 (``with_fields``): a slot's
+    field must not depend on the call it shares, alone (1 slot), among 3 (a call of 4) or in a call
+    of 16 (a 16-slot bank)."""
+    target, forbidden = roles(STATES)
+    lays = [HAND, generator.generate(2), generator.generate(5)]
+
+    def fields(ls):
+        k = len(ls)
+        paired = lb.pair(lb.pack(ls), np.zeros((k, N), np.int32), np.stack([target] * k), np.stack([forbidden] * k))
+        return np.asarray(lb.with_fields(paired, "jax", grid=GRID).fields)
+
+    three, many = fields(lays), fields(lays * 5 + lays[:1])
+    np.testing.assert_array_equal(fields(lays[1:2])[0], three[1])
+    for i in range(3):
+        np.testing.assert_array_equal(many[i], three[i])
+        np.testing.assert_array_equal(many[i + 3], three[i])

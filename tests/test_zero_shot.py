@@ -200,7 +200,8 @@ def test_the_validation_layouts_are_held_out():
     from d2spo.envs import generator
     from d2spo.record import Validation
 
-    cfg = dataclasses.replace(_cfg(), validation_layouts=2, validation_episodes=4)
+    # a mixture of two tasks (phi1 and one random): 4 slots to solve, not 2 x 17 (12 s of the test)
+    cfg = dataclasses.replace(_cfg(), validation_layouts=2, validation_episodes=4, generalist_tasks=1)
     env, params, learner = build_generalist(cfg, [generator.generate(0)], 400)
     v = Validation(cfg, env, params, learner)
     assert v.layouts == f"world:{VALIDATION_SEED}..{VALIDATION_SEED + 1}"  # the default training world
