@@ -83,7 +83,8 @@ def test_short_run_on_relaxed_learns_to_reach_a1_safely(tmp_path, monkeypatch):
     from d2spo.run import load_policy
 
     _, learner, policy, _ = load_policy(tmp_path / "run")
-    fig, rates = draw_policy_figure(learner, policy, learner.env, learner.params, episodes=4,
+    # as many episodes as the run's final evaluation: its compiled rollout serves (58.9 s -> 51.8 s)
+    fig, rates = draw_policy_figure(learner, policy, learner.env, learner.params, episodes=32,
                                     suptitle="D²SPO: layout 'relaxed', task 'F A1'")
     traj, cbf, bar = fig.axes
     assert {ax.get_xlabel() for ax in (traj, cbf)} == {"x (m)"} and {ax.get_ylabel() for ax in (traj, cbf)} == {"y (m)"}
