@@ -27,10 +27,10 @@ $(STAMP): pyproject.toml constraints.txt
 	rm -f $(VENV)/.installed-*
 	$(PYEXE) -m venv $(VENV)
 	@echo "installing d2spo[$(EXTRAS)] into $(VENV) with uv $(UV_VERSION) (pip if uv cannot be had)"
-	@if $(PY) -m pip install --quiet --disable-pip-version-check "uv==$(UV_VERSION)"; then \
-	  $(VENV)/bin/uv pip install --quiet --python $(PY) --compile-bytecode -c constraints.txt -e ".[$(EXTRAS)]"; \
+	@if $(PY) -m pip install --quiet --disable-pip-version-check "uv==$(UV_VERSION)" && \
+	  $(VENV)/bin/uv pip install --quiet --python $(PY) --compile-bytecode -c constraints.txt -e ".[$(EXTRAS)]"; then :; \
 	else \
-	  echo "make: uv $(UV_VERSION) could not be installed: installing with pip" >&2; \
+	  echo "make: uv $(UV_VERSION) could not be installed or could not install the set: installing with pip" >&2; \
 	  $(PY) -m pip install --quiet --disable-pip-version-check --upgrade "pip>=24" && \
 	  $(PY) -m pip install --quiet --disable-pip-version-check -c constraints.txt -e ".[$(EXTRAS)]"; \
 	fi
