@@ -23,6 +23,9 @@ import numpy as np
 
 from d2spo.errors import ConfigError
 
+NEIGHBOURS8 = tuple((dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0))
+"""The eight moves (row, column) from a grid node to its neighbours, shared by every grid search."""
+
 SPACING = 0.05
 """Grid spacing in metres."""
 BLOCKED_COST = 10.0
@@ -66,14 +69,13 @@ def _fields(arena: tuple, boxes: tuple, areas: tuple, robot_radius: float, spaci
     blocked = clearance(xs, ys, box_lo, box_hi, arena, disks) < robot_radius
     mult = np.where(blocked, blocked_cost, 1.0)
     px, py = np.meshgrid(xs, ys)
-    shifts = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0)]
     out = np.empty((len(areas), ny, nx), np.float32)
     for k, (cx, cy, r) in enumerate(areas):
         euclid = np.hypot(px - cx, py - cy)
         d = np.where(euclid <= max(r, spacing), euclid, np.inf)
         for _ in range(4 * (nx + ny) * int(blocked_cost)):
             new = d.copy()
-            for dy, dx in shifts:
+            for dy, dx in NEIGHBOURS8:
                 step = spacing * math.hypot(dx, dy)
                 # value arriving at node (i, j) from neighbour (i + dy, j + dx)
                 src = np.full_like(d, np.inf)

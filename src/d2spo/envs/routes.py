@@ -14,12 +14,11 @@ import numpy as np
 from scipy import ndimage, sparse
 from scipy.sparse import csgraph
 
-from d2spo.envs import workspace
+from d2spo.envs import geodesic, workspace
 from d2spo.envs.layouts import letters_at
 from d2spo.envs.workspace import Layout
 from d2spo.ltl.automaton import Automaton
 
-_SHIFTS8 = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0)]
 _SHIFTS4 = [(-1, 0), (1, 0), (0, -1), (0, 1)]
 OCTILE_EXCESS = math.sqrt(4 - 2 * math.sqrt(2))
 """The most an 8-neighbour grid path exceeds the straight segment it follows (1.082, at 22.5°)."""
@@ -173,7 +172,7 @@ def _product_edges(aut: Automaton, layout: Layout, label_mode: str, robot_radius
     visits = np.asarray(getattr(aut, "visits", None) or np.zeros(delta.shape, bool), bool).reshape(delta.shape)
     cell = np.arange(ny * nx).reshape(ny, nx)
     rows, cols, weights, marks = [], [], [], []
-    for dy, dx in _SHIFTS8:
+    for dy, dx in geodesic.NEIGHBOURS8:
         ys, xs = np.nonzero(free)
         ty, tx = ys + dy, xs + dx
         ok = (ty >= 0) & (ty < ny) & (tx >= 0) & (tx < nx)

@@ -48,9 +48,8 @@ from d2spo.ltl.buchi_task import BuchiTask
 
 NEUTRAL, TARGET, FORBIDDEN = 0, 1, 2
 """Roles of a letter read in a state."""
-_SHIFTS8 = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0)]
-_SHIFTS = {8: tuple(_SHIFTS8),
-           16: tuple(_SHIFTS8) + tuple((dy, dx) for dy in (-2, -1, 1, 2) for dx in (-2, -1, 1, 2) if abs(dy) != abs(dx))}
+_SHIFTS = {8: geodesic.NEIGHBOURS8,
+           16: geodesic.NEIGHBOURS8 + tuple((dy, dx) for dy in (-2, -1, 1, 2) for dx in (-2, -1, 1, 2) if abs(dy) != abs(dx))}
 """The grid moves per ``neighbours``: 16 adds knight moves, a path at most 2.7% longer than its segment."""
 
 
