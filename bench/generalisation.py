@@ -369,6 +369,9 @@ def main() -> None:
     ap.add_argument("--machine", default=f"{os.cpu_count()}-core {platform.machine()} CPU machine")
     ap.add_argument("--results", default="bench/RESULTS.md", help="file to append the table to; '-' prints only")
     args = ap.parse_args()
+    from d2spo import compile_cache
+
+    compile_cache.enable()  # the commands' cache: a second seed or mode of the same program compiles nothing
     args.out.mkdir(parents=True, exist_ok=True)
     run = generalist_run(args)
     from d2spo.run import load_run_config

@@ -34,6 +34,9 @@ def main() -> None:
     ap.add_argument("--policy", choices=("best", "last"), default="best",
                     help="the run's validated policy (best) or its newest checkpoint's (last)")
     args = ap.parse_args()
+    from d2spo import compile_cache
+
+    compile_cache.enable()  # the commands' cache: a second seed or mode of the same program compiles nothing
 
     from d2spo.errors import UserError
     from d2spo.evaluate import eval_env_config

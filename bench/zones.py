@@ -1,4 +1,4 @@
-"""ZoneEnv's six finite-horizon tasks (DeepLTL's table), zero-shot, for d2spo generalists.
+"""ZoneEnv's six finite-horizon tasks and its infinite-horizon ones (DeepLTL's tables), zero-shot, for d2spo generalists.
 
     python bench/zones.py --runs RUNS                    # train seeds 0, 1, 2 (defaults) unless there, then evaluate
     python bench/zones.py --runs RUNS --seeds 0 --episodes 100 --out /tmp/zones
@@ -15,6 +15,14 @@ first 20 layouts, and at least the generalist's own slot limit), never more than
 Writes OUT/zones.json (every figure), OUT/zones.md (the table beside the published success rates),
 OUT/zones-success.png (success per task beside DeepLTL, GCRL-LTL, LTL2Action) and
 OUT/zones-trajectories.png (episodes on four drawn layouts).
+
+The infinite-horizon tasks (``INFINITE``) run ZoneEnv's full 1000 steps per episode and are scored
+as DeepLTL scores them, by accepting visits per episode, and against what a perfect robot of ours
+could make on each drawn layout in those steps (the route-optimal visits, ``CompiledTask.optimal_visits``):
+DeepLTL's point robot and d2spo's unicycle cover different distances in a step, so the visit counts
+alone do not compare; the fraction of the route-optimal count is ours, robot for robot. ``FG blue``
+(DeepLTL's persistence task, no deterministic Büchi automaton) is tried and reported as d2spo
+answers it (refused in one line: docs/ltl.md).
 """
 
 from __future__ import annotations
@@ -48,6 +56,16 @@ REFERENCE = {  # success rates: DeepLTL, GCRL-LTL, LTL2Action (ZoneEnv, finite-h
     TASKS[5]: (0.978, 0.894, 0.930),
 }
 METHODS = ("DeepLTL", "GCRL-LTL", "LTL2Action")
+INFINITE = ("GF blue & GF green", "GF blue & GF green & GF yellow & G !magenta")
+REFERENCE_VISITS = {  # accepting visits per 1000-step episode: DeepLTL, GCRL-LTL (SOURCE_INFINITE)
+    INFINITE[0]: (4.16, 3.14),
+    INFINITE[1]: (1.71, 1.31),
+}
+PERSISTENCE = "FG blue"
+REFERENCE_PERSISTENCE = (562.8, 265.5)
+"""``FG blue``: steps in the accepting set per 1000-step episode, DeepLTL and GCRL-LTL."""
+SOURCE_INFINITE = ("DeepLTL (ICLR 2025), its table of ZoneEnv's infinite-horizon tasks, as d2spo's issue 34 "
+                   "quotes it (no results file of these was in the copy of the repository searched)")
 SOURCE = ("DeepLTL's results file results/PointLtl2-v0.csv (columns method, task, seed, success_rate, "
           "mean_steps; 5 seeds x 500 episodes, 1000-step episodes), read in the copy of the DeepLTL "
           "repository at github.com/mattiagiuri/ltl_gnn, commit d72036752a47576bbe7c45e3e015d51015c35791 "
@@ -114,6 +132,74 @@ def evaluate_seed(run: Path, episodes: int, keep_paths: int) -> dict:
     return out
 
 
+def evaluate_infinite(run: Path, episodes: int) -> dict:
+    """The ``INFINITE`` tasks over ZoneEnv's 1000 steps, one drawn zones layout per episode, π_Ω
+    alone and with the filter: accepting visits per episode, and the route-optimal visits on the
+    same layouts; then how d2spo answers ``PERSISTENCE``."""
+    from d2spo.algos.generalist import build_generalist
+    from d2spo.envs.compiled_task import compile_task
+    from d2spo.envs.generalist import view
+    from d2spo.envs.zones import zones_layout
+    from d2spo.errors import UserError
+    from d2spo.rollout import make_rollout
+    from d2spo.run import load_policy
+    from d2spo.zero_shot import generalist_layout
+
+    cfg, _, policy, meta = load_policy(run)
+    layouts = [zones_layout(ZONE_SEED + i) for i in range(episodes)]
+    limit = ZONE_ENV_LIMIT
+    out = {"policy": meta["policy"], "max_steps": limit, "tasks": {}}
+    for task in INFINITE:
+        per, bank, optimum = {}, None, None
+        for filt in (False, True):
+            c = dataclasses.replace(cfg, task=task, generalist_tasks=0, generalist_patrols=0, generalist_pairings=1,
+                                    d2spo=dataclasses.replace(cfg.d2spo, runtime_filter=filt))
+            env, params, learner = build_generalist(c, layouts[:1], limit)
+            if optimum is None:
+                res = env.config
+                optimum = np.array([compile_task(env.automaton, lay, res.label_mode, res.robot_radius).optimal_visits(
+                    limit, res.dt, res.v_max * res.v_gain) for lay in layouts], float)
+            bank = env.bank(layouts, max_steps=limit) if bank is None else bank
+            params = view(params.replace(bank=bank), jnp.zeros((), jnp.int32))
+            t = time.perf_counter()
+            collided, *_, visits = (np.asarray(a) for a in make_rollout(learner, env, episodes, limit,
+                                                                          slot_per_episode=True)(
+                params, policy, jax.random.PRNGKey(7)))
+            per["filter" if filt else "pi_omega"] = {
+                "visits_per_episode": float(visits.mean()), "collision_rate": float(collided.mean()),
+                "visit_fraction": float(visits.sum() / optimum.sum()),
+                "episodes": int(episodes), "seconds": round(time.perf_counter() - t, 1)}
+        per["route_optimal_visits"] = float(optimum.mean())
+        out["tasks"][task] = per
+    try:
+        generalist_layout(cfg.env, layouts[0].name, PERSISTENCE)
+        out[PERSISTENCE] = "accepted"
+    except UserError as e:
+        out[PERSISTENCE] = f"refused: {e}"
+    return out
+
+
+def infinite_table(results: dict, seeds: list[int]) -> str:
+    """The markdown table of the ``INFINITE`` tasks (means over seeds) and the ``PERSISTENCE`` row."""
+    lines = ["| task | visits π_Ω | visits + filter | route-optimal | of the route-optimal (filter) | "
+             "collisions π_Ω / filter | DeepLTL | GCRL-LTL |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
+
+    def mean(task, mode, key):
+        return float(np.mean([results[s]["tasks"][task][mode][key] for s in seeds]))
+
+    for task in INFINITE:
+        best = float(np.mean([results[s]["tasks"][task]["route_optimal_visits"] for s in seeds]))
+        lines.append(f"| `{task}` | {mean(task, 'pi_omega', 'visits_per_episode'):.2f} | "
+                     f"{mean(task, 'filter', 'visits_per_episode'):.2f} | {best:.2f} | "
+                     f"{mean(task, 'filter', 'visit_fraction'):.1%} | {mean(task, 'pi_omega', 'collision_rate'):.1%} / "
+                     f"{mean(task, 'filter', 'collision_rate'):.1%} | "
+                     + " | ".join(f"{r:.2f}" for r in REFERENCE_VISITS[task]) + " |")
+    answer = results[seeds[0]][PERSISTENCE]
+    lines.append(f"| `{PERSISTENCE}` (steps in the accepting set) | {answer} | | | | | "
+                 + " | ".join(f"{r:.1f}" for r in REFERENCE_PERSISTENCE) + " |")
+    return "\n".join(lines)
+
+
 def table(results: dict, seeds: list[int]) -> tuple[str, dict]:
     """The markdown table (mean over seeds, min-max in brackets) and the means per task and mode."""
     lines = ["| task | d2spo π_Ω | d2spo + filter | steps (filter) | collisions π_Ω / filter | "
@@ -171,6 +257,9 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("bench/zones"))
     ap.add_argument("--quick", action="store_true", help="a tiny training and 8 episodes: a check of the script")
     args = ap.parse_args()
+    from d2spo import compile_cache
+
+    compile_cache.enable()  # the commands' cache: a second seed or mode of the same program compiles nothing
     if args.quick:
         args.seeds, args.episodes = args.seeds[:1], 8
     args.out.mkdir(parents=True, exist_ok=True)
@@ -182,13 +271,17 @@ def main() -> None:
             paths = res["tasks"][TASKS[0]].pop("paths")
         for task in TASKS:
             res["tasks"][task].pop("paths", None)
+        res["infinite"] = evaluate_infinite(run, args.episodes)
         results[seed] = res
-        print(json.dumps({"seed": seed, **{t: res["tasks"][t] for t in TASKS}}))
+        print(json.dumps({"seed": seed, **{t: res["tasks"][t] for t in TASKS}, "infinite": res["infinite"]}))
     text, means = table(results, args.seeds)
     machine = f"{platform.machine()}, {platform.processor() or 'cpu'}, jax {jax.__version__} on {jax.default_backend()}"
     head = (f"{datetime.date.today()}, {machine}; seeds {args.seeds}, {args.episodes} episodes per task, seed and "
             f"mode, zones:{ZONE_SEED}.. (one layout per episode). References: {SOURCE}.")
-    (args.out / "zones.md").write_text(head + "\n\n" + text + "\n")
+    inf = infinite_table({s: r["infinite"] for s, r in results.items()}, args.seeds)
+    head_inf = (f"ZoneEnv's infinite-horizon tasks: {ZONE_ENV_LIMIT}-step episodes, the same layouts; visits are "
+                f"accepting visits per episode (means over seeds). References: {SOURCE_INFINITE}.")
+    (args.out / "zones.md").write_text(head + "\n\n" + text + "\n\n" + head_inf + "\n\n" + inf + "\n")
     (args.out / "zones.json").write_text(json.dumps({"seeds": args.seeds, "episodes": args.episodes,
                                                      "results": {str(s): r for s, r in results.items()},
                                                      "reference": REFERENCE, "source": SOURCE}, indent=1))
@@ -201,6 +294,8 @@ def main() -> None:
                       f"task 1: {TASKS[0]}")
     print(head)
     print(text)
+    print(head_inf)
+    print(inf)
 
 
 if __name__ == "__main__":
