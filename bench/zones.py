@@ -111,7 +111,7 @@ def evaluate_seed(run: Path, episodes: int, keep_paths: int) -> dict:
         limit = min(ZONE_ENV_LIMIT, max([cfg.env.max_steps or slot_max_steps(layouts[0])] + needs))
         per, bank = {"max_steps": limit}, None
         for filt in (False, True):
-            c = dataclasses.replace(cfg, task=task, generalist_tasks=0,
+            c = dataclasses.replace(cfg, task=task, generalist_tasks=0, generalist_patrols=0, generalist_pairings=1,
                                     d2spo=dataclasses.replace(cfg.d2spo, runtime_filter=filt))
             env, params, learner = build_generalist(c, layouts[:1], limit)
             bank = env.bank(layouts, max_steps=limit) if bank is None else bank  # the same for both modes
