@@ -91,10 +91,22 @@ def train_seed(runs: Path, seed: int, quick: bool) -> Path:
     return out
 
 
-def evaluate_seed(run: Path, episodes: int, keep_paths: int) -> dict:
+def _on_layouts(cfg, task: str, filt: bool, layouts: list, limit: int, bank=None):
+    """(env, params viewing the bank of ``layouts``, learner, bank): the generalist trained with
+    ``cfg``, built for ``task`` alone (one task, pairings 1, as ``zero_shot`` builds it) with the
+    runtime filter on or off; ``bank`` (that of another mode) is reused when given."""
     from d2spo.algos.generalist import build_generalist
-    from d2spo.envs import layout_bank
     from d2spo.envs.generalist import view
+
+    c = dataclasses.replace(cfg, task=task, generalist_tasks=0, generalist_patrols=0, generalist_pairings=1,
+                            d2spo=dataclasses.replace(cfg.d2spo, runtime_filter=filt))
+    env, params, learner = build_generalist(c, layouts[:1], limit)
+    bank = env.bank(layouts, max_steps=limit) if bank is None else bank
+    return env, view(params.replace(bank=bank), jnp.zeros((), jnp.int32)), learner, bank
+
+
+def evaluate_seed(run: Path, episodes: int, keep_paths: int) -> dict:
+    from d2spo.envs import layout_bank
     from d2spo.envs.task_plan import slot_max_steps
     from d2spo.envs.zones import zones_layout
     from d2spo.rollout import make_rollout
@@ -111,11 +123,7 @@ def evaluate_seed(run: Path, episodes: int, keep_paths: int) -> dict:
         limit = min(ZONE_ENV_LIMIT, max([cfg.env.max_steps or slot_max_steps(layouts[0])] + needs))
         per, bank = {"max_steps": limit}, None
         for filt in (False, True):
-            c = dataclasses.replace(cfg, task=task, generalist_tasks=0, generalist_patrols=0, generalist_pairings=1,
-                                    d2spo=dataclasses.replace(cfg.d2spo, runtime_filter=filt))
-            env, params, learner = build_generalist(c, layouts[:1], limit)
-            bank = env.bank(layouts, max_steps=limit) if bank is None else bank  # the same for both modes
-            params = view(params.replace(bank=bank), jnp.zeros((), jnp.int32))
+            env, params, learner, bank = _on_layouts(cfg, task, filt, layouts, limit, bank)  # one bank for both modes
             run = make_rollout(learner, env, episodes, limit, slot_per_episode=True)
             t = time.perf_counter()
             collided, completed, _, length, poses = (np.asarray(a) for a in run(params, policy, jax.random.PRNGKey(7)))
@@ -136,12 +144,10 @@ def evaluate_infinite(run: Path, episodes: int) -> dict:
     """The ``INFINITE`` tasks over ZoneEnv's 1000 steps, one drawn zones layout per episode, π_Ω
     alone and with the filter: accepting visits per episode, and the route-optimal visits on the
     same layouts; then how d2spo answers ``PERSISTENCE``."""
-    from d2spo.algos.generalist import build_generalist
     from d2spo.envs.compiled_task import compile_task
-    from d2spo.envs.generalist import view
     from d2spo.envs.zones import zones_layout
     from d2spo.errors import UserError
-    from d2spo.rollout import make_rollout
+    from d2spo.rollout import make_rollout, visit_optimum
     from d2spo.run import load_policy
     from d2spo.zero_shot import generalist_layout
 
@@ -152,15 +158,11 @@ def evaluate_infinite(run: Path, episodes: int) -> dict:
     for task in INFINITE:
         per, bank, optimum = {}, None, None
         for filt in (False, True):
-            c = dataclasses.replace(cfg, task=task, generalist_tasks=0, generalist_patrols=0, generalist_pairings=1,
-                                    d2spo=dataclasses.replace(cfg.d2spo, runtime_filter=filt))
-            env, params, learner = build_generalist(c, layouts[:1], limit)
+            env, params, learner, bank = _on_layouts(cfg, task, filt, layouts, limit, bank)
             if optimum is None:
                 res = env.config
-                optimum = np.array([compile_task(env.automaton, lay, res.label_mode, res.robot_radius).optimal_visits(
-                    limit, res.dt, res.v_max * res.v_gain) for lay in layouts], float)
-            bank = env.bank(layouts, max_steps=limit) if bank is None else bank
-            params = view(params.replace(bank=bank), jnp.zeros((), jnp.int32))
+                optimum = np.array([visit_optimum(compile_task(env.automaton, lay, res.label_mode, res.robot_radius),
+                                                  limit, res, None)["route_optimal_visits"] for lay in layouts], float)
             t = time.perf_counter()
             collided, *_, visits = (np.asarray(a) for a in make_rollout(learner, env, episodes, limit,
                                                                           slot_per_episode=True)(
