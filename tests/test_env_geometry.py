@@ -165,6 +165,14 @@ def test_unrolled_and_reduced_ray_casts_are_identical():
         return jax.jit(jax.vmap(lambda z: sensors.lidar(z, GEOM, mask, K, H, unroll=unroll)))(poses)
 
     np.testing.assert_array_equal(np.asarray(scan(True)), np.asarray(scan(False)))
+    # and their gradients in the pose, which the runtime filter takes (it casts without unrolling:
+    # D2SPOLearner.filter_features)
+    def jacobians(unroll):
+        return jax.jit(jax.vmap(jax.jacrev(lambda z: sensors.lidar(z, GEOM, mask, K, H, unroll=unroll))))(poses)
+
+    unrolled, reduced = np.asarray(jacobians(True)), np.asarray(jacobians(False))
+    assert np.abs(unrolled).max() > 0.5  # the poses see obstacles
+    np.testing.assert_allclose(unrolled, reduced, rtol=1e-6, atol=1e-6)
 
 
 def test_cbf_input_is_the_scan_and_the_nearest_sensed_obstacle():

@@ -169,16 +169,17 @@ def nearest_obstacle(xy: jax.Array, geom: Geometry, mask: jax.Array, H: jax.Arra
 
 
 def cbf_input(pose: jax.Array, sensed: Sensed, arena_lo: jax.Array, arena_hi: jax.Array, n_rays: int,
-              H: jax.Array | float) -> jax.Array:
+              H: jax.Array | float, unroll: bool | None = None) -> jax.Array:
     """x = b(z, O_s) [K + 1]: the K lidar ranges and the distance to the nearest sensed obstacle or wall.
 
     The last entry is the paper's b; the ranges tell h and π_Ω where the obstacles are. min(x) is
     that distance: a ray never hits closer than the nearest obstacle, while the nearest point of a
     box corner can lie between two rays (16 rays overestimate it by up to 27%). Pure and
     differentiable in ``pose`` almost everywhere (Eq. (9)'s T_e differentiates through it).
+    ``unroll``: as :func:`lidar`'s (the same values either way).
     """
     geom = Geometry(sensed.box_lo, sensed.box_hi, arena_lo, arena_hi, sensed.disk_center, sensed.disk_radius)
-    scan = lidar(pose, geom, sensed.mask, n_rays, H)
+    scan = lidar(pose, geom, sensed.mask, n_rays, H, unroll)
     return jnp.concatenate([scan, nearest_obstacle(pose[:2], geom, sensed.mask, H)[None]])
 
 
