@@ -166,7 +166,7 @@ def test_unrolled_and_reduced_ray_casts_are_identical():
 
     np.testing.assert_array_equal(np.asarray(scan(True)), np.asarray(scan(False)))
     # and their gradients in the pose, which the runtime filter takes (it casts without unrolling:
-    # D2SPOLearner.filter_features)
+    # D2SPOLearner.features_for_grad, as do T_e and the cautious start)
     def jacobians(unroll):
         return jax.jit(jax.vmap(jax.jacrev(lambda z: sensors.lidar(z, GEOM, mask, K, H, unroll=unroll))))(poses)
 

@@ -226,11 +226,13 @@ class D2SPOLearner(TD3Learner):
         """x = ``sensors.cbf_input(pose, ctx, ...)``: the ``features_fn`` the safety code is given."""
         return sensors.cbf_input(pose, ctx, self.arena_lo, self.arena_hi, self.env.n_rays, self.H)
 
-    def filter_features(self, pose: jax.Array, ctx: Sensed) -> jax.Array:
-        """``features`` for the runtime filter, which differentiates them in a loop: the lidar's
-        minimum over obstacles as one reduction, not unrolled. The same values; XLA compiles the
-        generalist's filtered rollout (28 boxes, 12 disks) in 9.7 s instead of 38.4 s (bench/RESULTS.md,
-        "2026-11-29, evening"): unrolled, each obstacle's gradient is copied into many fusions."""
+    def features_for_grad(self, pose: jax.Array, ctx: Sensed) -> jax.Array:
+        """``features`` where they are differentiated in the pose: Eq. (9)'s T_e in UPDATE(Ω, Θ), the
+        cautious start and the runtime filter. The lidar's minimum over obstacles is one reduction
+        there, not an unrolled chain per obstacle: the same values and gradients
+        (tests/test_env_geometry.py), and XLA no longer copies each obstacle's gradient into many
+        fusions. Compiling the generalist (28 boxes, 12 disks) took 130 s instead of 245 s and its
+        filtered `d2spo eval` 9.7 s instead of 38.4 s (bench/RESULTS.md, "2026-11-29, evening")."""
         return sensors.cbf_input(pose, ctx, self.arena_lo, self.arena_hi, self.env.n_rays, self.H, unroll=False)
 
     def sensed(self, mask: jax.Array) -> Sensed:
@@ -282,7 +284,7 @@ class D2SPOLearner(TD3Learner):
                 env_cfg = self.env.config
                 prior = unicycle_prior(float(env_cfg.v_max), float(env_cfg.omega_max), None if env_cfg.reverse else 0.0)
             safety, _ = cautious_start(k_pre, safety, pre, nets=self.safety_nets, cfg=self.cbf_cfg,
-                                       features_fn=self.features, dt=self.dt, prior=prior,
+                                       features_fn=self.features_for_grad, dt=self.dt, prior=prior,
                                        action_dim=self.env.action_size)
         example = sd.Transition(
             pose=jnp.zeros((3,)), next_pose=jnp.zeros((3,)), context=self.sensed(jnp.zeros((self.n_obstacles,), bool)),
@@ -305,7 +307,7 @@ class D2SPOLearner(TD3Learner):
 
             def one(p, c, u0):
                 return safety_filter(self.safety_nets, safety.cbf, safety.nominal, p, c, u0, cfg=self.cbf_cfg,
-                                     features_fn=self.filter_features, dt=self.dt).action
+                                     features_fn=self.features_for_grad, dt=self.dt).action
 
             u = jax.vmap(one)(pose, ctx, u) if u.ndim == 2 else one(pose, ctx, u)
         return u
@@ -351,7 +353,7 @@ class D2SPOLearner(TD3Learner):
             return jnp.clip(u + noise, self.nets.actor.action_low(), 1.0)
 
         new, metrics = update(k_safe, c.safety, c.data, nets=self.safety_nets, cfg=self.cbf_cfg,
-                              features_fn=self.features, dt=self.dt, u_rl_fn=u_rl_fn)
+                              features_fn=self.features_for_grad, dt=self.dt, u_rl_fn=u_rl_fn)
         enough = c.data.p_exp.size >= self.cbf_cfg.batch_size
         safety = jax.tree_util.tree_map(lambda a, b: jnp.where(enough, a, b), new, c.safety)
         return safety, jax.tree_util.tree_map(lambda v: jnp.where(enough, v, jnp.nan), metrics)
