@@ -229,8 +229,8 @@ class D2SPOLearner(TD3Learner):
     def features_for_grad(self, pose: jax.Array, ctx: Sensed) -> jax.Array:
         """``features`` where they are differentiated in the pose: Eq. (9)'s T_e in UPDATE(Ω, Θ), the
         cautious start and the runtime filter. The lidar's minimum over obstacles is one reduction
-        there, not an unrolled chain per obstacle: the same values and gradients
-        (tests/test_env_geometry.py), and XLA no longer copies each obstacle's gradient into many
+        there, not an unrolled chain per obstacle: the same values and gradients up to float
+        rounding (tests/test_env_geometry.py), and XLA no longer copies each obstacle's gradient into many
         fusions. Compiling the generalist (28 boxes, 12 disks) took 130 s instead of 245 s and its
         filtered `d2spo eval` 9.7 s instead of 38.4 s (bench/RESULTS.md, "2026-11-29, evening")."""
         return sensors.cbf_input(pose, ctx, self.arena_lo, self.arena_hi, self.env.n_rays, self.H, unroll=False)
