@@ -222,9 +222,10 @@ class D2SPOLearner(TD3Learner):
         return self.layouts.arena(self.params)[1]
 
     # -- the sensor model x = b(z, O_s), envs/sensors.py, with this learner's arena, K and H ------
-    def features(self, pose: jax.Array, ctx: Sensed) -> jax.Array:
-        """x = ``sensors.cbf_input(pose, ctx, ...)``: the ``features_fn`` the safety code is given."""
-        return sensors.cbf_input(pose, ctx, self.arena_lo, self.arena_hi, self.env.n_rays, self.H)
+    def features(self, pose: jax.Array, ctx: Sensed, unroll: bool | None = None) -> jax.Array:
+        """x = ``sensors.cbf_input(pose, ctx, ...)``: the ``features_fn`` the safety code is given
+        (``unroll``: the lidar's, ``sensors.lidar``)."""
+        return sensors.cbf_input(pose, ctx, self.arena_lo, self.arena_hi, self.env.n_rays, self.H, unroll)
 
     def features_for_grad(self, pose: jax.Array, ctx: Sensed) -> jax.Array:
         """``features`` where they are differentiated in the pose: Eq. (9)'s T_e in UPDATE(Ω, Θ), the
@@ -233,7 +234,7 @@ class D2SPOLearner(TD3Learner):
         rounding (tests/test_env_geometry.py), and XLA no longer copies each obstacle's gradient into many
         fusions. Compiling the generalist (28 boxes, 12 disks) took 130 s instead of 245 s and its
         filtered `d2spo eval` 9.7 s instead of 38.4 s (bench/RESULTS.md, "2026-11-29, evening")."""
-        return sensors.cbf_input(pose, ctx, self.arena_lo, self.arena_hi, self.env.n_rays, self.H, unroll=False)
+        return self.features(pose, ctx, unroll=False)
 
     def sensed(self, mask: jax.Array) -> Sensed:
         """O_s: this layout's obstacles with the sensed ``mask`` [..., M]."""

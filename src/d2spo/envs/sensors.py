@@ -176,7 +176,8 @@ def cbf_input(pose: jax.Array, sensed: Sensed, arena_lo: jax.Array, arena_hi: ja
     that distance: a ray never hits closer than the nearest obstacle, while the nearest point of a
     box corner can lie between two rays (16 rays overestimate it by up to 27%). Pure and
     differentiable in ``pose`` almost everywhere (Eq. (9)'s T_e differentiates through it).
-    ``unroll``: as :func:`lidar`'s (the same values either way).
+    ``unroll``: as :func:`lidar`'s (the same values either way, up to float rounding where XLA
+    fuses the two differently).
     """
     geom = Geometry(sensed.box_lo, sensed.box_hi, arena_lo, arena_hi, sensed.disk_center, sensed.disk_radius)
     scan = lidar(pose, geom, sensed.mask, n_rays, H, unroll)
