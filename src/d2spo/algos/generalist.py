@@ -1,6 +1,6 @@
 """D²SPO over ``envs.generalist.GeneralistEnv``: one learner for a bank of layouts (``--generalist``).
 
-``D2SPOLearner`` reads the layout through its ``layouts`` (``algos.d2spo.OneLayout``: from its
+``D2SPOLearner`` reads the layout through its ``layouts`` (``algos.one_layout.OneLayout``: from its
 params). The CBF input of an observation needs the layout's obstacles (the nearest-obstacle
 distance) and the datasets store the step's sensed set of the layout's boxes. Over a bank every
 environment has its own layout, so the generalist is ``D2SPOLearner`` given ``LayoutBank``, which
