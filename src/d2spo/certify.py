@@ -34,7 +34,6 @@ from d2spo.config import config_to_dict
 from d2spo.envs import geometry
 from d2spo.errors import RunDirError
 from d2spo.fields import check_fields
-from d2spo.map_plots import certify_figure
 from d2spo.run import build, carry_template, load_run_config
 from d2spo.runio import atomic_write_json
 from d2spo.safety import bounds
@@ -372,6 +371,8 @@ def write_outputs(run_dir: Path, run: CBFRun, ccfg: CertifyConfig, summary: dict
     j, p = run_dir / "certify.json", run_dir / "certify.png"
     atomic_write_json(j, summary)
     maps, extent = status_maps(run, ccfg, nets)
+    from d2spo.map_plots import certify_figure  # matplotlib: imported only to draw
+
     certify_figure(run.env.layout, maps, extent, summary, ccfg.eps_unsafe, ccfg.eps_safe, p)
     return j, p
 

@@ -44,14 +44,11 @@ from d2spo.envs.compiled_task import default_task
 from d2spo.envs.dynamics import load_dynamics
 from d2spo.envs.nav import checked_layout
 from d2spo.envs.preflight import check_feasible
-from d2spo.envs.render import save_layout_png
 from d2spo.errors import ConfigError, D2SPOWarning, LTLSyntaxError, NaNError, TaskWarning, UserError
 from d2spo.evaluate import EvalConfig, evaluate_run, write_evaluation
 from d2spo.fields import check_fields
 from d2spo.ltl import task_automaton, task_formula
 from d2spo.ltl.tasks import TASKS
-from d2spo.map_plots import state_fields_figure
-from d2spo.plots import evaluation_figure
 from d2spo.plotstyle import check_picture_path
 from d2spo.progress import train_with_progress
 from d2spo.repair import RepairConfig, repair_run
@@ -118,6 +115,8 @@ class LtlCmd:
             print(aut.pretty(feasible))
             print(f"distance: area visits (letters) still needed to accept, over {letters}")
         if self.plot is not None:
+            from d2spo.map_plots import state_fields_figure  # matplotlib: imported only to draw
+
             task = default_task(aut, self.layout, self.label_mode)
             state_fields_figure(task, self.plot)
             check_feasible(task, repr(self.formula))  # after the picture, which shows why
@@ -147,6 +146,8 @@ class EnvShowCmd:
             task = f"F {lay.areas[-1].label}"  # the rollout's task: it ends on reaching the last area's label
             trajs = [random_rollout(self.layout, self.rollout_steps, self.seed, task=task)]
             title = f"layout {lay.name!r}: a random-action rollout, task {task!r} (seed {self.seed})"
+        from d2spo.envs.render import save_layout_png  # matplotlib: imported only to draw
+
         save_layout_png(lay, self.out, trajectories=trajs, title=title, trajectory_label="random actions (x: end)")
         print(f"wrote {self.out}")
         return 0
@@ -227,6 +228,8 @@ class EvalCmd:
         paths = res.pop("paths", None)
         print_evaluation(res, write_evaluation(self.run_dir, res), filter_asked=self.cfg.runtime_filter)
         if paths is not None:
+            from d2spo.plots import evaluation_figure  # matplotlib: imported only to draw
+
             filt = "" if res["runtime_filter"] is None else f", runtime filter {'on' if res['runtime_filter'] else 'off'}"
             evaluation_figure(self.plot, paths, res["per_layout"],
                               f"{self.run_dir.name}: {res['task']} / {res['dynamics']}{filt}")

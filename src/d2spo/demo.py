@@ -25,7 +25,6 @@ from d2spo.config import TrainConfig
 from d2spo.envs import EnvConfig, layouts, make_env
 from d2spo.ltl import TASKS, translate
 from d2spo.ltl.tasks import BUCHI_SUITE
-from d2spo.plots import policy_figure
 from d2spo.progress import train_with_progress
 from d2spo.run import load_policy
 
@@ -93,6 +92,8 @@ def run_demo(out: Path, seed: int = 0, episodes: int = 500) -> int:
     cfg, learner, policy, _ = load_policy(run)
     env, params = learner.env, learner.params  # the run's env, as load_policy built it
     picture = out / "d2spo_relaxed.png"
+    from d2spo.plots import policy_figure  # matplotlib: imported only to draw
+
     policy_figure(picture, learner, policy, env, params, episodes=8, seed=seed,
                   suptitle=f"D²SPO after {episodes} episodes: layout {env.layout.name!r}, task {DEMO_TASK!r}")
     console.print(f"picture: {picture}")

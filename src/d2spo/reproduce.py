@@ -26,7 +26,7 @@ from collections.abc import Callable, Iterable
 from datetime import date
 from pathlib import Path
 
-from d2spo import compile_cache, plots, tables
+from d2spo import compile_cache, tables
 from d2spo.config import config_differences, config_from_dict
 from d2spo.errors import ConfigError, RunInUseError, UserError
 from d2spo.progress import train_seeds_with_progress, train_with_progress
@@ -255,6 +255,8 @@ def render(target: str, out: Path, seeds: int, episodes: int, methods: Iterable[
     specs, path = runs_for(target, seeds, episodes, methods), out / f"{target}.png"
     if target in TABLE_SETTING:
         return tables.write_table(out, target, runs_by(out, specs, lambda s: s.algo), *TABLE_SETTING[target], episodes)
+    from d2spo import plots  # matplotlib: imported only to draw a figure
+
     if target == "fig2":
         return plots.reward_figure(path, [
             (title, runs_by(out, runs_for(t, seeds, episodes, methods), lambda s: tables.METHOD_NAMES.get(s.algo, s.algo)))

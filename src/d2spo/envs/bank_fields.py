@@ -16,8 +16,6 @@ import math
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy import sparse
-from scipy.sparse import csgraph
 
 from d2spo.envs import geodesic
 
@@ -103,6 +101,8 @@ def fields_numpy(*slot, grid: int = G) -> np.ndarray:
     """float32 [S, G, G]: the fields of one slot (``layout_bank._slot_args`` of one slot) by scipy's
     Dijkstra (one search per field, from a source joined to every node by the node's ``start``
     distance, over the reversed steps). A state with no target gets inf everywhere."""
+    from scipy import sparse  # scipy: imported when first needed, not with d2spo
+    from scipy.sparse import csgraph
     cost, start = (np.asarray(a, np.float64) for a in _step_costs_jit(*slot, grid))
     n = grid * grid
     idx = np.arange(n).reshape(grid, grid)

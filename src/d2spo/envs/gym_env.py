@@ -32,7 +32,7 @@ import os
 import sys
 from functools import lru_cache, partial
 from importlib.metadata import PackageNotFoundError, version
-from typing import Any, ClassVar, NamedTuple
+from typing import TYPE_CHECKING, Any, ClassVar, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -54,9 +54,11 @@ from d2spo.envs.env_config import EnvConfig
 from d2spo.envs.front_end import ENV_ID, env_config
 from d2spo.envs.nav import Env, make_env
 from d2spo.envs.params import EnvParams
-from d2spo.envs.render import FrameRenderer
 from d2spo.envs.spaces import observation_bounds
 from d2spo.errors import ConfigError
+
+if TYPE_CHECKING:
+    from d2spo.envs.render import FrameRenderer
 
 EPISODE_STATS = "episode_stats"
 """The info key of the environment's own episode statistics (``info["episode"]`` is Gymnasium's)."""
@@ -131,6 +133,8 @@ def _check_render_mode(render_mode: str | None, allowed: list[str]) -> None:
 
 
 def _frame_renderer(env: Env) -> FrameRenderer:
+    from d2spo.envs.render import FrameRenderer  # matplotlib: imported when a frame is first drawn
+
     return FrameRenderer(env.layout, env.config.robot_radius, env.config.sensing_radius)
 
 

@@ -11,8 +11,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy import ndimage, sparse
-from scipy.sparse import csgraph
 
 from d2spo.envs import geodesic, workspace
 from d2spo.envs.layouts import letters_at
@@ -58,6 +56,7 @@ def _reachable(delta: np.ndarray, letters: np.ndarray, free: np.ndarray, start: 
     so each state's cells are one flood fill (scipy), and every move across the fill's border into
     a cell whose letter leads elsewhere seeds that state there.
     """
+    from scipy import ndimage  # scipy: imported when first needed, not with d2spo
     n_states = delta.shape[0]
     four = ndimage.generate_binary_structure(2, 1)
     stays = (delta[:, letters] == np.arange(n_states)[:, None, None]) & free  # [Q, ny, nx]
@@ -117,6 +116,8 @@ def route_length(aut: Automaton, layout: Layout, label_mode: str, robot_radius: 
     ``workspace.free_grid`` (a diagonal move also needs its two 4-neighbours free), letters read as the
     environment reads them, rejecting states excluded. ``inf`` when no route exists.
     """
+    from scipy import sparse  # scipy: imported when first needed, not with d2spo
+    from scipy.sparse import csgraph
     rows, cols, weights, _, n, start, cells = _product_edges(aut, layout, label_mode, robot_radius)
     if start // cells in aut.accepting:
         return 0.0
@@ -138,6 +139,8 @@ def visit_lengths(aut: Automaton, layout: Layout, label_mode: str, robot_radius:
     k (one Dijkstra per layer from a node joined to those starts by their lengths). The difference of
     consecutive lengths tends to the shortest cycle through the accepting set.
     """
+    from scipy import sparse  # scipy: imported when first needed, not with d2spo
+    from scipy.sparse import csgraph
     rows, cols, weights, visit, n, start, _ = _product_edges(aut, layout, label_mode, robot_radius)
     plain = sparse.csr_matrix((weights[~visit], (rows[~visit], cols[~visit])), shape=(n + 1, n + 1))
     v_src, v_dst, v_w = rows[visit], cols[visit], weights[visit]

@@ -36,8 +36,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage, sparse
-from scipy.sparse import csgraph
 
 from d2spo.envs import geodesic
 from d2spo.envs.layouts import letters_at
@@ -118,6 +116,8 @@ def _pairs(ny: int, nx: int, shifts) -> list[tuple[np.ndarray, np.ndarray, float
 def _field(roles: np.ndarray, letters: np.ndarray, mult: np.ndarray, gap: np.ndarray, in_area: np.ndarray,
            event: bool, margin: float, spacing: float, penalty: float, shifts=_SHIFTS[8]) -> np.ndarray:
     """One state's field [ny, nx]; ``roles`` [2**n_aps] are that state's letter roles; ``shifts`` the grid moves."""
+    from scipy import ndimage, sparse  # scipy: imported when first needed, not with d2spo
+    from scipy.sparse import csgraph
     ny, nx = letters.shape
     n = ny * nx
     role = roles[letters].ravel()

@@ -13,7 +13,6 @@ import math
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy import ndimage
 
 from d2spo.errors import ConfigError, UserError
 from d2spo.ltl.formula import Prop
@@ -227,6 +226,7 @@ def free_grid(layout: Layout, robot_radius: float, resolution: float) -> tuple[n
 
 def reachable_grid(layout: Layout, robot_radius: float, resolution: float) -> tuple[np.ndarray, np.ndarray]:
     """Free cells 4-connected to the start cell: (reachable bool [ny, nx], centres [ny, nx, 2])."""
+    from scipy import ndimage  # scipy: imported when first needed, not with d2spo
     free, centres = free_grid(layout, robot_radius, resolution)
     labels, _ = ndimage.label(free)
     iy = min(int(layout.start[1] / resolution), free.shape[0] - 1)
