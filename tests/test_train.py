@@ -72,6 +72,11 @@ def test_outputs_and_summary(tmp_path, capsys):
     capsys.readouterr()  # from here on stderr is the CLI's alone (train() above may warn the plain way)
     assert main(["eval", str(run), "--episodes", "4", "--plot", str(tmp_path / "ev.png")]) == 0
     assert (tmp_path / "ev.png").read_bytes()[:4] == b"\x89PNG"
+    # its progress, plain lines off a terminal: the first layout (which compiles), then all done
+    seen = capsys.readouterr()
+    shown = [ln for ln in seen.out.splitlines() if "layouts evaluated" in ln]
+    assert shown == [f"eval run: 0/1 layouts evaluated, {shown[0].split(', ')[1].split(';')[0]}; layout 'relaxed' "
+                     "(compiling the rollout first)", shown[1]] and shown[1].startswith("eval run: 1/1 layouts evaluated")
     ev = json.loads((run / "eval-relaxed-default.json").read_text())
     assert ev["episodes"] == 4 and [p["layout"] for p in ev["per_layout"]] == ["relaxed"]
     assert ev["mean_distance"] > 0.0 and ev["runtime_filter"] is None  # tlgrl has no filter
@@ -79,14 +84,17 @@ def test_outputs_and_summary(tmp_path, capsys):
     robot = {"dt": 0.1, "v_max": 0.5, "omega_max": 1.0, "actuator_tau": 0.0, "v_gain": 1.0, "omega_gain": 1.0,
              "slip": 0.0, "noise_xy": 0.0, "noise_theta": 0.0}
     (tmp_path / "slow.json").write_text(json.dumps(robot))
-    assert main(["eval", str(run), "--episodes", "4", "--dynamics", str(tmp_path / "slow.json"), "--slip", "0.2"]) == 0
+    assert main(["eval", str(run), "--episodes", "4", "--dynamics", str(tmp_path / "slow.json"), "--slip", "0.2",
+                 "--no-progress"]) == 0
+    quiet = capsys.readouterr()
+    assert "layouts evaluated" not in quiet.out
     ev = json.loads((run / "eval-relaxed-slow-slip0.2.json").read_text())
     assert ev["dynamics"] == "slow-slip0.2" and ev["dynamics_values"] == {**robot, "slip": 0.2}
     (tmp_path / "bad.json").write_text(json.dumps({**robot, "v_gain": -1}))
     assert main(["eval", str(run), "--dynamics", str(tmp_path / "bad.json")]) == 2
     assert main(["eval", str(run), "--noise-xy", "-1"]) == 2
     assert main(["eval", str(run), "--plot", str(tmp_path / "no" / "ev.png")]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
+    err = (seen.err + quiet.err + capsys.readouterr().err).strip().splitlines()
     # evaluation runs training's pre-flight check: these 40-step episodes are too short for the task
     assert any(ln.startswith("d2spo: warning:") and "cannot be completed" in ln for ln in err)
     err = [ln for ln in err if not ln.startswith("d2spo: warning:")]

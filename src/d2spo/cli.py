@@ -50,7 +50,7 @@ from d2spo.fields import check_fields
 from d2spo.ltl import task_automaton, task_formula
 from d2spo.ltl.tasks import TASKS
 from d2spo.plotstyle import check_picture_path
-from d2spo.progress import train_with_progress
+from d2spo.progress import EvalProgress, train_with_progress
 from d2spo.repair import RepairConfig, repair_run
 
 
@@ -217,6 +217,8 @@ class EvalCmd:
     layouts of --layout-seeds), coloured by outcome, into this picture (.png at 300 dpi, .pdf or .svg)."""
     plot_episodes: int = 8
     """With --plot: episodes drawn per layout."""
+    progress: bool = True
+    """Show the layouts' progress (a bar on a terminal, plain lines if not)."""
 
     def run(self) -> int:
         keep = 0
@@ -224,7 +226,8 @@ class EvalCmd:
             check_fields(self, count=("plot_episodes",))
             check_picture_path(self.plot, "plot")
             keep = self.plot_episodes
-        res = evaluate_run(self.run_dir, self.cfg, keep_paths=keep)
+        with EvalProgress(Console(), self.progress, f"eval {self.run_dir.name}") as on_layout:
+            res = evaluate_run(self.run_dir, self.cfg, keep_paths=keep, on_layout=on_layout)
         paths = res.pop("paths", None)
         print_evaluation(res, write_evaluation(self.run_dir, res), filter_asked=self.cfg.runtime_filter)
         if paths is not None:

@@ -166,14 +166,15 @@ def filter_choice(cfg: TrainConfig, layout: str | None, dynamics: str | None, as
     return True if elsewhere else None
 
 
-def evaluate_run(run_dir: Path, ecfg: EvalConfig = EvalConfig(), keep_paths: int = 0) -> dict:
+def evaluate_run(run_dir: Path, ecfg: EvalConfig = EvalConfig(), keep_paths: int = 0, on_layout=None) -> dict:
     """Safety and completion of a run's policy as ``ecfg`` says, deterministic, on its own layout and
     dynamics or others. The runtime filter, unless ``ecfg.runtime_filter`` forces it: as trained on
     the training layout and dynamics, and on for a D²SPO policy evaluated on another layout or
     dynamics (π_Ω alone is far less safe on layouts it never saw: docs/cbf.md). ``keep_paths`` > 0
     adds ``"paths"``: per layout, (Layout, poses [k, T + 1, 3], collided [k], completed [k]) of its
     first ``keep_paths`` episodes, for ``plots.evaluation_figure`` (arrays: drop the key before
-    writing JSON)."""
+    writing JSON). ``on_layout(k, n, name)``, if given, is called before the rollouts of the k-th of the
+    n layouts (the first also compiles) and once more with k = n when they are done (a progress display)."""
     cfg = load_run_config(run_dir)
     overrides = given(ecfg.overrides)
     if ecfg.task is not None and not cfg.generalist and ecfg.task != cfg.task:
@@ -198,10 +199,11 @@ def evaluate_run(run_dir: Path, ecfg: EvalConfig = EvalConfig(), keep_paths: int
     env_cfg = eval_env_config(cfg, ecfg.layout, ecfg.dynamics, overrides)
     check_eval_memory(env_cfg, ecfg.episodes)  # before anything is built
     if cfg.generalist:
-        results, limit, which = _generalist_rollouts(run_dir, cfg, ecfg, env_cfg, layouts, keep_paths)
+        results, limit, which = _generalist_rollouts(run_dir, cfg, ecfg, env_cfg, layouts, keep_paths, on_layout)
     else:
         _, learner, policy, meta = load_policy(run_dir, ecfg.policy)
-        results, limit, which = _specialist_rollouts(cfg, learner, policy, ecfg, overrides, keep_paths), None, meta["policy"]
+        results = _specialist_rollouts(cfg, learner, policy, ecfg, overrides, keep_paths, on_layout)
+        limit, which = None, meta["policy"]
     paths = [r.pop("paths") for r in results] if keep_paths else None
     out = {
         "run": str(run_dir), "policy": which, "episodes": ecfg.episodes * len(layouts),
@@ -228,14 +230,17 @@ def evaluate_run(run_dir: Path, ecfg: EvalConfig = EvalConfig(), keep_paths: int
 
 
 def _specialist_rollouts(cfg: TrainConfig, learner, policy, ecfg: EvalConfig, overrides: dict[str, float],
-                         keep_paths: int = 0) -> list[dict]:
+                         keep_paths: int = 0, on_layout=None) -> list[dict]:
     """Rates per layout of a policy that reads its layout's coordinates (every learner but the
     generalist): the observation must keep its size (number of areas, automaton states). With
     ``keep_paths`` each also holds ``"paths"`` (``evaluate_run``)."""
     results = []
     compiled: dict = {}  # one compiled rollout per shape of the env params (random5 layouts share one)
     size = learner.env.observation_size
-    for lay in ecfg.layouts():
+    names = ecfg.layouts()
+    for k, lay in enumerate(names):
+        if on_layout is not None:
+            on_layout(k, len(names), lay or cfg.layout)
         env, params, other = learner_on(cfg, lay, ecfg.dynamics, overrides)
         if lay is not None or ecfg.dynamics is not None or overrides:  # training checked its own layout
             preflight_checks(cfg, env, params)  # as training: the time and barrier-margin warnings here
@@ -254,11 +259,13 @@ def _specialist_rollouts(cfg: TrainConfig, learner, policy, ecfg: EvalConfig, ov
         if keep_paths:
             poses, collided, completed = (np.asarray(a[:keep_paths]) for a in (res[4], res[0], res[1]))
             results[-1]["paths"] = (env.layout, poses, collided, completed)
+    if on_layout is not None:
+        on_layout(len(names), len(names), None)
     return results
 
 
 def _generalist_rollouts(run_dir: Path, cfg: TrainConfig, ecfg: EvalConfig, env_cfg: EnvConfig,
-                         layouts: list[str], keep_paths: int = 0) -> tuple[list[dict], int, str]:
+                         layouts: list[str], keep_paths: int = 0, on_layout=None) -> tuple[list[dict], int, str]:
     """(rates per layout, episode limit, which policy) of a generalist run on ``ecfg.task`` (default:
     its own) over ``layouts``, zero-shot: every layout is checked first, then the generalist is built
     once and its policy loaded into it (``d2spo.zero_shot``)."""
@@ -267,7 +274,7 @@ def _generalist_rollouts(run_dir: Path, cfg: TrainConfig, ecfg: EvalConfig, env_
     env, params, learner, limit = zero_shot.generalist_on(cfg, env_cfg, task, checked)
     _, _, policy, meta = load_policy(run_dir, ecfg.policy, learner)
     results = zero_shot.rollouts(env, params, learner, policy, checked, ecfg.episodes, ecfg.seed, limit, keep_paths,
-                                 barrier_margin(cfg))
+                                 barrier_margin(cfg), on_layout)
     return results, limit, meta["policy"]
 
 

@@ -214,3 +214,41 @@ class _Lines:
                             f"{_clock(now - t['start'])}, eta {eta}, {_stats(d, rate)}")
 
         return on_event
+
+
+class EvalProgress:
+    """``with EvalProgress(console, show, label) as on_layout: evaluate_run(..., on_layout=on_layout)``:
+    the layouts of a `d2spo eval` as they run (the first compiles the rollout). A transient bar on a
+    terminal; on a log, a line for the first layout, then at most one per ``every`` seconds, and one
+    when all are done; nothing with ``show=False`` (the callback is then None)."""
+
+    def __init__(self, console, show: bool, label: str, every: float = 30.0):
+        self.console, self.show, self.label, self.every = console, show, label, every
+        self.bar = self.task = None
+        self.start = self.last = 0.0
+
+    def __enter__(self):
+        if not self.show:
+            return None
+        self.start = time.perf_counter()
+        if self.console.is_terminal:
+            self.bar = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                                TextColumn("layouts"), TimeElapsedColumn(), console=self.console, transient=True)
+            self.bar.__enter__()
+        return self._on_layout
+
+    def __exit__(self, *exc) -> None:
+        if self.bar is not None:
+            self.bar.__exit__(*exc)
+
+    def _on_layout(self, k: int, n: int, name: str | None) -> None:
+        now = time.perf_counter()
+        doing = ("done" if k == n else f"layout {name!r}" + (" (compiling the rollout first)" if k == 0 else ""))
+        if self.bar is not None:
+            if self.task is None:
+                self.task = self.bar.add_task(self.label, total=n)
+            self.bar.update(self.task, completed=k, description=f"{self.label}: {doing}")
+        elif k == 0 or k == n or now - self.last >= self.every:
+            self.last = now
+            print(f"{self.label}: {k}/{n} layouts evaluated, {_clock(now - self.start)}; {doing}",
+                  file=self.console.file, flush=True)

@@ -73,15 +73,17 @@ def generalist_on(cfg: TrainConfig, env_cfg, task: str, checked: list[tuple[Layo
 
 
 def rollouts(env, params, learner, policy, checked: list[tuple[Layout, int]], episodes: int, seed: int, limit: int,
-             keep_paths: int = 0, margin: float | None = None) -> list[dict]:
+             keep_paths: int = 0, margin: float | None = None, on_layout=None) -> list[dict]:
     """Rates per layout of the generalist ``policy`` on the ``checked`` layouts: one compiled
     rollout; each layout swaps its one-layout bank into ``params``. With ``keep_paths`` each layout's
     rates also hold ``"paths"``: (Layout, poses [k, T + 1, 3], collided [k], completed [k]) of its
     first ``keep_paths`` episodes. ``margin``: the barrier's margin d, for a patrol's
-    ``route_optimal_visits_margin`` (``rollout.visit_optimum``)."""
+    ``route_optimal_visits_margin`` (``rollout.visit_optimum``). ``on_layout``: as ``evaluate.evaluate_run``'s."""
     run = make_rollout(learner, env, episodes, limit)
     results = []
     for k, (lay, _) in enumerate(checked):
+        if on_layout is not None:
+            on_layout(k, len(checked), lay.name)
         if k > 0:
             params = view(params.replace(bank=env.bank([lay], max_steps=limit)), jnp.zeros((), jnp.int32))
         res = run(params, policy, jax.random.PRNGKey(seed))
@@ -94,4 +96,6 @@ def rollouts(env, params, learner, policy, checked: list[tuple[Layout, int]], ep
         if keep_paths:
             poses, collided, completed = (np.asarray(a[:keep_paths]) for a in (res[4], res[0], res[1]))
             results[-1]["paths"] = (lay, poses, collided, completed)
+    if on_layout is not None:
+        on_layout(len(checked), len(checked), None)
     return results
