@@ -1,0 +1,92 @@
+"""Generalists zero-shot on the Büchi suite (issue 34's generalist targets): one row per run, then the mean.
+
+    .venv/bin/python bench/buchi_zero_shot.py --runs GEN-s0 GEN-s1 ... [--tasks patrol2 patrol3 respond reach-never]
+        [--layouts 20] [--first-seed 100000] [--episodes 50] [--results bench/RESULTS.md]
+
+Each run is a ``d2spo train --algo d2spo --generalist`` directory (train them first, one seed each:
+``d2spo train --algo d2spo --generalist --task phi1 --seed S --out GEN-sS``). Each task runs as
+``d2spo eval RUN --task T --layout random:FIRST --layout-seeds N --episodes E`` does: the validated
+policy, the runtime filter on. An evaluation that RUN already holds with those settings (the JSON
+``d2spo eval`` writes into it) is read instead of run again. A patrol is scored by its accepting
+visits as a fraction of each layout's route-optimal count, averaged over the layouts; a task with a
+never part by its completion. Prints a Markdown table (appended to ``--results`` with the date and
+machine; '-' prints only). Figures in bench/RESULTS.md, "2026-11-29, night".
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import platform
+from pathlib import Path
+
+from d2spo.evaluate import EvalConfig, evaluate_run, write_evaluation
+from d2spo.report import cpu_model
+
+TASKS = ("patrol2", "patrol3", "respond", "reach-never")
+
+
+def _matches(res: dict, cfg: EvalConfig) -> bool:
+    """Whether a stored evaluation is the one ``cfg`` asks for (the validated policy, the filter on)."""
+    return (res.get("task") == cfg.task and res.get("layouts") == cfg.layouts()
+            and res.get("episodes") == cfg.episodes * cfg.layout_seeds and res.get("seed") == cfg.seed
+            and res.get("runtime_filter") is True and res.get("dynamics") == "default"
+            and str(res.get("policy", "")).startswith("best"))
+
+
+def evaluation(run: Path, cfg: EvalConfig) -> dict:
+    for path in sorted(run.glob("eval-*.json")):
+        res = json.loads(path.read_text())
+        if _matches(res, cfg):
+            return res
+    res = evaluate_run(run, cfg)
+    write_evaluation(run, res)
+    return res
+
+
+def score(res: dict) -> float:
+    """A patrol's fraction of the route-optimal visits; else the completion rate."""
+    return res["visit_fraction"] if "visit_fraction" in res else res["completion_rate"]
+
+
+def table(runs: list[Path], tasks: list[str], results: dict) -> str:
+    head = "| run | " + " | ".join(f"`{t}`" for t in tasks) + " | safe (every task) |"
+    lines = [head, "|---" * (len(tasks) + 2) + "|"]
+    for run in runs:
+        rs = [results[run, t] for t in tasks]
+        cells = [f"{100 * score(r):.1f}%" for r in rs]
+        lines.append(f"| {run.name} | " + " | ".join(cells) + f" | {100 * min(r['safety_rate'] for r in rs):.2f}% |")
+    means = [sum(score(results[run, t]) for run in runs) / len(runs) for t in tasks]
+    worst = min(results[run, t]["safety_rate"] for run in runs for t in tasks)
+    lines.append(f"| mean of {len(runs)} | " + " | ".join(f"**{100 * m:.1f}%**" for m in means) + f" | {100 * worst:.2f}% |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--runs", type=Path, nargs="+", required=True)
+    ap.add_argument("--tasks", nargs="+", default=list(TASKS))
+    ap.add_argument("--layouts", type=int, default=20)
+    ap.add_argument("--first-seed", type=int, default=100000)
+    ap.add_argument("--episodes", type=int, default=50)
+    ap.add_argument("--results", default="bench/RESULTS.md")
+    args = ap.parse_args()
+    results = {}
+    for run in args.runs:
+        for task in args.tasks:
+            cfg = EvalConfig(args.episodes, f"random:{args.first_seed}", task=task, layout_seeds=args.layouts,
+                             runtime_filter=True)
+            results[run, task] = evaluation(run, cfg)
+            print(f"{run.name} {task}: {100 * score(results[run, task]):.1f}%", flush=True)
+    text = (f"Generalists zero-shot on random:{args.first_seed}..+{args.layouts - 1}, {args.episodes} episodes "
+            f"each, filter on ({datetime.date.today()}, {platform.machine()}, {cpu_model()}); a patrol's "
+            "fraction of the route-optimal visits, else completion:\n\n" + table(args.runs, args.tasks, results))
+    print(text)
+    if args.results != "-":
+        with open(args.results, "a") as f:
+            f.write("\n" + text + "\n")
+
+
+if __name__ == "__main__":
+    main()
