@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -79,6 +80,10 @@ def test_bad_input_gets_one_line_and_exit_2(tmp_path, capsys, untrained_run):
     assert "no such run directory" in _one_error_line(capsys, ["certify", str(tmp_path / "nothing")])
     write_run(tmp_path / "tlgrl", tiny_cfg("tlgrl"))
     assert "no learned CBF" in _one_error_line(capsys, ["certify", str(tmp_path / "tlgrl")])
+    write_run(tmp_path / "generalist", dataclasses.replace(tiny_cfg(), generalist=True))  # was a KeyError
+    assert "a generalist reads a field bank" in _one_error_line(capsys, ["certify", str(tmp_path / "generalist")])
+    assert "a generalist reads a field bank" in _one_error_line(capsys, ["certify", str(tmp_path / "generalist"),
+                                                                         "--repair", "--out", str(tmp_path / "g")])
     write_run(tmp_path / "nockpt", tiny_cfg())
     assert "no checkpoint" in _one_error_line(capsys, ["certify", str(tmp_path / "nockpt")])
     foreign = tmp_path / "foreign"

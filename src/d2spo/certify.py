@@ -95,6 +95,9 @@ def load_cbf_run(run_dir: Path) -> CBFRun:
     cfg = load_run_config(run_dir)
     if "cbf" not in config_sections(cfg.algo):
         raise RunDirError(f"{run_dir}: a {cfg.algo!r} run has no learned CBF to certify (use a d2spo or sl run)")
+    if cfg.generalist:  # its barrier is checked per layout of a bank: the grid and search here take one layout
+        raise RunDirError(f"{run_dir}: a generalist reads a field bank of layouts; certify takes a run trained on one "
+                          "layout (d2spo train --algo d2spo --layout L, without --generalist)")
     if not has_checkpoint(run_dir):
         raise RunDirError(f"{run_dir}: no checkpoint (checkpoint.json) to certify")
     env, params, learner = build(cfg)
