@@ -167,7 +167,7 @@ def test_resume_refuses_the_flags_its_config_json_would_override(extra, named, t
 
 def test_the_command_line_starts_without_matplotlib_or_scipy():
     """`d2spo --help`, a usage error or `d2spo ltl` need neither: they are imported where a picture
-    is drawn or a layout's grid searched (`d2spo --help`: 3.1 -> 1.7 CPU-s on the slow Intel)."""
+    is drawn or a layout's grid searched (start-up times: bench/RESULTS.md, "2026-11-29, night")."""
     code = "import sys, d2spo.cli; print(sorted({m.split('.')[0] for m in sys.modules} & {'matplotlib', 'scipy'}))"
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]

@@ -204,6 +204,8 @@ def evaluate_run(run_dir: Path, ecfg: EvalConfig = EvalConfig(), keep_paths: int
         _, learner, policy, meta = load_policy(run_dir, ecfg.policy)
         results = _specialist_rollouts(cfg, learner, policy, ecfg, overrides, keep_paths, on_layout)
         limit, which = None, meta["policy"]
+    if on_layout is not None:
+        on_layout(len(layouts), len(layouts), None)
     paths = [r.pop("paths") for r in results] if keep_paths else None
     out = {
         "run": str(run_dir), "policy": which, "episodes": ecfg.episodes * len(layouts),
@@ -259,8 +261,6 @@ def _specialist_rollouts(cfg: TrainConfig, learner, policy, ecfg: EvalConfig, ov
         if keep_paths:
             poses, collided, completed = (np.asarray(a[:keep_paths]) for a in (res[4], res[0], res[1]))
             results[-1]["paths"] = (env.layout, poses, collided, completed)
-    if on_layout is not None:
-        on_layout(len(names), len(names), None)
     return results
 
 

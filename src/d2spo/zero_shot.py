@@ -78,7 +78,7 @@ def rollouts(env, params, learner, policy, checked: list[tuple[Layout, int]], ep
     rollout; each layout swaps its one-layout bank into ``params``. With ``keep_paths`` each layout's
     rates also hold ``"paths"``: (Layout, poses [k, T + 1, 3], collided [k], completed [k]) of its
     first ``keep_paths`` episodes. ``margin``: the barrier's margin d, for a patrol's
-    ``route_optimal_visits_margin`` (``rollout.visit_optimum``). ``on_layout``: as ``evaluate.evaluate_run``'s."""
+    ``route_optimal_visits_margin`` (``rollout.visit_optimum``). ``on_layout(k, n, name)`` is called before the k-th layout's rollouts (``evaluate.evaluate_run``)."""
     run = make_rollout(learner, env, episodes, limit)
     results = []
     for k, (lay, _) in enumerate(checked):
@@ -96,6 +96,4 @@ def rollouts(env, params, learner, policy, checked: list[tuple[Layout, int]], ep
         if keep_paths:
             poses, collided, completed = (np.asarray(a[:keep_paths]) for a in (res[4], res[0], res[1]))
             results[-1]["paths"] = (lay, poses, collided, completed)
-    if on_layout is not None:
-        on_layout(len(checked), len(checked), None)
     return results
