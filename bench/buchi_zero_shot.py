@@ -10,7 +10,10 @@ policy, the runtime filter on. An evaluation that RUN already holds with those s
 ``d2spo eval`` writes into it) is read instead of run again. A patrol is scored by its accepting
 visits as a fraction of each layout's route-optimal count, averaged over the layouts; a task with a
 never part by its completion. Prints a Markdown table (appended to ``--results`` with the date and
-machine; '-' prints only). Figures in bench/RESULTS.md, "2026-11-29, night".
+machine; '-' prints only), then per patrol the same average over only the layouts where some route
+keeps the barrier's margin d (``route_optimal_visits_margin`` > 0; a hint, not the issue's measure:
+on the others the barrier may hold the robot back by design), and a table per layout (the mean over
+the runs). Figures in bench/RESULTS.md, "2026-11-29, night" and "2026-11-30".
 """
 
 from __future__ import annotations
@@ -50,6 +53,49 @@ def score(res: dict) -> float:
     return res["visit_fraction"] if "visit_fraction" in res else res["completion_rate"]
 
 
+def passable(res: dict) -> tuple[float, int] | None:
+    """A patrol's mean fraction over the layouts where a route keeps the barrier's margin, and their
+    number; None for a task that completes or an evaluation without the margin's counts."""
+    per = res.get("per_layout") or []
+    kept = [r for r in per if r.get("route_optimal_visits") and r.get("route_optimal_visits_margin", 0) > 0]
+    if "visit_fraction" not in res or not kept:
+        return None
+    return sum(r["accepting_visits_per_episode"] / r["route_optimal_visits"] for r in kept) / len(kept), len(kept)
+
+
+def margin_lines(runs: list[Path], tasks: list[str], results: dict) -> list[str]:
+    """Per patrol: each run's average over the layouts a route keeping the margin d passes."""
+    lines = []
+    for t in tasks:
+        got = [(run, passable(results[run, t])) for run in runs]
+        if any(g is None for _, g in got):
+            continue
+        cells = ", ".join(f"{run.name} {100 * f:.1f}% of {n} (d = {results[run, t]['per_layout'][0].get('margin')} m)"
+                          for run, (f, n) in got)
+        mean = sum(f for _, (f, _) in got) / len(got)
+        lines.append(f"- `{t}` over the layouts where a route keeps the barrier's margin: {cells}; mean **{100 * mean:.1f}%**")
+    return lines
+
+
+def per_layout(runs: list[Path], tasks: list[str], results: dict) -> str:
+    """Per layout and patrol: the mean over the runs of its fraction, and its route-optimal counts
+    (keeping the robot's radius / the first run's margin)."""
+    patrols = [t for t in tasks if all("visit_fraction" in results[run, t] for run in runs)]
+    if not patrols:
+        return ""
+    first = [results[runs[0], t]["per_layout"] for t in patrols]
+    lines = ["| layout | " + " | ".join(f"`{t}` (optimum / keeping d)" for t in patrols) + " |",
+             "|---" * (len(patrols) + 1) + "|"]
+    for i, row in enumerate(first[0]):
+        cells = []
+        for t, rows in zip(patrols, first):
+            fr = [results[run, t]["per_layout"][i] for run in runs]
+            mean = sum(r["accepting_visits_per_episode"] / max(r["route_optimal_visits"], 1) for r in fr) / len(fr)
+            cells.append(f"{100 * mean:.1f}% ({rows[i]['route_optimal_visits']} / {rows[i].get('route_optimal_visits_margin', '-')})")
+        lines.append(f"| {row['layout']} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def table(runs: list[Path], tasks: list[str], results: dict) -> str:
     head = "| run | " + " | ".join(f"`{t}`" for t in tasks) + " | safe (every task) |"
     lines = [head, "|---" * (len(tasks) + 2) + "|"]
@@ -82,6 +128,12 @@ def main() -> None:
     text = (f"Generalists zero-shot on random:{args.first_seed}..+{args.layouts - 1}, {args.episodes} episodes "
             f"each, filter on ({datetime.date.today()}, {platform.machine()}, {cpu_model()}); a patrol's "
             "fraction of the route-optimal visits, else completion:\n\n" + table(args.runs, args.tasks, results))
+    extra = margin_lines(args.runs, args.tasks, results)
+    if extra:
+        text += "\n\n" + "\n".join(extra)
+    layouts = per_layout(args.runs, args.tasks, results)
+    if layouts:
+        text += "\n\nPer layout, the mean over the runs:\n\n" + layouts
     print(text)
     if args.results != "-":
         with open(args.results, "a") as f:
