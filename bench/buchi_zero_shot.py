@@ -13,7 +13,7 @@ never part by its completion. Prints a Markdown table (appended to ``--results``
 machine; '-' prints only), then per patrol the same average over only the layouts where some route
 keeps the barrier's margin d (``route_optimal_visits_margin`` > 0; a hint, not the issue's measure:
 on the others the barrier may hold the robot back by design), and a table per layout (the mean over
-the runs). Figures in bench/RESULTS.md, "2026-11-29, night" and "2026-11-30".
+the runs). Figures in bench/RESULTS.md, "2026-11-29, night" and "late night".
 """
 
 from __future__ import annotations
