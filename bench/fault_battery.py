@@ -10,7 +10,7 @@ and the case's own checks hold (files untouched, names distinct, ...). Prints on
 command (case, command, expected, exit status, stderr lines, traceback, hung, verdict) and writes
 the table as markdown to --out. Exit status 1 if any case FAILs.
 
-Trainings are tiny (tlgrl on `relaxed`, the shapes of tests/test_run_faults.py), so that the XLA
+Trainings are tiny (tlgrl on `relaxed`, the shapes of tests/_run_faults.py), so that the XLA
 compile cache (~/.cache/d2spo, or $D2SPO_CACHE_DIR) serves them after the first run. Case 2 (a
 `reproduce` killed between the two summaries of a vmapped seed group) has a window of milliseconds
 that no outside kill can hit reliably: it runs the pytest test that provokes exactly that moment.

@@ -61,6 +61,7 @@ _SHARED_PROGRAMS = {
     "test_plots.py": "fig5-run",  # tests/test_d2spo.py builds the Fig. 5 learner (_reproduce.FIG5_EPISODES)
     "test_d2spo.py": "fig5-run",
     "test_run_faults.py": "tiny-run",  # the shapes of test_train.tiny()
+    "test_run_kills.py": "tiny-run",  # tests/_run_faults.py: its reference run, a session fixture
     "test_train.py": "tiny-run",
     "test_wandb.py": "tiny-run",  # test_train.tiny() with --wandb
     "test_memo.py": "tiny-run",
@@ -89,3 +90,13 @@ def _memo_fresh_around_patches(request):
     yield
     if patches:
         memo.clear()
+
+
+@pytest.fixture(scope="session")
+def run_reference(tmp_path_factory):
+    """The fault tests' uninterrupted tiny run and its images at every moment a kill could land
+    (tests/_run_faults.py): built once per worker for tests/test_run_kills.py and
+    tests/test_run_faults.py, which are one xdist group."""
+    from _run_faults import reference_run
+
+    return reference_run(tmp_path_factory)
