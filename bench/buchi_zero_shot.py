@@ -53,6 +53,11 @@ def score(res: dict) -> float:
     return res["visit_fraction"] if "visit_fraction" in res else res["completion_rate"]
 
 
+def fraction(layout: dict) -> float:
+    """One layout's accepting visits per episode as a fraction of its route-optimal count."""
+    return layout["accepting_visits_per_episode"] / max(layout["route_optimal_visits"], 1)
+
+
 def passable(res: dict) -> tuple[float, int] | None:
     """A patrol's mean fraction over the layouts where a route keeps the barrier's margin, and their
     number; None for a task that completes or an evaluation without the margin's counts."""
@@ -60,7 +65,7 @@ def passable(res: dict) -> tuple[float, int] | None:
     kept = [r for r in per if r.get("route_optimal_visits") and r.get("route_optimal_visits_margin", 0) > 0]
     if "visit_fraction" not in res or not kept:
         return None
-    return sum(r["accepting_visits_per_episode"] / r["route_optimal_visits"] for r in kept) / len(kept), len(kept)
+    return sum(map(fraction, kept)) / len(kept), len(kept)
 
 
 def margin_lines(runs: list[Path], tasks: list[str], results: dict) -> list[str]:
@@ -89,8 +94,7 @@ def per_layout(runs: list[Path], tasks: list[str], results: dict) -> str:
     for i, row in enumerate(first[0]):
         cells = []
         for t, rows in zip(patrols, first):
-            fr = [results[run, t]["per_layout"][i] for run in runs]
-            mean = sum(r["accepting_visits_per_episode"] / max(r["route_optimal_visits"], 1) for r in fr) / len(fr)
+            mean = sum(fraction(results[run, t]["per_layout"][i]) for run in runs) / len(runs)
             cells.append(f"{100 * mean:.1f}% ({rows[i]['route_optimal_visits']} / {rows[i].get('route_optimal_visits_margin', '-')})")
         lines.append(f"| {row['layout']} | " + " | ".join(cells) + " |")
     return "\n".join(lines)

@@ -34,13 +34,13 @@ from fault_battery_harness import (
     PY,
     REPO,
     Case,
-    Row,
     d2spo,
     deep_json,
     finish,
     finished_run,
     kill_group,
     last_line,
+    markdown,
     python,
     run,
     start,
@@ -355,18 +355,6 @@ CASES = [case_01_ctrl_c_while_compiling, case_02_reproduce_killed_between_summar
 
 
 # ------------------------------------------------------------------------------------ main
-def markdown(rows: list[Row], seconds: float) -> str:
-    head = ["case", "command", "expected", "exit", "stderr lines", "traceback", "hung", "verdict", "why / note"]
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for r in rows:
-        cells = [r.case, f"`{r.command}`", r.expected, r.rc, r.err_lines, r.traceback, r.hung, r.verdict, r.why]
-        lines.append("| " + " | ".join(str(x).replace("|", "\\|").replace("\n", " ") for x in cells) + " |")
-    fails = sum(r.verdict == "FAIL" for r in rows)
-    lines.append("")
-    lines.append(f"{len(rows)} rows, {fails} FAIL; wall time {seconds:.0f} s; {sys.platform}, d2spo at {D2SPO}")
-    return "\n".join(lines) + "\n"
-
-
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", type=Path, help="write the table as markdown here")

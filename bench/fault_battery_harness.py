@@ -205,3 +205,16 @@ def write_layout(path: Path, radius: float = 0.35) -> Path:
 def deep_json(path: Path, depth: int = 100_000) -> Path:
     path.write_text("[" * depth + "]" * depth)
     return path
+
+
+def markdown(rows: list[Row], seconds: float) -> str:
+    """The battery's table as markdown: one row per command, then the count of FAILs."""
+    head = ["case", "command", "expected", "exit", "stderr lines", "traceback", "hung", "verdict", "why / note"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in rows:
+        cells = [r.case, f"`{r.command}`", r.expected, r.rc, r.err_lines, r.traceback, r.hung, r.verdict, r.why]
+        lines.append("| " + " | ".join(str(x).replace("|", "\\|").replace("\n", " ") for x in cells) + " |")
+    fails = sum(r.verdict == "FAIL" for r in rows)
+    lines.append("")
+    lines.append(f"{len(rows)} rows, {fails} FAIL; wall time {seconds:.0f} s; {sys.platform}, d2spo at {D2SPO}")
+    return "\n".join(lines) + "\n"

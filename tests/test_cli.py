@@ -35,6 +35,7 @@ def test_a_usage_error_exits_2_with_one_line_from_the_command():
     lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1, res.stderr
     assert lines[0].startswith("d2spo: error: ")
+    assert "Traceback" not in res.stderr
 
 
 @pytest.mark.parametrize(
