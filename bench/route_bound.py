@@ -153,9 +153,9 @@ def main() -> None:
           f"{args.forbid_margin} m kept from forbidden areas")
     for c in args.margins:
         first, lap = bound(layout, tuple(args.areas), args.forbid, c, forbid_margin=args.forbid_margin)
-        visits = [first + k * lap for k in range(8)]
-        at = [math.ceil(v / per_step) for v in visits]
-        fit = sum(s <= args.steps for s in at)
+        at = [math.ceil((first + k * lap) / per_step) for k in range(6)]
+        reach = args.steps * per_step  # the metres the episode allows
+        fit = 0 if first > reach else 1 + int((reach - first) // lap)
         print(f"margin {c:.2f} m: first visit {first:.3f} m, lap {lap:.3f} m; visits at steps "
               f"{', '.join(map(str, at[:6]))}; {fit} fit in {args.steps}")
 
