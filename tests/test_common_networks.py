@@ -154,3 +154,41 @@ def test_a_forward_only_actor_proposes_in_its_box_and_explores_there():
         assert a[:, 0].min() >= 0.0 and a[:, 1].min() < -0.2 and np.abs(a).max() <= 1.0
         b = np.asarray(explore(plain_nets, agent, big, jax.random.PRNGKey(1), jnp.asarray(random_phase), 0.5))
         assert b[:, 0].min() < -0.2
+
+
+@pytest.mark.parametrize("forward_only", [False, True])
+def test_pre_tanh_exploration_keeps_a_saturated_action_and_spreads_a_central_one(forward_only):
+    """``--td3.exploration-noise-space pre-tanh``: an actor at a bound of its box stays there (the
+    clipped "action" noise slows an actor at full speed by about 0.4 noise on average), and at the
+    box's centre the spread is the "action" noise's."""
+    from flax.core import unfreeze
+
+    from d2spo.algos.td3 import TD3Config, explore, init_agent, make_nets
+    from d2spo.errors import ConfigError
+
+    nets = make_nets(2, TD3Config(hidden=(8,), forward_only=forward_only))
+    agent = init_agent(jax.random.PRNGKey(0), nets, 3, 2)
+    obs = jnp.zeros((4096, 3))
+    c0, c1 = (0.5, 0.5) if forward_only else (0.0, 1.0)
+
+    def with_output_bias(b):  # the actor's last layer outputs b whatever the observation
+        params = unfreeze(agent.actor)
+        last = sorted(params["params"]["MLP_0"])[-1]
+        params["params"]["MLP_0"][last]["kernel"] = jnp.zeros_like(params["params"]["MLP_0"][last]["kernel"])
+        params["params"]["MLP_0"][last]["bias"] = jnp.asarray(b, jnp.float32)
+        return agent.replace(actor=params)
+
+    def act(a, space, noise=0.2):
+        return np.asarray(explore(nets, a, obs, jax.random.PRNGKey(1), jnp.asarray(False), noise, space))
+
+    full = with_output_bias([20.0, 0.0])  # full speed ahead, straight on
+    plain, pre = act(full, "action"), act(full, "pre-tanh")
+    assert plain[:, 0].mean() == pytest.approx(1.0 - 0.2 * 0.3989, abs=0.01)  # E[min(0, N(0, 0.2^2))]
+    assert pre[:, 0].min() > 1.0 - 1e-3
+    np.testing.assert_allclose(pre[:, 1].std(), plain[:, 1].std(), rtol=0.05)  # a[1] at 0: both spreads alike
+    centre = with_output_bias([0.0, 0.0])  # the middle of the box
+    plain, pre = act(centre, "action"), act(centre, "pre-tanh", noise=0.05)
+    assert plain[:, 0].mean() == pytest.approx(c0, abs=0.02)
+    assert pre[:, 0].std() == pytest.approx(0.05, rel=0.06)
+    with pytest.raises(ConfigError, match="exploration_noise_space"):
+        TD3Config(exploration_noise_space="params")

@@ -273,7 +273,7 @@ class D2SPOLearner(TD3Learner):
         log holds the update's metrics as NaN (their shapes traced once per learner)."""
         def act(k, random_phase):
             u_rl = explore(self.nets, c.agent, c.obs, k["act"], random_phase,
-                           self.cfg.noise_at(c.td3.episodes, self.total_episodes))
+                           self.cfg.noise_at(c.td3.episodes, self.total_episodes), self.cfg.exploration_noise_space)
             ctx = self.filter_context(c.env_state) if self.d2.runtime_filter else None
             return u_rl, self.execute(c.safety, c.obs, u_rl, c.env_state.pose, ctx)
 

@@ -26,12 +26,16 @@ from d2spo.algos.base import AnnealSchedule, ChunkLog, episode_log, params_finit
 from d2spo.algos.common.networks import DeterministicActor, TwinQ, init_params
 from d2spo.algos.common.td3_losses import soft_update, td3_actor_loss, td3_critic_loss
 from d2spo.algos.offpolicy import explore_and_store
-from d2spo.fields import check_fields
+from d2spo.fields import check_choice, check_fields
 from d2spo.ltl.anneal import AnnealConfig
 from d2spo.replay import ReplayBuffer, Transition
 
 DEFAULT_WIDTHS = (128, 128)
 """TD3's hidden widths when ``TD3Config.hidden`` is None (and ``--fast`` does not choose)."""
+
+
+NOISE_SPACES = ("action", "pre-tanh")
+"""Values of ``TD3Config.exploration_noise_space``."""
 
 
 @dataclass(frozen=True)
@@ -72,6 +76,11 @@ class TD3Config:
     forward_only: bool | None = None
     """The actor proposes action[0] (the linear speed) in [0, 1] only, never reverse; None: on for
     the generalist. What is executed (π_Ω, the filter) may still reverse."""
+    exploration_noise_space: str = "action"
+    """Where the exploration noise is added: "action" (TD3's: clip(pi(s) + N(0, noise^2)), which
+    slows an actor at full speed on average, by 0.4 noise) or "pre-tanh" (to the actor's output
+    before its tanh, scaled so that it equals "action" at the box's centre: an action at a bound
+    stays there; not in TD3; docs/config.md)."""
 
     def actor_low(self, action_size: int) -> tuple[float, ...] | None:
         """The actor's smallest action per coordinate (``DeterministicActor.low``): (0, -1, ..) when
@@ -96,6 +105,7 @@ class TD3Config:
                      rate=("tau",), non_negative=("policy_noise", "noise_clip", "exploration_noise", "exploration_noise_final"),
                      count=("policy_delay", "batch_size", "buffer_size", "updates_per_step"),
                      natural=("learning_starts",), flag=("critic_layer_norm", "forward_only"))
+        check_choice(self, "exploration_noise_space", NOISE_SPACES, "td3")
 
 
 @struct.dataclass
@@ -139,14 +149,24 @@ def init_agent(key: jax.Array, nets: TD3Nets, obs_size: int, action_size: int) -
 
 
 def explore(nets: TD3Nets, agent: TD3Agent, obs: jax.Array, key: jax.Array, random_phase: jax.Array,
-            noise: float) -> jax.Array:
-    """Behaviour action: uniform during warm-up, else clip(pi(s) + N(0, noise^2), low, 1), within the
-    actor's box [low, 1] (``DeterministicActor.low``; -1 by default)."""
+            noise: float, space: str = "action") -> jax.Array:
+    """Behaviour action: uniform during warm-up, else the greedy pi(s) with Gaussian noise of std
+    ``noise``, within the actor's box [low, 1] (``DeterministicActor.low``; -1 by default).
+
+    ``space`` (``TD3Config.exploration_noise_space``): "action" adds it to the action and clips,
+    TD3's rule; "pre-tanh" adds noise / c1 to the tanh's argument, atanh((pi(s) - c0) / c1), where
+    a = c0 + c1 tanh(.) spans the box: the same spread at the box's centre, none at its bounds."""
     k1, k2 = jax.random.split(key)
     low = nets.actor.action_low()
     uniform = jax.random.uniform(k1, (obs.shape[0], nets.actor.action_dim), minval=low, maxval=1.0)
     greedy = nets.actor.apply(agent.actor, obs)
-    noisy = jnp.clip(greedy + noise * jax.random.normal(k2, greedy.shape), low, 1.0)
+    eps = jax.random.normal(k2, greedy.shape)
+    if space == "pre-tanh":
+        c0, c1 = (1.0 + low) / 2.0, (1.0 - low) / 2.0
+        z = jnp.arctanh(jnp.clip((greedy - c0) / c1, -1.0 + 1e-6, 1.0 - 1e-6))
+        noisy = jnp.clip(c0 + c1 * jnp.tanh(z + noise / c1 * eps), low, 1.0)
+    else:
+        noisy = jnp.clip(greedy + noise * eps, low, 1.0)
     return jnp.where(random_phase, uniform, noisy)
 
 
@@ -248,7 +268,7 @@ class TD3Learner:
     def _iteration(self, c: TD3Carry):
         def act(k, random_phase):
             action = explore(self.nets, c.agent, c.obs, k["act"], random_phase,
-                             self.cfg.noise_at(c.episodes, self.total_episodes))
+                             self.cfg.noise_at(c.episodes, self.total_episodes), self.cfg.exploration_noise_space)
             return action, action
 
         s = explore_and_store(c, ("act", "env", "update"), act, self.env, self.params, self.anneal, self.num_envs,

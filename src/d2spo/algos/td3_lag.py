@@ -89,7 +89,8 @@ class TD3LagLearner:
 
     # -- hooks of the loop --------------------------------------------------------------
     def behaviour(self, agent: TD3LagAgent, obs, key):
-        return explore(self.nets, agent.td3, obs, key, jnp.bool_(False), self.cfg.td3.exploration_noise)
+        return explore(self.nets, agent.td3, obs, key, jnp.bool_(False), self.cfg.td3.exploration_noise,
+                       self.cfg.td3.exploration_noise_space)
 
     def on_step(self, agent: TD3LagAgent, mean_cost):
         return self.shell.on_step(agent, mean_cost)
