@@ -17,7 +17,10 @@ searches an 8-neighbour grid instead, whose routes are up to 8.2% longer; it all
 excess when it counts visits. This script needs no such allowance. For each margin it prints the
 first visit and the lap in metres, and at which step each visit could come at the most speed the
 dynamics allow on average (v_max · v_gain · (1 - slip / 2) · dt; turning, braking and reversing
-cost nothing here), and how many fit in ``--steps``.
+cost nothing here), and how many fit in ``--steps``. ``--forward-only`` also counts the visits of a
+robot that cannot reverse and turns round in place at each area (pi at the most turn rate the
+dynamics allow on average: 13.6 steps), as the generalist's forward-only actor must; it is an
+estimate, not a bound (a loop with room to swing round may turn while it drives).
 """
 
 from __future__ import annotations
@@ -134,9 +137,20 @@ def bound(layout, areas: tuple[str, str], forbid: list[str], c: float, per_corne
     return first, lap
 
 
+def visits_fit(first: float, lap: float, per_step: float, steps: int, turn_steps: float = 0.0) -> int:
+    """Visits in ``steps`` steps at ``per_step`` metres a step; ``turn_steps`` > 0: a robot that
+    cannot reverse turns round in place at each area, once before the first visit and twice a lap."""
+    first_steps = first / per_step + turn_steps
+    if first_steps > steps:
+        return 0
+    return 1 + int((steps - first_steps) // (lap / per_step + 2 * turn_steps))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--layout", default="paper")
+    ap.add_argument("--layout-seeds", type=int, default=1,
+                    help="with --layout FAMILY:SEED, this many consecutive seeds of the family")
     ap.add_argument("--areas", nargs=2, default=["A1", "A3"])
     ap.add_argument("--forbid", nargs="*", default=["A4"])
     ap.add_argument("--margins", type=float, nargs="*", default=[0.15, 0.25, 0.3])
@@ -144,20 +158,41 @@ def main() -> None:
                     help="keep this much from the forbidden areas too (0.06 closes paper's openings beside A4 at 0.3 m)")
     ap.add_argument("--steps", type=int, default=600)
     ap.add_argument("--dynamics", default="default", choices=sorted(PRESETS))
+    ap.add_argument("--forward-only", action="store_true",
+                    help="also count the visits of a robot that turns round in place at each area instead of reversing")
     args = ap.parse_args()
-    layout = layouts.load(args.layout)
+    names = [args.layout]
+    if args.layout_seeds > 1:
+        family, _, seed = args.layout.rpartition(":")
+        if not family or not seed.isdigit():
+            raise SystemExit(f"route_bound.py: --layout-seeds needs --layout FAMILY:SEED, got {args.layout!r}")
+        names = [f"{family}:{int(seed) + k}" for k in range(args.layout_seeds)]
     dyn = PRESETS[args.dynamics]
     per_step = dyn.v_max * dyn.v_gain * (1 - dyn.slip / 2) * dyn.dt
-    print(f"{args.layout}: GF {args.areas[0]} & GF {args.areas[1]}"
-          f"{''.join(f' & G !{z}' for z in args.forbid)}; {args.steps} steps of at most {per_step:.4f} m; "
-          f"{args.forbid_margin} m kept from forbidden areas")
-    for c in args.margins:
-        first, lap = bound(layout, tuple(args.areas), args.forbid, c, forbid_margin=args.forbid_margin)
-        at = [math.ceil((first + k * lap) / per_step) for k in range(6)]
-        reach = args.steps * per_step  # the metres the episode allows
-        fit = 0 if first > reach else 1 + int((reach - first) // lap)
-        print(f"margin {c:.2f} m: first visit {first:.3f} m, lap {lap:.3f} m; visits at steps "
-              f"{', '.join(map(str, at[:6]))}; {fit} fit in {args.steps}")
+    # the heading turns by pi at the most turn rate the dynamics allow on average
+    turn_steps = math.pi / (dyn.omega_max * dyn.omega_gain * (1 - dyn.slip / 2)) / dyn.dt
+    print(f"GF {args.areas[0]} & GF {args.areas[1]}{''.join(f' & G !{z}' for z in args.forbid)}; "
+          f"{args.steps} steps of at most {per_step:.4f} m; {args.forbid_margin} m kept from forbidden areas"
+          + (f"; turning round in place takes {turn_steps:.1f} steps" if args.forward_only else ""))
+    ratios: dict[float, list[float]] = {c: [] for c in args.margins}
+    for name in names:
+        layout = layouts.load(name)
+        for c in args.margins:
+            first, lap = bound(layout, tuple(args.areas), args.forbid, c, forbid_margin=args.forbid_margin)
+            at = [math.ceil((first + k * lap) / per_step) for k in range(6)]
+            fit = visits_fit(first, lap, per_step, args.steps)
+            line = (f"{name}, margin {c:.2f} m: first visit {first:.3f} m, lap {lap:.3f} m; visits at steps "
+                    f"{', '.join(map(str, at[:6]))}; {fit} fit in {args.steps}")
+            if args.forward_only:
+                fwd = visits_fit(first, lap, per_step, args.steps, turn_steps)
+                line += f"; forward only {fwd}" + (f" ({100 * fwd / fit:.1f}%)" if fit else "")
+                if fit:
+                    ratios[c].append(fwd / fit)
+            print(line)
+    if args.forward_only and len(names) > 1:
+        for c, r in ratios.items():
+            print(f"margin {c:.2f} m: forward only, {100 * sum(r) / max(1, len(r)):.1f}% of the visits on average "
+                  f"over the {len(r)} layouts with any")
 
 
 if __name__ == "__main__":

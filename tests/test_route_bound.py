@@ -66,3 +66,11 @@ def test_paper_at_the_robots_radius_lies_under_the_grid_routes_by_at_most_their_
     grid = routes.visit_lengths(task_automaton(TASKS["patrol2"]), lay, "event", c, math.inf, 2)
     assert first <= grid[0] <= first * routes.OCTILE_EXCESS
     assert lap <= grid[1] - grid[0] <= lap * routes.OCTILE_EXCESS
+
+
+def test_visits_that_fit_with_and_without_turning_round():
+    """1 m to the first visit, 2 m laps, 0.1 m a step, 100 steps: visits at steps 10, 30, 50, 70, 90;
+    turning round in 5 steps at each area (once before the first visit, twice a lap): at 15, 45, 75."""
+    assert route_bound.visits_fit(1.0, 2.0, 0.1, 100) == 5
+    assert route_bound.visits_fit(1.0, 2.0, 0.1, 100, turn_steps=5.0) == 3
+    assert route_bound.visits_fit(11.0, 2.0, 0.1, 100) == 0
