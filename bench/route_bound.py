@@ -163,10 +163,10 @@ def main() -> None:
     args = ap.parse_args()
     names = [args.layout]
     if args.layout_seeds > 1:
-        family, _, seed = args.layout.rpartition(":")
-        if not family or not seed.isdigit():
-            raise SystemExit(f"route_bound.py: --layout-seeds needs --layout FAMILY:SEED, got {args.layout!r}")
-        names = [f"{family}:{int(seed) + k}" for k in range(args.layout_seeds)]
+        drawn = layouts.random_seed(args.layout)
+        if drawn is None:
+            raise SystemExit(f"route_bound.py: --layout-seeds needs a drawn layout KIND:SEED, got {args.layout!r}")
+        names = [f"{drawn[0]}:{drawn[1] + k}" for k in range(args.layout_seeds)]
     dyn = PRESETS[args.dynamics]
     per_step = dyn.v_max * dyn.v_gain * (1 - dyn.slip / 2) * dyn.dt
     # the heading turns by pi at the most turn rate the dynamics allow on average
@@ -182,7 +182,7 @@ def main() -> None:
             at = [math.ceil((first + k * lap) / per_step) for k in range(6)]
             fit = visits_fit(first, lap, per_step, args.steps)
             line = (f"{name}, margin {c:.2f} m: first visit {first:.3f} m, lap {lap:.3f} m; visits at steps "
-                    f"{', '.join(map(str, at[:6]))}; {fit} fit in {args.steps}")
+                    f"{', '.join(map(str, at))}; {fit} fit in {args.steps}")
             if args.forward_only:
                 fwd = visits_fit(first, lap, per_step, args.steps, turn_steps)
                 line += f"; forward only {fwd}" + (f" ({100 * fwd / fit:.1f}%)" if fit else "")
