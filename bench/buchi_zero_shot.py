@@ -1,7 +1,7 @@
 """Generalists zero-shot on the Büchi suite (issue 34's generalist targets): one row per run, then the mean.
 
     .venv/bin/python bench/buchi_zero_shot.py --runs GEN-s0 GEN-s1 ... [--tasks patrol2 patrol3 respond reach-never]
-        [--layouts 20] [--first-seed 100000] [--episodes 50] [--results bench/RESULTS.md]
+        [--layouts 20] [--first-seed 100000] [--episodes 50] [--max-steps N] [--results bench/RESULTS.md]
 
 Each run is a ``d2spo train --algo d2spo --generalist`` directory (train them first, one seed each:
 ``d2spo train --algo d2spo --generalist --task phi1 --seed S --out GEN-sS``). Each task runs as
@@ -35,7 +35,8 @@ def _matches(res: dict, cfg: EvalConfig) -> bool:
     return (res.get("task") == cfg.task and res.get("layouts") == cfg.layouts()
             and res.get("episodes") == cfg.episodes * cfg.layout_seeds and res.get("seed") == cfg.seed
             and res.get("runtime_filter") is True and res.get("dynamics") == "default"
-            and str(res.get("policy", "")).startswith("best"))
+            and str(res.get("policy", "")).startswith("best")
+            and (res.get("max_steps") == cfg.max_steps if res.get("max_steps_given") else cfg.max_steps is None))
 
 
 def evaluation(run: Path, cfg: EvalConfig) -> dict:
@@ -120,16 +121,19 @@ def main() -> None:
     ap.add_argument("--layouts", type=int, default=20)
     ap.add_argument("--first-seed", type=int, default=100000)
     ap.add_argument("--episodes", type=int, default=50)
+    ap.add_argument("--max-steps", type=int, default=None,
+                    help="episode limit (d2spo eval --max-steps); default: each layout's, as d2spo eval")
     ap.add_argument("--results", default="bench/RESULTS.md")
     args = ap.parse_args()
     results = {}
     for run in args.runs:
         for task in args.tasks:
             cfg = EvalConfig(args.episodes, f"random:{args.first_seed}", task=task, layout_seeds=args.layouts,
-                             runtime_filter=True)
+                             runtime_filter=True, max_steps=args.max_steps)
             results[run, task] = evaluation(run, cfg)
             print(f"{run.name} {task}: {100 * score(results[run, task]):.1f}%", flush=True)
-    text = (f"Generalists zero-shot on random:{args.first_seed}..+{args.layouts - 1}, {args.episodes} episodes "
+    limit = "" if args.max_steps is None else f" of {args.max_steps} steps"
+    text = (f"Generalists zero-shot on random:{args.first_seed}..+{args.layouts - 1}, {args.episodes} episodes{limit} "
             f"each, filter on ({datetime.date.today()}, {platform.machine()}, {cpu_model()}); a patrol's "
             "fraction of the route-optimal visits, else completion:\n\n" + table(args.runs, args.tasks, results))
     extra = margin_lines(args.runs, args.tasks, results)

@@ -249,6 +249,37 @@ def test_a_zero_shot_patrol_is_scored_against_each_layouts_route_optimal_visits(
     assert "visits / optimum" in out and f"0.00 of {best} (0.0%)" in out and "completion_rate" not in out
 
 
+def test_eval_max_steps_sets_the_episode_limit_and_the_optimum_with_it(gen_run, capsys):
+    """``d2spo eval --max-steps N``: episodes of N steps, the route-optimal count of N steps, its own
+    file beside the run's-limit evaluation, the limit in the table's title; a limit too short for one
+    accepting visit is one line and exit 2 before anything is built."""
+    base = gen_run / "eval-random11-ideal-patrol2.json"
+    if not base.is_file():  # the test above writes it; alone, this one does
+        assert _main(["eval", str(gen_run), "--task", "patrol2", "--layout", "random:11", "--episodes", "2",
+                      "--runtime-filter", "False"]) == 0
+    default = json.loads(base.read_text())
+    limit = 2 * default["max_steps"]
+    capsys.readouterr()
+    assert _main(["eval", str(gen_run), "--task", "patrol2", "--layout", "random:11", "--episodes", "2",
+                  "--runtime-filter", "False", "--max-steps", str(limit)]) == 0
+    assert f"of {limit} steps" in " ".join(capsys.readouterr().out.split())  # the title, however rich wraps it
+    res = json.loads((gen_run / f"eval-random11-ideal-patrol2-T{limit}.json").read_text())
+    assert res["max_steps"] == limit and res["max_steps_given"] and not default["max_steps_given"]
+    env_cfg = EnvConfig(preset="ideal").resolved()
+    from d2spo.envs.compiled_task import compile_task
+    from d2spo.ltl import task_automaton, task_formula
+
+    checked = generalist_layout(EnvConfig(preset="ideal"), "random:11", "patrol2")
+    task = compile_task(task_automaton(task_formula("patrol2")), checked[0], "event", env_cfg.robot_radius)
+    best = task.optimal_visits(limit, env_cfg.dt, env_cfg.v_max * env_cfg.v_gain)
+    assert res["per_layout"][0]["route_optimal_visits"] == best > default["per_layout"][0]["route_optimal_visits"]
+    assert _main(["eval", str(gen_run), "--task", "patrol2", "--layout", "random:11", "--max-steps", "5"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "too short for one accepting visit" in err[0], err
+    assert _main(["eval", str(gen_run), "--max-steps", "0"]) == 2
+    assert "max_steps" in capsys.readouterr().err
+
+
 def test_layout_seeds_walks_every_drawn_family_and_is_refused_elsewhere():
     """``--layout-seeds N`` names N layouts of any drawn family (docs/layouts.md promises it for
     ``zones``); on a fixed layout it is one line, not a silent single layout."""

@@ -96,7 +96,8 @@ def print_evaluation(res: dict, path: Path, filter_asked: bool | None) -> None:
             filt += " (not the training layout/dynamics; --runtime-filter False for π_Ω alone)"
     task = f", task {res['task']!r} (zero-shot)" if res.get("task_given") else ""
     which = f", {res['policy']} policy" if str(res.get("policy", "")).startswith("best") else ""
-    t = Table(title=f"{res['run']}{which} on {res['layout']} / {res['dynamics']} ({res['episodes']} episodes{filt}{task})")
+    limit = f" of {res['max_steps']} steps" if res.get("max_steps_given") else ""
+    t = Table(title=f"{res['run']}{which} on {res['layout']} / {res['dynamics']} ({res['episodes']} episodes{limit}{filt}{task})")
     recurrence = "accepting_visits_per_episode" in res  # a patrol completes nothing: its visits instead
     score = "visits / optimum" if recurrence else "completion_rate"
     for name in ("layout", "safety_rate", score, "mean_return", "distance driven"):

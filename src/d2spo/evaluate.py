@@ -82,13 +82,17 @@ class EvalConfig:
     """D²SPO only: linearise-and-project iterations of the runtime filter; default: as trained."""
     filter_alpha: float | None = None
     """D²SPO only: coefficient of α in the runtime filter's condition (smaller brakes earlier); default: as trained."""
+    max_steps: int | None = None
+    """The episode limit in steps; default: the run's own (a generalist: the longest its layouts need).
+    A patrol's route-optimal count follows it: e.g. 1000 to score one as DeepLTL's ZoneEnv episodes do."""
     policy: str = "best"
     """best: a generalist's policy kept on its validation layouts (`--validation-layouts`), where the run
     has one, else the last; last: the newest checkpoint's."""
     overrides: Annotated[DynamicsOverrides, tyro.conf.arg(name="")] = dataclasses.field(default_factory=DynamicsOverrides)
 
     def __post_init__(self):
-        check_fields(self, nullable=("filter_iters", "filter_alpha"), count=("episodes", "layout_seeds"),
+        check_fields(self, nullable=("filter_iters", "filter_alpha", "max_steps"),
+                     count=("episodes", "layout_seeds", "max_steps"),
                      seed=("seed",), natural=("filter_iters",), positive=("filter_alpha",))
         check_choice(self, "policy", POLICY_CHOICES)
         if self.layout_seeds != 1 and _family(self.layout) is None:
@@ -195,6 +199,8 @@ def evaluate_run(run_dir: Path, ecfg: EvalConfig = EvalConfig(), keep_paths: int
         cfg = dataclasses.replace(cfg, cbf=dataclasses.replace(cfg.cbf, **cbf_changes))
     if ecfg.layout is None:  # the training layout: as it was when the run started
         check_layout_unchanged(run_dir, cfg, f"to evaluate on it as it is now, pass --layout {cfg.layout}")
+    if ecfg.max_steps is not None and not cfg.generalist:  # a generalist's limit: _generalist_rollouts
+        cfg = dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, max_steps=ecfg.max_steps))
     layouts = ecfg.layouts()
     env_cfg = eval_env_config(cfg, ecfg.layout, ecfg.dynamics, overrides)
     check_eval_memory(env_cfg, ecfg.episodes)  # before anything is built
@@ -203,7 +209,7 @@ def evaluate_run(run_dir: Path, ecfg: EvalConfig = EvalConfig(), keep_paths: int
     else:
         _, learner, policy, meta = load_policy(run_dir, ecfg.policy)
         results = _specialist_rollouts(cfg, learner, policy, ecfg, overrides, keep_paths, on_layout)
-        limit, which = None, meta["policy"]
+        limit, which = ecfg.max_steps, meta["policy"]
     if on_layout is not None:
         on_layout(len(layouts), len(layouts), None)
     paths = [r.pop("paths") for r in results] if keep_paths else None
@@ -214,7 +220,7 @@ def evaluate_run(run_dir: Path, ecfg: EvalConfig = EvalConfig(), keep_paths: int
         "dynamics": dynamics_label(ecfg.dynamics, overrides, cfg.env.preset),
         "dynamics_values": {k: getattr(env_cfg.resolved(), k) for k in dyn.DYNAMICS_FIELDS}, "seed": ecfg.seed,
         "task": ecfg.task or cfg.task, "task_given": ecfg.task is not None and ecfg.task != cfg.task,
-        "max_steps": limit,
+        "max_steps": limit, "max_steps_given": ecfg.max_steps is not None,
         "runtime_filter": bool(cfg.d2spo.runtime_filter) if has_filter else None,
         "filter_iters": cfg.cbf.filter_iters if has_filter else None,
         "filter_alpha": cfg.cbf.filter_alpha if has_filter else None,
@@ -244,7 +250,8 @@ def _specialist_rollouts(cfg: TrainConfig, learner, policy, ecfg: EvalConfig, ov
         if on_layout is not None:
             on_layout(k, len(names), lay or cfg.layout)
         env, params, other = learner_on(cfg, lay, ecfg.dynamics, overrides)
-        if lay is not None or ecfg.dynamics is not None or overrides:  # training checked its own layout
+        if lay is not None or ecfg.dynamics is not None or overrides or ecfg.max_steps is not None:
+            # training checked its own layout at its own limit
             preflight_checks(cfg, env, params)  # as training: the time and barrier-margin warnings here
         if env.observation_size != size:
             raise ConfigError("layout", f"the policy was trained with observations of size {size}, "
@@ -270,8 +277,8 @@ def _generalist_rollouts(run_dir: Path, cfg: TrainConfig, ecfg: EvalConfig, env_
     its own) over ``layouts``, zero-shot: every layout is checked first, then the generalist is built
     once and its policy loaded into it (``d2spo.zero_shot``)."""
     task = ecfg.task or cfg.task
-    checked = [zero_shot.generalist_layout(env_cfg, name, task, cfg.cbf.d) for name in layouts]
-    env, params, learner, limit = zero_shot.generalist_on(cfg, env_cfg, task, checked)
+    checked = [zero_shot.generalist_layout(env_cfg, name, task, cfg.cbf.d, ecfg.max_steps) for name in layouts]
+    env, params, learner, limit = zero_shot.generalist_on(cfg, env_cfg, task, checked, ecfg.max_steps)
     _, _, policy, meta = load_policy(run_dir, ecfg.policy, learner)
     results = zero_shot.rollouts(env, params, learner, policy, checked, ecfg.episodes, ecfg.seed, limit, keep_paths,
                                  barrier_margin(cfg), on_layout)
@@ -296,12 +303,14 @@ def layout_tag(layout: str, sha256: str | None = None) -> str:
 
 
 def evaluation_path(run_dir: Path, res: dict) -> Path:
-    """Where ``write_evaluation`` puts ``res``: RUN_DIR/eval-LAYOUT[xN]-DYNAMICS[-filter-aA-iN].json,
-    LAYOUT as ``layout_tag`` writes it."""
+    """Where ``write_evaluation`` puts ``res``: RUN_DIR/eval-LAYOUT[xN]-DYNAMICS[-TASK][-TSTEPS][-best]
+    [-filter-aA-iN].json, LAYOUT as ``layout_tag`` writes it, TSTEPS an episode limit asked for."""
     n = len(res["per_layout"])  # random:0 over 3 layouts is another evaluation than random:0 alone
     tag = f"{layout_tag(res['layout'], res.get('layout_sha256'))}{f'x{n}' if n > 1 else ''}-{res['dynamics']}"
     if res.get("task_given"):
         tag += f"-{zero_shot.task_tag(res['task'])}"
+    if res.get("max_steps_given"):  # another episode limit than the run's: another evaluation
+        tag += f"-T{res['max_steps']}"
     if str(res.get("policy", "")).startswith("best"):  # a validated generalist's kept policy
         tag += "-best"
     if res["runtime_filter"]:

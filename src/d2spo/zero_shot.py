@@ -41,14 +41,16 @@ from d2spo.ltl.tasks import TASKS
 from d2spo.rollout import make_rollout, rates, visit_optimum
 
 
-def generalist_layout(env_cfg, name: str, task: str, margin: float = 0.0) -> tuple[Layout, int]:
+def generalist_layout(env_cfg, name: str, task: str, margin: float = 0.0,
+                      max_steps: int | None = None) -> tuple[Layout, int]:
     """The layout ``name`` checked for a generalist and for ``task`` (module docstring, step 1) and
     the episode limit a specialist would get there. ``margin``: the generalist's barrier margin d:
-    a warning when no route keeps it (``preflight.check_margin``; 0: not checked)."""
-    cfg = dataclasses.replace(env_cfg, layout=name, max_steps=None,
+    a warning when no route keeps it (``preflight.check_margin``; 0: not checked). ``max_steps``: an
+    episode limit asked for instead (``d2spo eval --max-steps``), checked to fit the task there."""
+    cfg = dataclasses.replace(env_cfg, layout=name, max_steps=max_steps,
                               reward=dataclasses.replace(env_cfg.reward, shaping_metric=PER_STATE))
     env, params = make_env(cfg, task)  # the layout's and the task's checks; the specialist's episode limit
-    preflight(env, params, repr(task), margin=margin, episode_time=False)
+    preflight(env, params, repr(task), margin=margin, episode_time=max_steps is not None)
     layout_bank.check_fits(env.layout)
     return env.layout, int(params.max_steps)
 
@@ -60,12 +62,13 @@ def task_tag(task: str) -> str:
     return "f-" + hashlib.sha256(task.encode()).hexdigest()[:10]
 
 
-def generalist_on(cfg: TrainConfig, env_cfg, task: str, checked: list[tuple[Layout, int]]):
+def generalist_on(cfg: TrainConfig, env_cfg, task: str, checked: list[tuple[Layout, int]], limit: int | None = None):
     """(env, params, learner, episode limit) of the generalist trained with ``cfg``, built once for
     ``task`` alone under the dynamics of ``env_cfg``, on the first of the ``checked`` layouts; the
-    limit is the longest any of them needs (``generalist_layout``), and at least what training
-    gives each (its ``max_steps``, else ``envs.task_plan.slot_max_steps``)."""
-    limit = max(max(cfg.env.max_steps or slot_max_steps(lay), n) for lay, n in checked)
+    limit is ``limit`` when given, else the longest any of them needs (``generalist_layout``), and at
+    least what training gives each (its ``max_steps``, else ``envs.task_plan.slot_max_steps``)."""
+    if limit is None:
+        limit = max(max(cfg.env.max_steps or slot_max_steps(lay), n) for lay, n in checked)
     cfg = dataclasses.replace(cfg, env=env_cfg, task=task, generalist_tasks=0, generalist_patrols=0,
                               generalist_pairings=1)
     env, params, learner = build_generalist(cfg, [checked[0][0]], limit)
