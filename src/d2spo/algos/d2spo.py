@@ -183,11 +183,14 @@ class D2SPOLearner(TD3Learner):
 
     def features_for_grad(self, pose: jax.Array, ctx: Sensed) -> jax.Array:
         """``features`` where they are differentiated in the pose: Eq. (9)'s T_e in UPDATE(Ω, Θ), the
-        cautious start and the runtime filter. The lidar's minimum over obstacles is one reduction
+        cautious start, the runtime filter, and UPDATE(D)'s Newton steps onto the unsafe ring
+        (``safety.datasets.synthesize_unsafe``). The lidar's minimum over obstacles is one reduction
         there, not an unrolled chain per obstacle: the same values and gradients up to float
         rounding (tests/test_env_geometry.py), and XLA no longer copies each obstacle's gradient into many
         fusions. Compiling the generalist (28 boxes, 12 disks) took 130 s instead of 245 s and its
-        filtered `d2spo eval` 9.7 s instead of 38.4 s (bench/RESULTS.md, "2026-11-29, evening")."""
+        filtered `d2spo eval` 9.7 s instead of 38.4 s (bench/RESULTS.md, "2026-11-29, evening"). In
+        UPDATE(D) it took the phi1 chunk from 13,275 to 10,953 ops, with phi1's run the same bit for bit
+        (bench/RESULTS.md, "2026-11-30, morning")."""
         return self.features(pose, ctx, unroll=False)
 
     def sensed(self, mask: jax.Array) -> Sensed:
@@ -282,7 +285,7 @@ class D2SPOLearner(TD3Learner):
         info, u_rl, action = step.info, step.proposal, step.action
         tr = sd.Transition(pose=info["pose"], next_pose=info["next_pose"], context=self.context(info),
                            obs=c.obs, action=action, u_rl=u_rl)
-        data, data_stats = sd.update_datasets(c.data, step.keys["data"], tr, features_fn=self.features, cfg=self.cbf_cfg)
+        data, data_stats = sd.update_datasets(c.data, step.keys["data"], tr, features_fn=self.features_for_grad, cfg=self.cbf_cfg)
         execute_fn = None
         if self.d2.actor_through_safety is not False:  # None: on (TrainConfig resolves it per learner)
             def execute_fn(o, u):  # π_Ω with this step's safety parameters, differentiable in u
