@@ -80,6 +80,11 @@ def test_outputs_and_summary(tmp_path, capsys):
     ev = json.loads((run / "eval-relaxed-default.json").read_text())
     assert ev["episodes"] == 4 and [p["layout"] for p in ev["per_layout"]] == ["relaxed"]
     assert ev["mean_distance"] > 0.0 and ev["runtime_filter"] is None  # tlgrl has no filter
+    assert ev["max_steps"] is None and not ev["max_steps_given"]
+    # another episode limit (a specialist; tests/test_zero_shot.py checks what it does to a patrol)
+    assert main(["eval", str(run), "--episodes", "4", "--max-steps", "60", "--no-progress"]) == 0
+    longer = json.loads((run / "eval-relaxed-default-T60.json").read_text())
+    assert longer["max_steps"] == 60 and longer["max_steps_given"]
     # under custom dynamics: a JSON file with every field, and a per-field flag on top of it
     robot = {"dt": 0.1, "v_max": 0.5, "omega_max": 1.0, "actuator_tau": 0.0, "v_gain": 1.0, "omega_gain": 1.0,
              "slip": 0.0, "noise_xy": 0.0, "noise_theta": 0.0}
