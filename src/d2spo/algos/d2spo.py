@@ -183,14 +183,14 @@ class D2SPOLearner(TD3Learner):
 
     def features_for_grad(self, pose: jax.Array, ctx: Sensed) -> jax.Array:
         """``features`` where they are differentiated in the pose: Eq. (9)'s T_e in UPDATE(Ω, Θ), the
-        cautious start, the runtime filter, and UPDATE(D)'s Newton steps onto the unsafe ring
-        (``safety.datasets.synthesize_unsafe``). The lidar's minimum over obstacles is one reduction
+        cautious start (its synthetic data too), the runtime filter, and UPDATE(D)'s Newton steps onto
+        the unsafe ring (``safety.datasets.synthesize_unsafe``). The lidar's minimum over obstacles is one reduction
         there, not an unrolled chain per obstacle: the same values and gradients up to float
         rounding (tests/test_env_geometry.py), and XLA no longer copies each obstacle's gradient into many
         fusions. Compiling the generalist (28 boxes, 12 disks) took 130 s instead of 245 s and its
         filtered `d2spo eval` 9.7 s instead of 38.4 s (bench/RESULTS.md, "2026-11-29, evening"). In
-        UPDATE(D) it took the phi1 chunk from 13,275 to 10,953 ops, with phi1's run the same bit for bit
-        (bench/RESULTS.md, "2026-11-30, morning")."""
+        UPDATE(D) it took the phi1 chunk from 13,275 to 10,953 ops, in the synthetic data ``init`` from
+        11,828 to 9,506, with phi1's run the same bit for bit (bench/RESULTS.md, "2026-11-30, mid-morning")."""
         return self.features(pose, ctx, unroll=False)
 
     def sensed(self, mask: jax.Array) -> Sensed:
@@ -235,7 +235,7 @@ class D2SPOLearner(TD3Learner):
         k_s, k_pre, k_data = jax.random.split(jax.random.fold_in(key, 7), 3)
         safety = init_safety_state(k_s, self.safety_nets, self.cbf_cfg, self.n_features, self.env.action_size)
         if pretrain:
-            pre = sd.synthetic_pretrain_data(k_data, self.features, self.synthetic_sample,
+            pre = sd.synthetic_pretrain_data(k_data, self.features_for_grad, self.synthetic_sample,
                                              self.cbf_cfg.pretrain_samples, cfg=self.cbf_cfg)
             prior = None
             if self.d2.kinematic_prior:
