@@ -131,7 +131,7 @@ def train_safety(run: CBFRun, carry, key: jax.Array, calls: int, gamma_exp: floa
     if (id(lrn), calls, cbf_cfg) not in _TRAIN:
         def many(actor, safety, data, key):
             def body(s, k):
-                s, m = update(k, s, data, nets=lrn.safety_nets, cfg=cbf_cfg, features_fn=lrn.features,
+                s, m = update(k, s, data, nets=lrn.safety_nets, cfg=cbf_cfg, features_fn=lrn.features_for_grad,
                               dt=lrn.dt, u_rl_fn=lambda o: lrn.nets.actor.apply(actor, o))
                 return s, m["safety/total"]
 
