@@ -164,6 +164,24 @@ def _log(chunk_steps=4, num_envs=2, ret=1.0, metrics=None):
                     np.zeros((chunk_steps, num_envs, 2)), metrics or {}, np.bool_(False))
 
 
+def test_params_finite_flags_a_nan_or_inf_in_any_floating_leaf():
+    """The parameters' half of ``ChunkLog.nonfinite``: one flat check over the floating leaves of a
+    tree that also holds integer leaves (an optimiser's step count), eager and jitted."""
+    import jax
+    import jax.numpy as jnp
+
+    from d2spo.algos.base import params_finite
+
+    tree = {"w": jnp.ones((3, 2)), "b": jnp.zeros(2, jnp.float32), "count": jnp.asarray(7, jnp.int32),
+            "opt": (jnp.full((4,), 0.5, jnp.bfloat16), jnp.asarray(2.0))}
+    for check in (params_finite, jax.jit(params_finite)):
+        assert bool(check(tree))
+        for bad in (jnp.nan, jnp.inf, -jnp.inf):
+            assert not bool(check({**tree, "b": tree["b"].at[1].set(bad)}))
+            assert not bool(check({**tree, "opt": (tree["opt"][0].at[3].set(bad), tree["opt"][1])}))
+        assert bool(check({"count": jnp.asarray(1, jnp.int32)}))  # nothing floating: finite
+
+
 def test_nan_guard_watches_returns_metrics_and_losses_before_writing(tmp_path):
     import numpy as np
 
