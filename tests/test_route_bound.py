@@ -74,3 +74,16 @@ def test_visits_that_fit_with_and_without_turning_round():
     assert route_bound.visits_fit(1.0, 2.0, 0.1, 100) == 5
     assert route_bound.visits_fit(1.0, 2.0, 0.1, 100, turn_steps=5.0) == 3
     assert route_bound.visits_fit(11.0, 2.0, 0.1, 100) == 0
+
+
+def test_a_margin_no_route_keeps_gives_no_lap_and_one_line(capsys, monkeypatch):
+    """Boxes closing the arena from wall to wall between A1 and A3: no route at all, so (inf, inf),
+    not nan; the command prints one line for that margin instead of failing on it."""
+    lay = _open_field()
+    wall = Obstacle(center=(2.5, lay.arena[1] / 2), half_extents=(0.1, lay.arena[1] / 2))
+    lay = dataclasses.replace(lay, obstacles=(wall,))
+    assert route_bound.bound(lay, ("A1", "A3"), ["A4"], 0.3, rim=36) == (math.inf, math.inf)
+    monkeypatch.setattr(route_bound.layouts, "load", lambda name: lay)
+    monkeypatch.setattr("sys.argv", ["route_bound.py", "--margins", "0.3", "--forward-only"])
+    route_bound.main()
+    assert "margin 0.30 m: no route keeps it" in capsys.readouterr().out
