@@ -267,3 +267,59 @@ def test_the_summary_table_scores_a_recurrence_by_its_visits_not_completion():
     assert "completion" not in text and "5 (50.0%)" in text and "3.00" in text
     console.print(summary_table(base, "a Büchi task on a bank of layouts: no optimum, completion shown"))
     assert "completion rate (last 10)" in console.export_text()
+
+
+def test_a_patrol_on_one_layout_keeps_the_policy_that_visits_most(tmp_path, capsys):
+    """A patrol's last policy can visit far less often than its training did, so a run on one layout
+    validates its policy every ``--validate-every`` episodes and keeps the best (``--patrol-validation``
+    episodes on the training layout); ``d2spo eval`` and summary.json's eval_best use it."""
+    from d2spo.cli import main
+
+    out = tmp_path / "run"  # small networks: what is asserted is the bookkeeping, not the learning
+    status = main(["train", "--algo", "tlgrl", "--task", PATROL, "--layout", "paper", "--episodes", "8",
+                   "--num-envs", "2", "--max-steps", "300", "--eval-episodes", "2", "--td3.hidden", "16", "16",
+                   "--td3.batch-size", "32", "--validate-every", "2", "--patrol-validation", "3",
+                   "--no-progress", "--out", str(out)])
+    seen = capsys.readouterr()
+    assert status == 0, seen.err
+    summary = json.loads((out / "summary.json").read_text())
+    val = summary["validation"]
+    assert val["layouts"] == "paper" and val["episodes"] == 3
+    history = val["history"]
+    assert len(history) >= 3 and [h["episodes"] for h in history] == sorted({h["episodes"] for h in history})
+    top = max(h["success_rate"] for h in history)  # the best score; of equals, the latest
+    assert val["best"] == [h for h in history if h["success_rate"] == top][-1]
+    assert (out / "policy-best.msgpack").is_file() and "eval_best" in summary
+    assert "kept policy (episode" in seen.out
+    assert main(["eval", str(out), "--episodes", "2"]) == 0
+    res = json.loads(next(out.glob("eval-paper-*-best.json")).read_text())
+    assert res["policy"] == f"best on validation (after {val['best']['episodes']} episodes)"
+    # a co-safe task keeps its last policy, as does a patrol with --patrol-validation 0
+    from d2spo.config import TrainConfig
+    from d2spo.record import PatrolValidation, validation_for
+    from d2spo.run import build
+
+    for task, n, kind in ((PATROL, 3, PatrolValidation), (NEVER, 3, type(None)), (PATROL, 0, type(None))):
+        cfg = TrainConfig(algo="tlgrl", task=task, patrol_validation=n, env=EnvConfig(layout="paper", max_steps=300))
+        assert isinstance(validation_for(cfg, *build(cfg)), kind), (task, n)
+
+
+def test_a_patrols_validation_scores_visits_against_the_layouts_optimum():
+    """An episode scores its visits over the layout's route-optimal count, at most 1, and 0 when it
+    collided."""
+    from d2spo.config import TrainConfig
+    from d2spo.record import PatrolValidation
+    from d2spo.run import build
+
+    cfg = TrainConfig(algo="tlgrl", task=PATROL, patrol_validation=4, env=EnvConfig(layout="paper", max_steps=600))
+    env, params, learner = build(cfg)
+    val = PatrolValidation(cfg, env, params, learner)
+    best = env.task.optimal_visits(600, env.config.dt, env.config.v_max * env.config.v_gain)
+    assert val.optimum == best > 2
+    visits = np.array([best // 2, 2 * best, best, 1])
+    collided = np.array([False, False, True, False])
+    val.rollout = lambda *_: (collided, np.zeros(4, bool), np.zeros(4), np.full(4, 600), None, visits)
+    out = val(None)
+    assert out["success_rate"] == pytest.approx(((best // 2) / best + 1 + 0 + 1 / best) / 4)
+    assert out["mean_steps_success"] is None and out["accepting_visits_per_episode"] == visits.mean()
+    assert out["safety_rate"] == 0.75

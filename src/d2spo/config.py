@@ -110,7 +110,12 @@ class TrainConfig:
     validation_episodes: int = 256
     """With --generalist: episodes of each validation."""
     validate_every: int = 250
-    """With --generalist: validate every N training episodes."""
+    """With --generalist, or a patrol's --patrol-validation: validate every N training episodes."""
+    patrol_validation: int = 32
+    """One layout, a recurrence task (a patrol, scored by its accepting visits): every validate_every
+    episodes, run the policy for N deterministic episodes on the training layout and keep the one that
+    visits most as policy-best.msgpack, which `d2spo eval` and summary.json's eval_best use (a patrol's
+    last policy can visit far less often than its training episodes did); 0: the last policy."""
     eval_untrained: bool = False
     """Also evaluate the untrained policy (summary.json's eval_untrained); not with --resume."""
     wandb: bool = False
@@ -162,7 +167,8 @@ class TrainConfig:
                                   "generalist_layouts", "generalist_pairings", "validation_episodes",
                                   "validate_every"),
                      seed=("seed",), counts=("snapshots",),
-                     natural=("eval_episodes", "generalist_tasks", "generalist_patrols", "validation_layouts"),
+                     natural=("eval_episodes", "generalist_tasks", "generalist_patrols", "validation_layouts",
+                              "patrol_validation"),
                      flag=("fast", "wandb"))
         if self.generalist_patrols and not self.generalist:
             raise ConfigError("generalist_patrols", "trains the generalist's task mixture; add --generalist")
@@ -262,6 +268,7 @@ FORMER_DEFAULTS: dict[tuple[str, ...], Any] = {
     ("env", "reward", "shaping_metric"): "geodesic",  # geodesic-per-state became the default on 2026-11-23
     ("anneal", "relax"): "all",  # the field came with the option "targets", which became the default
     ("validation_layouts",): 0,  # generalists trained before validation kept their last policy
+    ("patrol_validation",): 0,  # patrols on one layout kept their last policy until 2026-11-30
     ("generalist_world",): "random",  # generalists trained on random:SEED until 2026-11-26
     ("env", "base_max_steps"): 200,  # an unset max_steps gave 200 steps until 2026-11-25
     ("env", "reward", "shaping_clearance_cost"): 10.0,  # the per-state field's clearance band cost 10x until 2026-11-25

@@ -52,6 +52,15 @@ def summary_table(summary: dict, title: str):
             t.add_row(f"final policy: completion ({e['episodes']} episodes)", pct(e["completion_rate"]))
         if "accepting_visits_per_episode" in e:
             t.add_row("final policy: accepting visits per episode", f"{e['accepting_visits_per_episode']:.2f}")
+    if "eval_best" in summary:  # the validated policy (`d2spo eval`'s default), on the same episodes
+        e = summary["eval_best"]
+        at = (summary.get("validation") or {}).get("best", {}).get("episodes")
+        kept = "kept policy" + (f" (episode {at})" if at is not None else "")
+        t.add_row(f"{kept}: safety", pct(e["safety_rate"]))
+        if not recurrence:
+            t.add_row(f"{kept}: completion", pct(e["completion_rate"]))
+        if "accepting_visits_per_episode" in e:
+            t.add_row(f"{kept}: accepting visits per episode", f"{e['accepting_visits_per_episode']:.2f}")
     return t
 
 

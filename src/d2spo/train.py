@@ -24,7 +24,7 @@ from d2spo.algos.generalist import Redraw
 from d2spo.checkpoint import Checkpoints, fingerprint, has_checkpoint, run_fingerprint
 from d2spo.config import TrainConfig, config_to_dict
 from d2spo.errors import ConfigError, RunDirWarning
-from d2spo.record import ProgressFn, RunRecord, Validation
+from d2spo.record import ProgressFn, RunRecord, validation_for
 from d2spo.rollout import acting_on
 from d2spo.run import (
     RESUME_REMEDY,
@@ -88,7 +88,7 @@ def _train_locked(cfg: TrainConfig, out: Path, built, resume: bool, progress: Pr
         if cfg.eval_untrained and cfg.eval_episodes > 0 and meta is None:
             untrained = jax.tree_util.tree_map(jnp.copy, learner.policy(carry))  # ``chunk`` donates the carry
         overhead = _compiled(chunk, carry, t_enter, t_compile, [progress], [meta], cfg)
-        validation = Validation(cfg, env, params, learner) if cfg.generalist and cfg.validation_layouts else None
+        validation = validation_for(cfg, env, params, learner)
         run = RunRecord(cfg, out, meta, checkpoints, overhead, validation, wandb, visits=params.aut.visit is not None)
         redraw = Redraw(cfg, env) if cfg.generalist and cfg.generalist_redraw else None
         if redraw is not None:  # a resumed run's bank as its checkpoint left it
@@ -252,7 +252,8 @@ def _train_seeds_locked(cfgs: list[TrainConfig], outs: list[Path], built, progre
         sinks = [None if s_ is not None else stack.enter_context(wandb_run(c, o, continuing=m is not None))
                  for c, o, m, s_ in zip(cfgs, outs, metas, summaries)]
         overhead = _compiled(chunk, carry, t_enter, t_compile, progress, metas, cfgs[0])
-        runs = [None if s_ is not None else RunRecord(c, o, m, Checkpoints(o, p), overhead, wandb=w,
+        runs = [None if s_ is not None else RunRecord(c, o, m, Checkpoints(o, p), overhead,
+                                                      validation_for(c, env, params, learner), wandb=w,
                                                       visits=params.aut.visit is not None)
                 for c, o, m, s_, p, w in zip(cfgs, outs, metas, summaries, prints, sinks)]
         chunks_this_call = 0
