@@ -86,8 +86,9 @@ class EvalConfig:
     """The episode limit in steps; default: the run's own (a generalist: the longest its layouts need).
     A patrol's route-optimal count follows it: e.g. 1000 to score one as DeepLTL's ZoneEnv episodes do."""
     policy: str = "best"
-    """best: a generalist's policy kept on its validation layouts (`--validation-layouts`), where the run
-    has one, else the last; last: the newest checkpoint's."""
+    """best: the validated policy where the run has one (a generalist's, kept on its validation layouts,
+    `--validation-layouts`; a patrol's on one layout, `--patrol-validation`), else the last; last: the
+    newest checkpoint's."""
     overrides: Annotated[DynamicsOverrides, tyro.conf.arg(name="")] = dataclasses.field(default_factory=DynamicsOverrides)
 
     def __post_init__(self):
@@ -311,7 +312,7 @@ def evaluation_path(run_dir: Path, res: dict) -> Path:
         tag += f"-{zero_shot.task_tag(res['task'])}"
     if res.get("max_steps_given"):  # another episode limit than the run's: another evaluation
         tag += f"-T{res['max_steps']}"
-    if str(res.get("policy", "")).startswith("best"):  # a validated generalist's kept policy
+    if str(res.get("policy", "")).startswith("best"):  # a validated run's kept policy
         tag += "-best"
     if res["runtime_filter"]:
         tag += f"-filter-a{res['filter_alpha']:g}-i{res['filter_iters']}"

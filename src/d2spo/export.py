@@ -48,7 +48,8 @@ class ExportConfig:
     """What `d2spo export` writes: which policy, the filter's settings, ONNX or not."""
 
     policy: str = "best"
-    """best: a generalist's validated policy where there is one, else the last; last: the newest checkpoint's."""
+    """best: the validated policy where there is one (a generalist's, a patrol's on one layout), else the
+    last; last: the newest checkpoint's."""
     runtime_filter: bool | None = None
     """D²SPO only: whether deploy filters by default; default: as trained (Policy.act(..., filter=) overrides)."""
     filter_iters: int | None = None

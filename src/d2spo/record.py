@@ -1,5 +1,6 @@
 """The record of a run as it trains: episodes.csv, TensorBoard (and W&B with ``--wandb``), the
-counters, the NaN guard, policy snapshots, checkpoints, a generalist's validation, and summary.json
+counters, the NaN guard, policy snapshots, checkpoints, the validation of a generalist or of a
+patrol on one layout, and summary.json
 with the final evaluation.
 
 ``d2spo.train``'s loops hand every chunk's ``ChunkLog`` to a ``RunRecord`` (one per run directory;

@@ -1,5 +1,5 @@
 """A run directory, for everyone who reads or writes one: the learner its config names, its config,
-its policies (the last checkpoint's, a generalist's validated best, the snapshots), the preparation
+its policies (the last checkpoint's, a validated best, the snapshots), the preparation
 of a new or resumed directory, and the directory of a group of seeds trained together.
 
 ``d2spo.train`` writes runs; ``d2spo.evaluate``, ``d2spo.certify``, ``d2spo.plots``,
@@ -233,7 +233,7 @@ def load_snapshot(run_dir: Path, episodes: int, learner, key: jax.Array | None =
 
 
 def _shared_best(run_dir: Path) -> dict | None:
-    """The meta of a finished generalist's validated policy read from summary.json, for a run
+    """The meta of a finished run's validated policy (a generalist's, a patrol's) read from summary.json, for a run
     directory that holds config.json, summary.json and the policy but no checkpoint (none was
     written, or it was left behind to share the run); None if any of them is missing."""
     summary = Path(run_dir) / "summary.json"
@@ -254,7 +254,8 @@ POLICY_CHOICES = ("best", "last")
 
 def load_policy(run_dir: Path, which: str = "best", learner=None):
     """(cfg, learner, policy, meta) of a finished or checkpointed run. ``which``: "best" is a
-    validated generalist's kept policy (``TrainConfig.validation_layouts``) where there is one, else
+    validated run's kept policy (a generalist's, ``TrainConfig.validation_layouts``; a patrol's on one
+    layout, ``TrainConfig.patrol_validation``) where there is one, else
     the last; "last" is the newest checkpoint's. ``meta["policy"]`` says which was taken.
     ``learner``: one already built with this run's array shapes (an evaluation's, elsewhere); by
     default one is built from config.json."""
