@@ -151,6 +151,24 @@ def test_actor_loss_through_a_safety_layer():
     assert float(g) > 0  # shrinking p moves pi(s) = p s toward 0
 
 
+def test_the_smoothness_term_penalises_the_proposals_change_to_the_next_observation():
+    """``smoothness * ||pi(s') - pi(s)||²``, hand-computed: with pi(s) = p s the term is
+    smoothness * p² (s' - s)², and its gradient pulls p toward 0; off (0) the loss is the plain one."""
+    obs, nxt = jnp.array([[1.0], [2.0]]), jnp.array([[2.0], [2.0]])
+    critic = jnp.array([0.0, 0.0])  # Q1 = a
+    plain, _ = td3_actor_loss(0.5, critic, obs, actor_apply, critic_apply)
+    off, m_off = td3_actor_loss(0.5, critic, obs, actor_apply, critic_apply, next_obs=nxt, smoothness=0.0)
+    assert float(off) == float(plain) and "values/actor_jerk" not in m_off
+    loss, m = td3_actor_loss(0.5, critic, obs, actor_apply, critic_apply, next_obs=nxt, smoothness=3.0)
+    s, s2 = np.array([1.0, 2.0]), np.array([2.0, 2.0])
+    jerk = (0.5 * (s2 - s)) ** 2  # [0.25, 0]
+    assert float(m["values/actor_jerk"]) == pytest.approx(jerk.mean())
+    assert float(loss) == pytest.approx(np.mean(-0.5 * s + 3.0 * jerk))
+    grad = jax.grad(lambda p: td3_actor_loss(p, critic, obs, actor_apply, critic_apply, next_obs=nxt,
+                                             smoothness=3.0)[0])(0.5)
+    assert float(grad) == pytest.approx(np.mean(-s + 3.0 * 2 * 0.5 * (s2 - s) ** 2))
+
+
 def test_target_smoothing_stays_in_the_actors_box():
     """A forward-only actor's target action is clipped at its own low bound, not at -1."""
     obs = jnp.full((256, 1), -0.2)  # pi'(s') = -0.2 with p = 1: below the box [0, 1]

@@ -89,3 +89,13 @@ def test_td3_lag_refuses_an_annealed_exploration_noise(capsys):
     assert e.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "td3_lag.td3.exploration_noise_final" in err[0]
+
+
+def test_td3_lag_refuses_the_smoothness_term_its_actor_loss_lacks(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["train", "--algo", "td3-lag", "--td3-lag.td3.smoothness", "1", "--out", "/nonexistent/x"])
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "td3_lag.td3.smoothness" in err[0]
+    with pytest.raises(ConfigError, match="smoothness"):
+        TD3Config(smoothness=-1.0)

@@ -76,6 +76,10 @@ class TD3Config:
     forward_only: bool | None = None
     """The actor proposes action[0] (the linear speed) in [0, 1] only, never reverse; None: on for
     the generalist. What is executed (π_Ω, the filter) may still reverse."""
+    smoothness: float = 0.0
+    """Weight of a temporal smoothness term in the actor's loss, ``smoothness * ||pi(s') - pi(s)||²``
+    over the replay batch's consecutive observations (CAPS' temporal term, squared;
+    ``td3_actor_loss``): proposals that change less from step to step; 0: none (the default)."""
     exploration_noise_space: str = "action"
     """Where the exploration noise is added: "action" (TD3's: clip(pi(s) + N(0, noise^2)), which
     slows an actor at full speed on average, by 0.4 noise) or "pre-tanh" (to the actor's output
@@ -102,7 +106,8 @@ class TD3Config:
 
     def __post_init__(self) -> None:
         check_fields(self, "td3", nullable=("hidden", "forward_only", "exploration_noise_final"), widths=("hidden",), lr=("actor_lr", "critic_lr"), discount=("gamma",),
-                     rate=("tau",), non_negative=("policy_noise", "noise_clip", "exploration_noise", "exploration_noise_final"),
+                     rate=("tau",), non_negative=("policy_noise", "noise_clip", "exploration_noise", "exploration_noise_final",
+                                                "smoothness"),
                      count=("policy_delay", "batch_size", "buffer_size", "updates_per_step"),
                      natural=("learning_starts",), flag=("critic_layer_norm", "forward_only"))
         check_choice(self, "exploration_noise_space", NOISE_SPACES, "td3")
@@ -187,7 +192,8 @@ def td3_update(nets: TD3Nets, agent: TD3Agent, batch: Transition, key: jax.Array
 
     def actor_step(_):
         (_, a_metrics), a_grads = jax.value_and_grad(td3_actor_loss, has_aux=True)(
-            agent.actor, critic, batch.obs, actor_apply, critic_apply, None, execute_fn, proposal_weight)
+            agent.actor, critic, batch.obs, actor_apply, critic_apply, None, execute_fn, proposal_weight,
+            batch.next_obs, cfg.smoothness)
         a_upd, actor_opt = nets.actor_tx.update(a_grads, agent.actor_opt, agent.actor)
         actor = optax.apply_updates(agent.actor, a_upd)
         return (actor, actor_opt, soft_update(agent.actor_target, actor, cfg.tau),

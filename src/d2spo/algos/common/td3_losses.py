@@ -142,6 +142,8 @@ def td3_actor_loss(
     penalty_fn: PenaltyFn | None = None,
     execute_fn: Callable[[jax.Array, jax.Array], jax.Array] | None = None,
     proposal_weight: float = 0.0,
+    next_obs: jax.Array | None = None,
+    smoothness: float = 0.0,
 ) -> tuple[jax.Array, dict[str, jax.Array]]:
     """Deterministic policy gradient: mean(-Q1(s, a) + penalty_fn(s, a)), a = pi(s).
 
@@ -152,6 +154,10 @@ def td3_actor_loss(
     turns into the executed action (D²SPO's π_Ω). Q1 is then evaluated at the executed action
     a = execute_fn(s, pi(s)) (what the critic was trained on), the gradient flows through the layer,
     and ``proposal_weight * ||pi(s) - a||²`` asks for proposals the layer lets through.
+
+    ``smoothness * ||pi(s') - pi(s)||²`` over the batch's consecutive observations (``next_obs``)
+    asks for proposals that change little from one step to the next: the temporal term of CAPS
+    (Mysore et al., ICRA 2021), squared. Off (0) by default.
     """
     proposal = actor_apply(actor_params, obs)
     action = proposal if execute_fn is None else execute_fn(obs, proposal)
@@ -162,6 +168,10 @@ def td3_actor_loss(
         override = jnp.sum((proposal - action) ** 2, axis=-1)
         per_sample = per_sample + proposal_weight * override
         metrics["values/actor_override"] = jnp.mean(override)
+    if smoothness > 0:
+        jerk = jnp.sum((actor_apply(actor_params, next_obs) - proposal) ** 2, axis=-1)
+        per_sample = per_sample + smoothness * jerk
+        metrics["values/actor_jerk"] = jnp.mean(jerk)
     if penalty_fn is not None:
         penalty = penalty_fn(obs, action)
         per_sample = per_sample + penalty
