@@ -1,9 +1,10 @@
 """Where a recurrence specialist's accepting visits go: its laps, its speed, and the routes the barrier leaves.
 
     .venv/bin/python bench/patrol_laps.py RUN [--episodes 8] [--margins 0.2 0.25 0.3] [--plot laps.png]
+        [--policy last|best]
 
 RUN is a finished `d2spo train` of a recurrence task (``patrol2``, ...) on one layout. Its last
-policy drives ``--episodes`` deterministic episodes (π_Ω, and the runtime filter as trained), and
+policy (``--policy best``: its validated one, ``--patrol-validation``) drives ``--episodes`` deterministic episodes (π_Ω, and the runtime filter as trained), and
 the script prints:
 
 * the accepting visits of each episode, and the steps at which episode 0 made them (its laps in
@@ -63,9 +64,10 @@ def main() -> None:
     ap.add_argument("--episodes", type=int, default=8)
     ap.add_argument("--margins", type=float, nargs="*", default=[0.2, 0.25, 0.3])
     ap.add_argument("--plot", type=Path, default=None)
+    ap.add_argument("--policy", choices=("last", "best"), default="last")
     args = ap.parse_args()
 
-    cfg, learner, policy, meta = load_policy(args.run, "last")
+    cfg, learner, policy, meta = load_policy(args.run, args.policy)
     task, dyn = learner.env.task, learner.env.config
     if task.distance is None or not task.recurrence:
         raise SystemExit(f"bench/patrol_laps.py: {args.run} is not a recurrence task's run")
