@@ -294,6 +294,17 @@ def test_a_patrol_on_one_layout_keeps_the_policy_that_visits_most(tmp_path, caps
     assert main(["eval", str(out), "--episodes", "2"]) == 0
     res = json.loads(next(out.glob("eval-paper-*-best.json")).read_text())
     assert res["policy"] == f"best on validation (after {val['best']['episodes']} episodes)"
+    # interrupted and resumed, the run validates the same policies and keeps the same one
+    from d2spo.run import load_run_config
+    from d2spo.train import train
+
+    cut = tmp_path / "cut"
+    assert train(load_run_config(out), cut, stop_after_chunks=2) is None
+    before = json.loads((cut / "checkpoint.json").read_text())["meta"]["validation"]
+    assert 0 < len(before) < len(history)  # validated before the cut, and after it
+    resumed = train(load_run_config(out), cut, resume=True)
+    assert resumed["validation"] == {**val, "seconds": resumed["validation"]["seconds"]}
+    assert (cut / "policy-best.msgpack").read_bytes() == (out / "policy-best.msgpack").read_bytes()
     # a co-safe task keeps its last policy, as does a patrol with --patrol-validation 0
     from d2spo.config import TrainConfig
     from d2spo.record import PatrolValidation, validation_for
