@@ -167,6 +167,12 @@ def test_the_smoothness_term_penalises_the_proposals_change_to_the_next_observat
     grad = jax.grad(lambda p: td3_actor_loss(p, critic, obs, actor_apply, critic_apply, next_obs=nxt,
                                              smoothness=3.0)[0])(0.5)
     assert float(grad) == pytest.approx(np.mean(-s + 3.0 * 2 * 0.5 * (s2 - s) ** 2))
+    # ``smoothness_dims``: only those action dimensions count (2-D actions pi(s) = p s)
+    obs2, nxt2 = jnp.array([[1.0, 1.0]]), jnp.array([[2.0, 3.0]])  # changes p * [1, 2]
+    both = td3_actor_loss(1.0, critic, obs2, actor_apply, critic_apply, next_obs=nxt2, smoothness=1.0)[1]
+    turn = td3_actor_loss(1.0, critic, obs2, actor_apply, critic_apply, next_obs=nxt2, smoothness=1.0,
+                          smoothness_dims=(1,))[1]
+    assert float(both["values/actor_jerk"]) == 5.0 and float(turn["values/actor_jerk"]) == 4.0
 
 
 def test_target_smoothing_stays_in_the_actors_box():

@@ -99,3 +99,7 @@ def test_td3_lag_refuses_the_smoothness_term_its_actor_loss_lacks(capsys):
     assert len(err) == 1 and "td3_lag.td3.smoothness" in err[0]
     with pytest.raises(ConfigError, match="smoothness"):
         TD3Config(smoothness=-1.0)
+    for dims in ((2,), (), (1, 1)):
+        with pytest.raises(ConfigError, match="smoothness_dims"):
+            TD3Config(smoothness_dims=dims)
+    assert TD3Config(smoothness_dims=(1,)).smoothness_dims == (1,)

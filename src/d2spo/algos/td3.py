@@ -26,6 +26,7 @@ from d2spo.algos.base import AnnealSchedule, ChunkLog, episode_log, params_finit
 from d2spo.algos.common.networks import DeterministicActor, TwinQ, init_params
 from d2spo.algos.common.td3_losses import soft_update, td3_actor_loss, td3_critic_loss
 from d2spo.algos.offpolicy import explore_and_store
+from d2spo.errors import ConfigError
 from d2spo.fields import check_choice, check_fields
 from d2spo.ltl.anneal import AnnealConfig
 from d2spo.replay import ReplayBuffer, Transition
@@ -80,6 +81,9 @@ class TD3Config:
     """Weight of a temporal smoothness term in the actor's loss, ``smoothness * ||pi(s') - pi(s)||²``
     over the replay batch's consecutive observations (CAPS' temporal term, squared;
     ``td3_actor_loss``): proposals that change less from step to step; 0: none (the default)."""
+    smoothness_dims: tuple[int, ...] | None = None
+    """The action dimensions the smoothness term covers (0: the linear speed, 1: the turn rate); None:
+    both. ``1`` smooths the steering and leaves a patrol free to flip from forwards to astern."""
     exploration_noise_space: str = "action"
     """Where the exploration noise is added: "action" (TD3's: clip(pi(s) + N(0, noise^2)), which
     slows an actor at full speed on average, by 0.4 noise) or "pre-tanh" (to the actor's output
@@ -105,11 +109,15 @@ class TD3Config:
         return DEFAULT_WIDTHS if self.hidden is None else self.hidden
 
     def __post_init__(self) -> None:
-        check_fields(self, "td3", nullable=("hidden", "forward_only", "exploration_noise_final"), widths=("hidden",), lr=("actor_lr", "critic_lr"), discount=("gamma",),
+        check_fields(self, "td3", nullable=("hidden", "forward_only", "exploration_noise_final", "smoothness_dims"), widths=("hidden",), lr=("actor_lr", "critic_lr"), discount=("gamma",),
                      rate=("tau",), non_negative=("policy_noise", "noise_clip", "exploration_noise", "exploration_noise_final",
                                                 "smoothness"),
                      count=("policy_delay", "batch_size", "buffer_size", "updates_per_step"),
                      natural=("learning_starts",), flag=("critic_layer_norm", "forward_only"))
+        dims = self.smoothness_dims
+        if dims is not None and (not dims or len(set(dims)) != len(dims) or any(d not in (0, 1) for d in dims)):
+            raise ConfigError("td3.smoothness_dims", f"distinct action dimensions among 0 (linear speed) and 1 "
+                              f"(turn rate), got {dims!r}")
         check_choice(self, "exploration_noise_space", NOISE_SPACES, "td3")
 
 
@@ -193,7 +201,7 @@ def td3_update(nets: TD3Nets, agent: TD3Agent, batch: Transition, key: jax.Array
     def actor_step(_):
         (_, a_metrics), a_grads = jax.value_and_grad(td3_actor_loss, has_aux=True)(
             agent.actor, critic, batch.obs, actor_apply, critic_apply, None, execute_fn, proposal_weight,
-            batch.next_obs, cfg.smoothness)
+            batch.next_obs, cfg.smoothness, cfg.smoothness_dims)
         a_upd, actor_opt = nets.actor_tx.update(a_grads, agent.actor_opt, agent.actor)
         actor = optax.apply_updates(agent.actor, a_upd)
         return (actor, actor_opt, soft_update(agent.actor_target, actor, cfg.tau),

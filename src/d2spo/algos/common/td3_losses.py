@@ -144,6 +144,7 @@ def td3_actor_loss(
     proposal_weight: float = 0.0,
     next_obs: jax.Array | None = None,
     smoothness: float = 0.0,
+    smoothness_dims: tuple[int, ...] | None = None,
 ) -> tuple[jax.Array, dict[str, jax.Array]]:
     """Deterministic policy gradient: mean(-Q1(s, a) + penalty_fn(s, a)), a = pi(s).
 
@@ -157,7 +158,8 @@ def td3_actor_loss(
 
     ``smoothness * ||pi(s') - pi(s)||²`` over the batch's consecutive observations (``next_obs``)
     asks for proposals that change little from one step to the next: the temporal term of CAPS
-    (Mysore et al., ICRA 2021), squared. Off (0) by default.
+    (Mysore et al., ICRA 2021), squared; ``smoothness_dims`` limits it to those action
+    dimensions (None: all). Off (0) by default.
     """
     proposal = actor_apply(actor_params, obs)
     action = proposal if execute_fn is None else execute_fn(obs, proposal)
@@ -169,7 +171,10 @@ def td3_actor_loss(
         per_sample = per_sample + proposal_weight * override
         metrics["values/actor_override"] = jnp.mean(override)
     if smoothness > 0:
-        jerk = jnp.sum((actor_apply(actor_params, next_obs) - proposal) ** 2, axis=-1)
+        change = actor_apply(actor_params, next_obs) - proposal
+        if smoothness_dims is not None:
+            change = change[..., list(smoothness_dims)]
+        jerk = jnp.sum(change**2, axis=-1)
         per_sample = per_sample + smoothness * jerk
         metrics["values/actor_jerk"] = jnp.mean(jerk)
     if penalty_fn is not None:
