@@ -56,13 +56,17 @@ def run_one(task: str, metric: str, episodes: int, seed: int, layout: str, out: 
 def row(task: str, metric: str, result: dict | str) -> str:
     if isinstance(result, str):
         return f"| `{task}` | {metric} | refused before training: {result} | | | | |"
-    ev = result.get("eval", {})
-    evtext = f"{100 * ev['safety_rate']:.0f} / {100 * ev['completion_rate']:.0f}" if ev else "-"
+    ev = result.get("eval_best") or result.get("eval", {})  # a patrol's kept policy where it has one
+    evtext = "-"
+    if ev and result.get("visit_fraction") is not None:  # a recurrence: its visits, not a completion
+        evtext = f"{100 * ev['safety_rate']:.0f} / {ev['accepting_visits_per_episode']:.2f} visits"
+    elif ev:
+        evtext = f"{100 * ev['safety_rate']:.0f} / {100 * ev['completion_rate']:.0f}"
     visits = "-"
     if result.get("accepting_visits_per_episode") is not None:
         visits = f"{result['accepting_visits_per_episode']:.2f}"
         if result.get("visit_fraction") is not None:
-            visits += f" of {result['route_optimal_visits']} ({100 * result['visit_fraction']:.0f}%)"
+            visits += f" of {result['route_optimal_visits']} ({100 * result['visit_fraction']:.1f}%)"
     return (f"| `{task}` | {metric} | {100 * result['safety_rate']:.2f} | {100 * result['completion_rate']:.2f} | "
             f"{visits} | {evtext} | {result['wall_seconds']:.0f} s |")
 
@@ -86,7 +90,8 @@ def main() -> None:
     args = ap.parse_args()
     tasks = args.tasks or list(BUCHI_SUITE if args.suite == "buchi" else SUITE)
     lines = ["| task | shaping metric | safety, last window (%) | completion, last window (%) | "
-             "visits/episode, last window (of the route-optimal) | eval safety / completion (%) | wall time |",
+             "visits/episode, last window (of the route-optimal) | eval safety (%) / completion (%) or visits "
+             "(the kept policy, where validated) | wall time |",
              "|---|---|---:|---:|---:|---:|---:|"]
     for task in tasks:
         for metric in args.metrics:
@@ -100,7 +105,8 @@ def main() -> None:
         f"`bench/task_suite.py --suite {args.suite} --episodes {args.episodes} --seed {args.seed} "
         f"--layout {args.layout}{' --fast' if args.fast else ''}`: one run per "
         f"task and shaping metric, defaults otherwise; \"last window\" is the last {window} training episodes, "
-        f"eval {args.eval_episodes} deterministic episodes. Machine: {args.machine}.\n",
+        f"eval {args.eval_episodes} deterministic episodes (of a patrol's kept policy, `--patrol-validation`). "
+        f"Machine: {args.machine}.\n",
         *lines, ""])
     print(section)
     if args.results != "-":
