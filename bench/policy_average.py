@@ -3,7 +3,7 @@
     .venv/bin/python bench/policy_average.py --run RUN [--windows 500 1000] [--out FILE]
 
 RUN is a ``d2spo train --generalist`` directory trained with ``--snapshots`` (policy-N.msgpack after
-N episodes). Every snapshot is scored by the run's own validation (``record.Validation``: the same
+N episodes). Every snapshot is scored by the run's own validation (``validation.Validation``: the same
 held-out layouts, tasks and episodes as in training), and so is the mean of the snapshots of the
 last W episodes, for each W of ``--windows`` (every floating-point parameter averaged: the TD3
 actor, π_Ω, the barrier and the nominal model alike; integer leaves from the newest snapshot).
@@ -51,8 +51,8 @@ def main(argv: list[str] | None = None) -> None:
 
     from flax import serialization
 
-    from d2spo.record import Validation
     from d2spo.run import best_policy_path, build, load_run_config, load_snapshot
+    from d2spo.validation import Validation
 
     cfg = load_run_config(args.run)
     found = snapshots(args.run)

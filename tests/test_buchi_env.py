@@ -307,8 +307,8 @@ def test_a_patrol_on_one_layout_keeps_the_policy_that_visits_most(tmp_path, caps
     assert (cut / "policy-best.msgpack").read_bytes() == (out / "policy-best.msgpack").read_bytes()
     # a co-safe task keeps its last policy, as does a patrol with --patrol-validation 0
     from d2spo.config import TrainConfig
-    from d2spo.record import PatrolValidation, validation_for
     from d2spo.run import build
+    from d2spo.validation import PatrolValidation, validation_for
 
     for task, n, kind in ((PATROL, 3, PatrolValidation), (NEVER, 3, type(None)), (PATROL, 0, type(None))):
         cfg = TrainConfig(algo="tlgrl", task=task, patrol_validation=n, env=EnvConfig(layout="paper", max_steps=300))
@@ -319,8 +319,8 @@ def test_a_patrols_validation_scores_visits_against_the_layouts_optimum():
     """An episode scores its visits over the layout's route-optimal count, at most 1, and 0 when it
     collided."""
     from d2spo.config import TrainConfig
-    from d2spo.record import PatrolValidation
     from d2spo.run import build
+    from d2spo.validation import PatrolValidation
 
     cfg = TrainConfig(algo="tlgrl", task=PATROL, patrol_validation=4, env=EnvConfig(layout="paper", max_steps=600))
     env, params, learner = build(cfg)

@@ -322,7 +322,7 @@ def test_validation_keeps_the_latest_best_policy_and_a_resume_keeps_it(tmp_path)
 
 
 def test_validation_prefers_success_then_speed_then_the_later_policy():
-    from d2spo.record import better_validation
+    from d2spo.validation import better_validation
 
     def v(success, steps="absent"):
         return {"success_rate": success} if steps == "absent" else {"success_rate": success, "mean_steps_success": steps}

@@ -198,7 +198,7 @@ def test_eval_runs_the_validated_policy_unless_the_last_is_asked_for(gen_run, tm
 def test_the_validation_layouts_are_held_out():
     from d2spo.config import VALIDATION_SEED
     from d2spo.envs import generator
-    from d2spo.record import Validation
+    from d2spo.validation import Validation
 
     # a mixture of two tasks (phi1 and one random): 4 slots to solve, not 2 x 17 (12 s of the test)
     cfg = dataclasses.replace(_cfg(), validation_layouts=2, validation_episodes=4, generalist_tasks=1)
@@ -303,7 +303,7 @@ def test_the_validation_scores_a_patrol_by_its_visits_against_the_slots_optimum(
     from d2spo.envs.layouts import load
     from d2spo.ltl import task_automaton
     from d2spo.ltl.tasks import patrol_tasks
-    from d2spo.record import Validation
+    from d2spo.validation import Validation
 
     cfg = dataclasses.replace(_cfg(), generalist_tasks=0, generalist_patrols=1, validation_layouts=1,
                               validation_episodes=4, generalist_world="random")

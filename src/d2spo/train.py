@@ -24,7 +24,7 @@ from d2spo.algos.generalist import Redraw
 from d2spo.checkpoint import Checkpoints, fingerprint, has_checkpoint, run_fingerprint
 from d2spo.config import TrainConfig, config_to_dict
 from d2spo.errors import ConfigError, RunDirWarning
-from d2spo.record import ProgressFn, RunRecord, validation_for
+from d2spo.record import ProgressFn, RunRecord
 from d2spo.rollout import acting_on
 from d2spo.run import (
     RESUME_REMEDY,
@@ -36,6 +36,7 @@ from d2spo.run import (
     prepare_dir,
 )
 from d2spo.runio import RunLock, read_json, remove_tmp_files
+from d2spo.validation import validation_for
 from d2spo.wandb_log import require_wandb, wandb_run
 
 
