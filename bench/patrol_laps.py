@@ -4,8 +4,8 @@
         [--policy last|best]
 
 RUN is a finished `d2spo train` of a recurrence task (``patrol2``, ...) on one layout. Its last
-policy (``--policy best``: its validated one, ``--patrol-validation``) drives ``--episodes`` deterministic episodes (π_Ω, and the runtime filter as trained), and
-the script prints:
+policy (``--policy best``: its validated one, ``--patrol-validation``) drives ``--episodes``
+deterministic episodes (π_Ω, and the runtime filter as trained), and the script prints:
 
 * the accepting visits of each episode, and the steps at which episode 0 made them (its laps in
   steps and metres);

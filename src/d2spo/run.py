@@ -233,9 +233,10 @@ def load_snapshot(run_dir: Path, episodes: int, learner, key: jax.Array | None =
 
 
 def _shared_best(run_dir: Path) -> dict | None:
-    """The meta of a finished run's validated policy (a generalist's, a patrol's) read from summary.json, for a run
-    directory that holds config.json, summary.json and the policy but no checkpoint (none was
-    written, or it was left behind to share the run); None if any of them is missing."""
+    """The meta of a finished run's validated policy (a generalist's, a patrol's) read from
+    summary.json, for a run directory that holds config.json, summary.json and the policy but no
+    checkpoint (none was written, or it was left behind to share the run); None if any of them is
+    missing."""
     summary = Path(run_dir) / "summary.json"
     if not (summary.is_file() and best_policy_path(run_dir).is_file()):
         return None
@@ -255,8 +256,8 @@ POLICY_CHOICES = ("best", "last")
 def load_policy(run_dir: Path, which: str = "best", learner=None):
     """(cfg, learner, policy, meta) of a finished or checkpointed run. ``which``: "best" is a
     validated run's kept policy (a generalist's, ``TrainConfig.validation_layouts``; a patrol's on one
-    layout, ``TrainConfig.patrol_validation``) where there is one, else
-    the last; "last" is the newest checkpoint's. ``meta["policy"]`` says which was taken.
+    layout, ``TrainConfig.patrol_validation``) where there is one, else the last; "last" is the
+    newest checkpoint's. ``meta["policy"]`` says which was taken.
     ``learner``: one already built with this run's array shapes (an evaluation's, elsewhere); by
     default one is built from config.json."""
     if which not in POLICY_CHOICES:
