@@ -147,10 +147,29 @@ def test_an_episode_too_short_for_one_visit_is_refused_before_training():
         preflight(env, params, repr(PATROL))
     env, params = make_env(EnvConfig(), PATROL)
     preflight(env, params, repr(PATROL))  # the step limit that follows the task fits a visit
-    # ... room for three visits (the first and two laps) at half speed, in steps of 50
+    # ... 1000 steps (ZoneEnv's episodes) where the route rule gives less ...
+    assert int(params.max_steps) == EnvConfig().recurrence_max_steps == 1000
+    # ... the route rule: room for three visits (the first and two laps) at half speed, in steps of 50
+    env, rule = make_env(EnvConfig(recurrence_max_steps=0), PATROL)
     three = env.task.visits_length(3) / (0.1 * 0.95)
-    assert 2 * three <= int(params.max_steps) < 2 * three + 50
-    assert env.task.optimal_visits(int(params.max_steps), 0.1, 0.95) >= 5
+    assert 2 * three <= int(rule.max_steps) < 2 * three + 50 and int(rule.max_steps) < 1000
+    assert env.task.optimal_visits(int(rule.max_steps), 0.1, 0.95) >= 5
+    # ... which wins where it gives more: at a tenth of the speed three visits need over 1000 steps
+    slow, long = make_env(EnvConfig(v_max=0.1), PATROL)
+    need = slow.task.visits_length(3) / (0.1 * 0.1 * 0.95)
+    assert 2 * need <= int(long.max_steps) < 2 * need + 50 and int(long.max_steps) > 1000
+    # ... a task that completes keeps the base, and an explicit limit is taken as given
+    assert int(make_env(EnvConfig(), NEVER)[1].max_steps) == EnvConfig().base_max_steps
+    assert int(make_env(EnvConfig(max_steps=700), PATROL)[1].max_steps) == 700
+    # ... a config.json written before the field (a patrol trained over the rule's 600) keeps the rule
+    from d2spo.config import TrainConfig, config_from_dict, config_to_dict
+
+    data = config_to_dict(TrainConfig(task=PATROL))
+    del data["env"]["recurrence_max_steps"]
+    old = config_from_dict(data).env
+    assert old.recurrence_max_steps == 0 and int(make_env(old, PATROL)[1].max_steps) == int(rule.max_steps)
+    with pytest.raises(ConfigError, match="recurrence_max_steps"):
+        EnvConfig(recurrence_max_steps=-1)
 
 
 def test_a_formula_without_a_dba_is_refused_in_one_line_at_the_cli(capsys):

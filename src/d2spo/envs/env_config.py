@@ -26,6 +26,9 @@ class EnvConfig:
     """Episode step limit (truncation). None: base_max_steps, or more for a long route (docs/ltl.md)."""
     base_max_steps: int = 300
     """Step limit of an unset max_steps when the task's shortest route needs at most 60% of it."""
+    recurrence_max_steps: int = 1000
+    """Least step limit of an unset max_steps for a recurrence (scored by accepting visits per
+    episode): 1000, ZoneEnv's and DeepLTL's episodes; 0: the route rule alone (docs/ltl.md)."""
     n_rays: int = 16
     """Lidar rays K, evenly spaced, ray 0 straight ahead."""
     label_mode: str = "event"
@@ -93,7 +96,7 @@ class EnvConfig:
                      positive=("dt", "v_max", "omega_max", "robot_radius", "sensing_radius", "layout_scale",
                                "v_gain", "omega_gain", "label_radius"),
                      non_negative=("actuator_tau", "noise_xy", "noise_theta", "start_jitter_xy", "start_jitter_theta"),
-                     count=("max_steps", "base_max_steps", "n_rays"), flag=("collision_terminates", "observe_path", "reverse"))
+                     count=("max_steps", "base_max_steps", "n_rays"), natural=("recurrence_max_steps",), flag=("collision_terminates", "observe_path", "reverse"))
         if self.slip is not None and not (isinstance(self.slip, (int, float)) and 0 <= self.slip < 1):
             raise ConfigError("slip", f"must be in [0, 1), got {self.slip!r}")
         check_choice(self, "label_mode", LABEL_MODES)

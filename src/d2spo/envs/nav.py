@@ -354,7 +354,8 @@ def make_env(cfg: EnvConfig, task: Any = "phi1") -> tuple[Env, EnvParams]:
     max_steps = cfg.max_steps
     if max_steps is None:
         max_steps = cfg.base_max_steps if compiled.distance is None else preflight.default_max_steps(
-            compiled, cfg.dt, cfg.v_max * cfg.v_gain, cfg.base_max_steps)  # an automaton given by arrays(): no routes
+            compiled, cfg.dt, cfg.v_max * cfg.v_gain, cfg.base_max_steps,
+            cfg.recurrence_max_steps)  # an automaton given by arrays(): no routes
     if per_state:
         preflight.check_feasible(compiled, repr(name))
     env = Env(cfg, automaton, compiled.n_states, len(layout.obstacles), len(layout.areas), compiled)

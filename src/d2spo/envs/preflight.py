@@ -103,17 +103,18 @@ def check_margin(task: CompiledTask, margin: float, name: str) -> None:
                       stacklevel=3)
 
 
-def default_max_steps(task: CompiledTask, dt: float, v_max: float, base: int) -> int:
+def default_max_steps(task: CompiledTask, dt: float, v_max: float, base: int, recurrence_floor: int = 0) -> int:
     """The step limit of ``EnvConfig.max_steps=None``: ``base`` (``EnvConfig.base_max_steps``), or,
     when the task's shortest route at ``v_max`` needs more than ``TIGHT_FRACTION`` of those steps,
     ``ROOM`` times the route's steps rounded up to a multiple of 50 (then over ``base``). ``base``
     too when no route exists (``check_time`` then says so). A recurrence's route is the shortest
-    that makes ``RECURRENCE_VISITS`` accepting visits."""
+    that makes ``RECURRENCE_VISITS`` accepting visits, and its limit is at least
+    ``recurrence_floor`` (``EnvConfig.recurrence_max_steps``): it never completes, so the limit is
+    the window its visits are counted over."""
     length = task.visits_length(RECURRENCE_VISITS) if task.recurrence else task.route_length
     need = length / (v_max * dt)
-    if not math.isfinite(need) or need <= TIGHT_FRACTION * base:
-        return int(base)
-    return int(50 * math.ceil(ROOM * need / 50))
+    steps = int(base) if not math.isfinite(need) or need <= TIGHT_FRACTION * base else int(50 * math.ceil(ROOM * need / 50))
+    return max(steps, int(recurrence_floor)) if task.recurrence else steps
 
 
 def check_time(task: CompiledTask, max_steps: int, dt: float, v_max: float, name: str) -> None:
