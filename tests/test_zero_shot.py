@@ -17,6 +17,7 @@ from d2spo.algos.generalist import build_generalist
 from d2spo.config import TrainConfig
 from d2spo.envs import EnvConfig, generator, layouts
 from d2spo.envs.generalist import view
+from d2spo.envs.task_plan import slot_max_steps
 from d2spo.errors import ConfigError
 from d2spo.zero_shot import generalist_layout, task_tag
 
@@ -245,6 +246,8 @@ def test_a_zero_shot_patrol_is_scored_against_each_layouts_route_optimal_visits(
     task = compile_task(task_automaton(task_formula("patrol2")), checked[0], "event", env_cfg.robot_radius)
     best = task.optimal_visits(res["max_steps"], env_cfg.dt, env_cfg.v_max * env_cfg.v_gain)
     assert lay["route_optimal_visits"] == best >= 2 and lay["visit_fraction"] == 0.0 == res["visit_fraction"]
+    # the episodes of a recurrence are at least --recurrence-max-steps long, as a specialist's are
+    assert res["max_steps"] == max(slot_max_steps(checked[0]), EnvConfig().recurrence_max_steps) == 1000
     # the table's row gives the visits against the layout's optimum, not a completion rate of 0
     assert "visits / optimum" in out and f"0.00 of {best} (0.0%)" in out and "completion_rate" not in out
 
