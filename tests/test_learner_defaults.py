@@ -82,6 +82,29 @@ def test_the_exploration_noise_is_constant_unless_a_final_value_is_given():
         TD3Config(exploration_noise_final=-0.1)
 
 
+def test_a_patrol_on_one_layout_anneals_its_exploration_noise_unless_told_otherwise():
+    """``td3.recurrence_noise_final``: a recurrence trained on one layout (td3, tlgrl, d2spo, sl) takes
+    it as its ``exploration_noise_final`` when that is None; a task that completes keeps the constant
+    noise (its learner's config is the very object, so its program is traced as before); an explicit
+    final value, or None, wins; a config.json written before the field keeps the constant noise."""
+    from d2spo.run import build
+
+    assert TD3Config().recurrence_noise_final == 0.05
+    assert TD3Config().for_task(False) == TD3Config() and TD3Config().for_task(True).exploration_noise_final == 0.05
+    assert TD3Config(exploration_noise_final=0.1).for_task(True).exploration_noise_final == 0.1
+    assert TD3Config(recurrence_noise_final=None).for_task(True).exploration_noise_final is None
+    small = dict(episodes=8, num_envs=2, td3=TD3Config(hidden=(8, 8), batch_size=8))
+    for algo in ("tlgrl", "d2spo"):
+        patrol = TrainConfig(algo=algo, task="G F A1 & G F A3 & G !A4", **small).check()
+        assert build(patrol)[2].cfg.exploration_noise_final == 0.05, algo
+        phi1 = TrainConfig(algo=algo, task="phi1", **small).check()
+        assert build(phi1)[2].cfg is phi1.td3, algo
+    d = config_to_dict(patrol)
+    del d["td3"]["recurrence_noise_final"]
+    assert config_from_dict(d).td3.recurrence_noise_final is None
+    assert TrainConfig(algo="td3-lag").td3_lag.td3.recurrence_noise_final is None  # it anneals nothing
+
+
 def test_td3_lag_refuses_an_annealed_exploration_noise(capsys):
     """Its loop's behaviour hook sees no episode count: one line, exit 2, not a constant noise in silence."""
     with pytest.raises(SystemExit) as e:  # refused while the flags are parsed

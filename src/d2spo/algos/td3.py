@@ -13,7 +13,7 @@ off-policy learner shares, ``offpolicy.explore_and_store``), then
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import jax
@@ -63,7 +63,12 @@ class TD3Config:
     """Gaussian exploration noise std (action units)."""
     exploration_noise_final: float | None = None
     """When set, the exploration noise falls linearly from ``exploration_noise`` to this over the
-    run's episodes (``noise_at``), so the last episodes act near the greedy policy; None: constant."""
+    run's episodes (``noise_at``), so the last episodes act near the greedy policy; None: constant,
+    or ``recurrence_noise_final`` for a recurrence on one layout."""
+    recurrence_noise_final: float | None = 0.05
+    """``exploration_noise_final`` of a recurrence (a patrol) trained on one layout when that is None
+    (``for_task``): its training episodes are scored by their visits, and the noise costs them whole
+    laps (docs/ltl.md); None: constant noise for every task."""
     batch_size: int = 128
     """Minibatch size of each update."""
     buffer_size: int = 300_000
@@ -103,15 +108,24 @@ class TD3Config:
         done = jnp.minimum(1.0, episodes.astype(jnp.float32) / max(1, total_episodes))
         return self.exploration_noise + (self.exploration_noise_final - self.exploration_noise) * done
 
+    def for_task(self, recurrence: bool) -> TD3Config:
+        """This config as a run on one layout uses it: with ``recurrence`` (the task is a patrol) and
+        ``exploration_noise_final`` None, the noise falls to ``recurrence_noise_final``."""
+        if recurrence and self.exploration_noise_final is None and self.recurrence_noise_final is not None:
+            return replace(self, exploration_noise_final=self.recurrence_noise_final)
+        return self
+
     @property
     def widths(self) -> tuple[int, ...]:
         """The hidden widths in use: ``hidden``, or ``DEFAULT_WIDTHS`` when it is None."""
         return DEFAULT_WIDTHS if self.hidden is None else self.hidden
 
     def __post_init__(self) -> None:
-        check_fields(self, "td3", nullable=("hidden", "forward_only", "exploration_noise_final", "smoothness_dims"), widths=("hidden",), lr=("actor_lr", "critic_lr"), discount=("gamma",),
+        check_fields(self, "td3", nullable=("hidden", "forward_only", "exploration_noise_final", "smoothness_dims",
+                                            "recurrence_noise_final"),
+                     widths=("hidden",), lr=("actor_lr", "critic_lr"), discount=("gamma",),
                      rate=("tau",), non_negative=("policy_noise", "noise_clip", "exploration_noise", "exploration_noise_final",
-                                                "smoothness"),
+                                                "recurrence_noise_final", "smoothness"),
                      count=("policy_delay", "batch_size", "buffer_size", "updates_per_step"),
                      natural=("learning_starts",), flag=("critic_layer_norm", "forward_only"))
         dims = self.smoothness_dims

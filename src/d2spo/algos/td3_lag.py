@@ -37,8 +37,9 @@ from d2spo.ltl.anneal import AnnealConfig
 class TD3LagConfig:
     """TD3-Lagrangian: the TD3 core, a cost critic ensemble and the Lagrange multiplier."""
 
-    td3: TD3Config = field(default_factory=lambda: TD3Config(hidden=(128, 128), batch_size=128))
-    """The TD3 core (TD3Config's defaults)."""
+    td3: TD3Config = field(default_factory=lambda: TD3Config(hidden=(128, 128), batch_size=128,
+                                                             recurrence_noise_final=None))
+    """The TD3 core (TD3Config's defaults; constant exploration noise, a patrol's too)."""
     cost_critics: int = 2
     """Cost critics in the ensemble (twin by default)."""
     cost_reduce: str = "max"
