@@ -62,13 +62,13 @@ class TD3Config:
     exploration_noise: float = 0.2
     """Gaussian exploration noise std (action units)."""
     exploration_noise_final: float | None = None
-    """When set, the exploration noise falls linearly from ``exploration_noise`` to this over the
-    run's episodes (``noise_at``), so the last episodes act near the greedy policy; None: constant,
-    or ``recurrence_noise_final`` for a recurrence on one layout."""
+    """When set, the exploration noise falls linearly from exploration_noise to this over the run's
+    episodes, so the last episodes act near the greedy policy; None: constant (a patrol on one
+    layout: recurrence_noise_final)."""
     recurrence_noise_final: float | None = 0.05
-    """``exploration_noise_final`` of a recurrence (a patrol) trained on one layout when that is None
-    (``for_task``): its training episodes are scored by their visits, and the noise costs them whole
-    laps (docs/ltl.md); None: constant noise for every task."""
+    """The exploration_noise_final of a recurrence (a patrol) trained on one layout when that is
+    None: its training episodes are scored by their visits, and the noise costs them whole laps
+    (docs/ltl.md); None: constant noise for every task."""
     batch_size: int = 128
     """Minibatch size of each update."""
     buffer_size: int = 300_000
