@@ -96,7 +96,8 @@ class EnvConfig:
                      positive=("dt", "v_max", "omega_max", "robot_radius", "sensing_radius", "layout_scale",
                                "v_gain", "omega_gain", "label_radius"),
                      non_negative=("actuator_tau", "noise_xy", "noise_theta", "start_jitter_xy", "start_jitter_theta"),
-                     count=("max_steps", "base_max_steps", "n_rays"), natural=("recurrence_max_steps",), flag=("collision_terminates", "observe_path", "reverse"))
+                     count=("max_steps", "base_max_steps", "n_rays"), natural=("recurrence_max_steps",),
+                     flag=("collision_terminates", "observe_path", "reverse"))
         if self.slip is not None and not (isinstance(self.slip, (int, float)) and 0 <= self.slip < 1):
             raise ConfigError("slip", f"must be in [0, 1), got {self.slip!r}")
         check_choice(self, "label_mode", LABEL_MODES)

@@ -113,7 +113,10 @@ def default_max_steps(task: CompiledTask, dt: float, v_max: float, base: int, re
     the window its visits are counted over."""
     length = task.visits_length(RECURRENCE_VISITS) if task.recurrence else task.route_length
     need = length / (v_max * dt)
-    steps = int(base) if not math.isfinite(need) or need <= TIGHT_FRACTION * base else int(50 * math.ceil(ROOM * need / 50))
+    if not math.isfinite(need) or need <= TIGHT_FRACTION * base:
+        steps = int(base)
+    else:
+        steps = int(50 * math.ceil(ROOM * need / 50))
     return max(steps, int(recurrence_floor)) if task.recurrence else steps
 
 
