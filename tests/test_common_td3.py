@@ -182,3 +182,33 @@ def test_target_smoothing_stays_in_the_actors_box():
     assert float(jnp.min(a)) == 0.0 and float(jnp.max(a)) > 0.0
     b = target_policy_action(jax.random.PRNGKey(3), 1.0, obs, actor_apply, 0.3, 0.5)
     assert float(jnp.min(b)) < -0.3
+
+
+def test_the_saturation_term_pulls_a_pinned_actor_back_to_where_the_tanh_has_a_slope():
+    """``saturation * ||max(|z| - bound, 0)||²`` on the actor's output z before its tanh: 0 when off or
+    within the bound; beyond it, its gradient moves z back even when the critic is flat."""
+    from d2spo.algos.common.networks import DeterministicActor
+
+    actor = DeterministicActor(2, (8,))
+    params = actor.init(jax.random.PRNGKey(0), jnp.zeros((1, 3)))
+    obs = jax.random.normal(jax.random.PRNGKey(1), (5, 3))
+    bias = params["params"]["MLP_0"]["Dense_1"]["bias"]
+    pinned = jax.tree_util.tree_map(lambda x: x, params)
+    pinned["params"]["MLP_0"]["Dense_1"]["bias"] = bias + jnp.array([-9.0, 0.0])  # speed at -1, turn free
+    z = actor.apply(pinned, obs, pre_tanh=True)
+    np.testing.assert_allclose(np.tanh(np.asarray(z)), np.asarray(actor.apply(pinned, obs)), rtol=1e-6)
+    flat = lambda c, s, a: jnp.zeros((2, a.shape[0]))  # Q1 = Q2 = 0: no gradient from the critic
+    plain, m_plain = td3_actor_loss(pinned, None, obs, actor.apply, flat)
+    off, m_off = td3_actor_loss(pinned, None, obs, actor.apply, flat, saturation=0.0)
+    assert float(off) == float(plain) == 0.0 and "values/actor_saturation" not in m_off
+    loss, m = td3_actor_loss(pinned, None, obs, actor.apply, flat, saturation=2.0, saturation_bound=2.5)
+    excess = np.maximum(np.abs(np.asarray(z)) - 2.5, 0.0)
+    assert excess[:, 0].min() > 0  # every sample's speed is beyond the bound
+    assert float(m["values/actor_saturation"]) == pytest.approx(np.mean(np.sum(excess**2, axis=-1)), rel=1e-5)
+    assert float(loss) == pytest.approx(2.0 * np.mean(np.sum(excess**2, axis=-1)), rel=1e-5)
+    grad = jax.grad(lambda p: td3_actor_loss(p, None, obs, actor.apply, flat, saturation=2.0)[0])(pinned)
+    g_bias = np.asarray(grad["params"]["MLP_0"]["Dense_1"]["bias"])
+    assert g_bias[0] < 0  # descending the loss raises the speed's z from -9 toward -2.5
+    # within the bound the term is exactly 0
+    inside, m_in = td3_actor_loss(params, None, obs, actor.apply, flat, saturation=2.0, saturation_bound=50.0)
+    assert float(inside) == 0.0 and float(m_in["values/actor_saturation"]) == 0.0

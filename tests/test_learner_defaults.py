@@ -126,3 +126,16 @@ def test_td3_lag_refuses_the_smoothness_term_its_actor_loss_lacks(capsys):
         with pytest.raises(ConfigError, match="smoothness_dims"):
             TD3Config(smoothness_dims=dims)
     assert TD3Config(smoothness_dims=(1,)).smoothness_dims == (1,)
+
+
+def test_td3_lag_refuses_the_saturation_term_its_actor_loss_lacks(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["train", "--algo", "td3-lag", "--td3-lag.td3.saturation", "1", "--out", "/nonexistent/x"])
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "td3_lag.td3.saturation" in err[0]
+    with pytest.raises(ConfigError, match="saturation"):
+        TD3Config(saturation=-1.0)
+    with pytest.raises(ConfigError, match="saturation_bound"):
+        TD3Config(saturation_bound=0.0)
+    assert TD3Config().saturation == 0.0  # off by default: the actor's loss as before

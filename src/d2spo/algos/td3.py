@@ -89,6 +89,12 @@ class TD3Config:
     smoothness_dims: tuple[int, ...] | None = None
     """The action dimensions the smoothness term covers (0: the linear speed, 1: the turn rate); None:
     both. ``1`` smooths the steering and leaves a patrol free to flip from forwards to astern."""
+    saturation: float = 0.0
+    """Weight of a term in the actor's loss, ``saturation * ||max(|z| - saturation_bound, 0)||²`` with z
+    the actor's output before its tanh (``td3_actor_loss``): an actor held where the tanh still has
+    a slope can still be moved to the other side of an action's range; 0: none (the default)."""
+    saturation_bound: float = 2.5
+    """|z| beyond which the saturation term counts (tanh(2.5) = 0.987 of the bound)."""
     exploration_noise_space: str = "action"
     """Where the exploration noise is added: "action" (TD3's: clip(pi(s) + N(0, noise^2)), which
     slows an actor at full speed on average, by 0.4 noise) or "pre-tanh" (to the actor's output
@@ -124,8 +130,9 @@ class TD3Config:
         check_fields(self, "td3", nullable=("hidden", "forward_only", "exploration_noise_final", "smoothness_dims",
                                             "recurrence_noise_final"),
                      widths=("hidden",), lr=("actor_lr", "critic_lr"), discount=("gamma",),
-                     rate=("tau",), non_negative=("policy_noise", "noise_clip", "exploration_noise", "exploration_noise_final",
-                                                "recurrence_noise_final", "smoothness"),
+                     rate=("tau",), positive=("saturation_bound",),
+                     non_negative=("policy_noise", "noise_clip", "exploration_noise", "exploration_noise_final",
+                                   "recurrence_noise_final", "smoothness", "saturation"),
                      count=("policy_delay", "batch_size", "buffer_size", "updates_per_step"),
                      natural=("learning_starts",), flag=("critic_layer_norm", "forward_only"))
         dims = self.smoothness_dims
@@ -215,7 +222,7 @@ def td3_update(nets: TD3Nets, agent: TD3Agent, batch: Transition, key: jax.Array
     def actor_step(_):
         (_, a_metrics), a_grads = jax.value_and_grad(td3_actor_loss, has_aux=True)(
             agent.actor, critic, batch.obs, actor_apply, critic_apply, None, execute_fn, proposal_weight,
-            batch.next_obs, cfg.smoothness, cfg.smoothness_dims)
+            batch.next_obs, cfg.smoothness, cfg.smoothness_dims, cfg.saturation, cfg.saturation_bound)
         a_upd, actor_opt = nets.actor_tx.update(a_grads, agent.actor_opt, agent.actor)
         actor = optax.apply_updates(agent.actor, a_upd)
         return (actor, actor_opt, soft_update(agent.actor_target, actor, cfg.tau),

@@ -57,6 +57,9 @@ class TD3LagConfig:
         if self.td3.smoothness:
             raise ConfigError("td3_lag.td3.smoothness", "is for td3, tlgrl, d2spo and sl; td3-lag's actor loss "
                               "has no smoothness term")
+        if self.td3.saturation:
+            raise ConfigError("td3_lag.td3.saturation", "is for td3, tlgrl, d2spo and sl; td3-lag's actor loss "
+                              "has no saturation term")
 
 
 @struct.dataclass

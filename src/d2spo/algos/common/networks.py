@@ -63,8 +63,12 @@ class DeterministicActor(nn.Module):
     """The smallest action of each coordinate; None: -1 for all (plain tanh)."""
 
     @nn.compact
-    def __call__(self, obs: jax.Array) -> jax.Array:
-        a = jnp.tanh(MLP(self.hidden, self.action_dim, self.activation)(obs))
+    def __call__(self, obs: jax.Array, pre_tanh: bool = False) -> jax.Array:
+        """The action; with ``pre_tanh`` the MLP's output before the tanh instead (the same weights)."""
+        z = MLP(self.hidden, self.action_dim, self.activation)(obs)
+        if pre_tanh:
+            return z
+        a = jnp.tanh(z)
         if self.low is None:
             return a
         c0, c1 = self.affine()

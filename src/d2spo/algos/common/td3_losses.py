@@ -145,6 +145,8 @@ def td3_actor_loss(
     next_obs: jax.Array | None = None,
     smoothness: float = 0.0,
     smoothness_dims: tuple[int, ...] | None = None,
+    saturation: float = 0.0,
+    saturation_bound: float = 2.5,
 ) -> tuple[jax.Array, dict[str, jax.Array]]:
     """Deterministic policy gradient: mean(-Q1(s, a) + penalty_fn(s, a)), a = pi(s).
 
@@ -160,6 +162,11 @@ def td3_actor_loss(
     asks for proposals that change little from one step to the next: the temporal term of CAPS
     (Mysore et al., ICRA 2021), squared; ``smoothness_dims`` limits it to those action
     dimensions (None: all). Off (0) by default.
+
+    ``saturation * ||max(|z| - saturation_bound, 0)||²``, z the actor's output before its tanh
+    (``actor_apply(params, obs, pre_tanh=True)``), keeps z where the tanh still has a slope
+    (tanh(2.5) = 0.987): an actor pinned at an action's bound gets no gradient towards the other
+    side of the box. Off (0) by default.
     """
     proposal = actor_apply(actor_params, obs)
     action = proposal if execute_fn is None else execute_fn(obs, proposal)
@@ -177,6 +184,11 @@ def td3_actor_loss(
         jerk = jnp.sum(change**2, axis=-1)
         per_sample = per_sample + smoothness * jerk
         metrics["values/actor_jerk"] = jnp.mean(jerk)
+    if saturation > 0:
+        excess = jnp.maximum(jnp.abs(actor_apply(actor_params, obs, pre_tanh=True)) - saturation_bound, 0.0)
+        beyond = jnp.sum(excess**2, axis=-1)
+        per_sample = per_sample + saturation * beyond
+        metrics["values/actor_saturation"] = jnp.mean(beyond)
     if penalty_fn is not None:
         penalty = penalty_fn(obs, action)
         per_sample = per_sample + penalty
