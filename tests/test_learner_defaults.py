@@ -114,26 +114,22 @@ def test_td3_lag_refuses_an_annealed_exploration_noise(capsys):
     assert len(err) == 1 and "td3_lag.td3.exploration_noise_final" in err[0]
 
 
-def test_td3_lag_refuses_the_smoothness_term_its_actor_loss_lacks(capsys):
+@pytest.mark.parametrize("term", ["smoothness", "saturation"])
+def test_td3_lag_refuses_the_actor_terms_its_loss_lacks(capsys, term):
     with pytest.raises(SystemExit) as e:
-        main(["train", "--algo", "td3-lag", "--td3-lag.td3.smoothness", "1", "--out", "/nonexistent/x"])
+        main(["train", "--algo", "td3-lag", f"--td3-lag.td3.{term}", "1", "--out", "/nonexistent/x"])
     assert e.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "td3_lag.td3.smoothness" in err[0]
+    assert len(err) == 1 and f"td3_lag.td3.{term}" in err[0]
+
+
+def test_the_actor_terms_check_their_values():
     with pytest.raises(ConfigError, match="smoothness"):
         TD3Config(smoothness=-1.0)
     for dims in ((2,), (), (1, 1)):
         with pytest.raises(ConfigError, match="smoothness_dims"):
             TD3Config(smoothness_dims=dims)
     assert TD3Config(smoothness_dims=(1,)).smoothness_dims == (1,)
-
-
-def test_td3_lag_refuses_the_saturation_term_its_actor_loss_lacks(capsys):
-    with pytest.raises(SystemExit) as e:
-        main(["train", "--algo", "td3-lag", "--td3-lag.td3.saturation", "1", "--out", "/nonexistent/x"])
-    assert e.value.code == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "td3_lag.td3.saturation" in err[0]
     with pytest.raises(ConfigError, match="saturation"):
         TD3Config(saturation=-1.0)
     with pytest.raises(ConfigError, match="saturation_bound"):
