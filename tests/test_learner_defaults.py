@@ -7,7 +7,9 @@ import pytest
 from d2spo.algos.td3 import TD3Config, make_nets
 from d2spo.cli import main
 from d2spo.config import DEFAULT_SETTINGS, FAST_SETTINGS, TrainConfig, config_from_dict, config_to_dict
+from d2spo.envs import EnvConfig
 from d2spo.errors import ConfigError
+from d2spo.safety.cbf import CBFConfig
 
 
 def _speed(cfg: TrainConfig) -> dict:
@@ -135,3 +137,38 @@ def test_the_actor_terms_check_their_values():
     with pytest.raises(ConfigError, match="saturation_bound"):
         TD3Config(saturation_bound=0.0)
     assert TD3Config().saturation == 0.0  # off by default: the actor's loss as before
+
+
+def _update_steps(cfg: TrainConfig) -> tuple:
+    return cfg.cbf.nominal_updates_per_iter, cfg.cbf.updates_per_iter
+
+
+@pytest.mark.parametrize(("kw", "steps"), [
+    ({}, (5, 5)),
+    ({"algo": "sl"}, (5, 5)),
+    ({"generalist": True}, (10, 10)),
+    ({"env": EnvConfig(preset="turtlebot")}, (10, 10)),
+    ({"env": EnvConfig(preset="ideal")}, (10, 10)),
+])
+def test_update_omega_theta_is_halved_on_one_layout_with_the_default_robot_only(kw, steps):
+    """UPDATE(Ω, Θ)'s steps None: 5 and 5 where halving them was measured to hold the tables, the former
+    10 and 10 elsewhere; a value given is kept, and config.json records the resolved counts."""
+    cfg = TrainConfig(**kw)
+    assert _update_steps(cfg) == steps
+    assert _update_steps(config_from_dict(config_to_dict(cfg))) == steps
+    given = TrainConfig(**kw, cbf=CBFConfig(updates_per_iter=7))
+    assert _update_steps(given) == (steps[0], 7)
+
+
+def test_a_config_json_without_the_update_steps_reads_back_the_former_ten():
+    d = config_to_dict(TrainConfig())
+    del d["cbf"]["updates_per_iter"], d["cbf"]["nominal_updates_per_iter"]
+    assert _update_steps(config_from_dict(d)) == (10, 10)
+
+
+def test_a_cbf_config_on_its_own_takes_the_one_layout_counts():
+    assert (CBFConfig().nominal_steps, CBFConfig().eq9_steps) == (5, 5)
+    assert (CBFConfig(nominal_updates_per_iter=0, updates_per_iter=3).nominal_steps,
+            CBFConfig(updates_per_iter=3).eq9_steps) == (0, 3)
+    with pytest.raises(ConfigError, match="updates_per_iter"):
+        CBFConfig(updates_per_iter=0)

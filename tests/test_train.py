@@ -219,6 +219,29 @@ def test_effective_differences_ignore_what_the_learner_does_not_read():
     assert config_differences(dataclasses.replace(base, seed=1), base) == ["seed: 1 -> 0"]
 
 
+def test_effective_differences_ignore_the_generalists_and_the_patrols_settings_where_they_cannot_act():
+    """One layout reads no generalist setting, and a task that is no recurrence reads no patrol
+    setting; where they act (a generalist, a patrol) a change is a difference."""
+    from d2spo.algos.td3 import TD3Config
+    from d2spo.config import config_differences
+    from d2spo.envs import EnvConfig
+
+    def changed(**kw):
+        return TrainConfig(**kw, generalist_world="random", validation_layouts=3, patrol_validation=0,
+                           env=EnvConfig(distance_obs="capped", recurrence_max_steps=0),
+                           td3=TD3Config(recurrence_noise_final=None))
+
+    assert config_differences(changed(), TrainConfig()) == []
+    assert config_differences(changed(algo="td3-lag"), TrainConfig(algo="td3-lag")) == []
+    patrol = config_differences(changed(task="patrol2"), TrainConfig(task="patrol2"))
+    assert patrol == ["env.recurrence_max_steps: 0 -> 1000", "patrol_validation: 0 -> 32",
+                      "td3.recurrence_noise_final: None -> 0.05"]
+    generalist = config_differences(changed(generalist=True), TrainConfig(generalist=True))
+    assert "generalist_world: 'random' -> 'world'" in generalist and "env.distance_obs: 'capped' -> 'ratio'" in generalist
+    # a task that does not translate keeps every setting (nothing is assumed about it)
+    assert config_differences(changed(task="F ("), TrainConfig(task="F (")) != []
+
+
 
 def test_the_learner_table_says_reward_annealing_sections_and_filter():
     from d2spo.algos import LEARNERS, config_sections, has_runtime_filter

@@ -32,7 +32,7 @@ from d2spo.inputs import read_regular
 from d2spo.ltl.anneal import AnnealConfig
 from d2spo.ltl.tasks import MAX_PATROLS
 from d2spo.memory import check_memory
-from d2spo.safety.cbf import CBFConfig
+from d2spo.safety.cbf import FORMER_UPDATE_STEPS, UPDATE_STEPS, CBFConfig
 
 PAPER_EPISODES = 20_000
 """Training episodes of a run on one layout (the paper's)."""
@@ -195,12 +195,27 @@ class TrainConfig:
                               f"{self.generalist_world}:{VALIDATION_SEED} on are the validation set")
         if self.d2spo.actor_through_safety is None:  # on for one layout, off for the generalist
             object.__setattr__(self, "d2spo", dataclasses.replace(self.d2spo, actor_through_safety=not self.generalist))
+        self._resolve_update_steps()
         if self.td3.forward_only is None:  # on for the generalist, off for one layout
             td3 = copy.copy(self.td3)  # checked when it was made: only the None is filled in
             object.__setattr__(td3, "forward_only", self.generalist)
             object.__setattr__(self, "td3", td3)
         if not isinstance(self.task, str) or not self.task.strip():
             raise ConfigError("task", f"expected a task name or an LTL formula, got {self.task!r}")
+
+    def _resolve_update_steps(self) -> None:
+        """Fill the unset step counts of UPDATE(Ω, Θ) (``cbf.updates_per_iter``, ``cbf.nominal_updates_per_iter``):
+        ``UPDATE_STEPS`` on one layout with the default robot, where halving the former count was
+        measured to hold Tables II-III; ``FORMER_UPDATE_STEPS`` with --generalist or another preset,
+        where it was seen to cost completions (bench/RESULTS.md, 2026-11-30). config.json records them."""
+        steps = UPDATE_STEPS if not self.generalist and self.env.preset == "default" else FORMER_UPDATE_STEPS
+        unset = {name: steps for name in ("updates_per_iter", "nominal_updates_per_iter")
+                 if getattr(self.cbf, name) is None}
+        if unset:
+            cbf = copy.copy(self.cbf)  # checked when it was made: only the Nones are filled in
+            for name, value in unset.items():
+                object.__setattr__(cbf, name, value)
+            object.__setattr__(self, "cbf", cbf)
 
     def _resolve_speed_settings(self) -> None:
         """Fill ``num_envs`` and ``td3.hidden`` where None: ``FAST_SETTINGS`` with ``fast`` (D²SPO and SL
@@ -277,6 +292,8 @@ FORMER_DEFAULTS: dict[tuple[str, ...], Any] = {
     ("env", "reward", "shaping_collide_cost"): 10.0,
     ("env", "observe_path"): False,  # the observation had no path direction until 2026-11-25
     ("td3", "forward_only"): False,  # the generalist's actor could propose reverse until 2026-11-27
+    ("cbf", "updates_per_iter"): 10,  # every config.json names it; 10 was the default until 2026-11-30
+    ("cbf", "nominal_updates_per_iter"): 10,
     ("env", "distance_obs"): "capped",  # a generalist saw every distance beyond 20 m as 20 m until 2026-11-27
 }
 """Settings whose default has changed, with the value a config.json that does not mention them was
@@ -306,16 +323,51 @@ _SHAPING_FIELDS = ("shaping", "shaping_metric", "shaping_clearance", "shaping_cl
                    "shaping_neighbours", "shaping_gamma")
 
 
+_GENERALIST_FIELDS = ("generalist_layouts", "generalist_redraw", "generalist_pairings", "generalist_world",
+                      "generalist_tasks", "generalist_patrols", "validation_layouts", "validation_episodes")
+"""Settings only a generalist reads (``env.distance_obs`` too)."""
+
+
+def _runs_a_recurrence(cfg: TrainConfig) -> bool:
+    """Whether the run can meet a recurrence (a patrol): a generalist (its mixture may hold patrols),
+    or a task whose automaton is one; True too when the task does not translate (nothing is assumed)."""
+    if cfg.generalist:
+        return True
+    from d2spo.ltl.buchi_task import is_recurrence, task_automaton
+    from d2spo.ltl.tasks import task_formula
+    try:
+        return is_recurrence(task_automaton(task_formula(cfg.task)))
+    except Exception:  # noqa: BLE001 - a task that does not translate is refused where it is built
+        return True
+
+
+def _drop_key(node: Any, key: str) -> None:
+    if isinstance(node, dict):
+        node.pop(key, None)
+        for value in node.values():
+            _drop_key(value, key)
+
+
 def effective_config(cfg: TrainConfig) -> dict:
     """``config_to_dict(cfg)`` without what cannot change this learner's run: the sections of other
-    learners, and, under the sparse reward (td3, sl), the shaping fields. Two runs with equal
-    effective configs train identically."""
+    learners; under the sparse reward (td3, sl), the shaping fields; on one layout, the generalist's
+    settings; for a task that is no recurrence, the patrols' (``patrol_validation``,
+    ``env.recurrence_max_steps``, ``recurrence_noise_final``). Two runs with equal effective configs
+    train identically."""
     d = config_to_dict(cfg)
     for name in all_config_sections() - set(config_sections(cfg.algo)):
         d.pop(name, None)
     if cfg.env_config().reward.mode == "sparse":
         for name in _SHAPING_FIELDS:
             d["env"]["reward"].pop(name, None)
+    if not cfg.generalist:
+        for name in _GENERALIST_FIELDS:
+            d.pop(name, None)
+        d["env"].pop("distance_obs", None)
+    if not _runs_a_recurrence(cfg):
+        d.pop("patrol_validation", None)
+        d["env"].pop("recurrence_max_steps", None)
+        _drop_key(d, "recurrence_noise_final")
     return d
 
 

@@ -263,6 +263,7 @@ def draw_reward_curves(ax, curves: Mapping[str, tuple], title: str) -> None:
                        marker="o" if len(x) == 1 else None)[0]
         ax.fill_between(x, mean - std, mean + std, color=line.get_color(), alpha=0.2, label=f"{label}: ± 1 std")
     ax.set_xlabel("training episodes")
+    ax.xaxis.set_major_locator(MaxNLocator(5, integer=True))  # 20000-episode labels do not run together
     widths = sorted({int(x[0]) for x, *_ in curves.values()})  # a curve's first point ends its first window
     ax.set_ylabel(f"episode return (moving average over {'/'.join(map(str, widths))} episodes)" if widths
                   else "episode return (moving average)")

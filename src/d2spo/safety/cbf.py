@@ -32,6 +32,13 @@ from d2spo.fields import check_choice, check_fields
 from d2spo.safety.nominal import nominal_next, straight_through_next
 
 ALPHAS = ("linear", "cubic")
+UPDATE_STEPS = 5
+"""Steps of each half of UPDATE(Ω, Θ) (f_n, then Eq. (9)) when ``updates_per_iter`` and
+``nominal_updates_per_iter`` are unset: a run on one layout with the default robot (README,
+"Departures from the paper": half the former count, measured to hold Tables II-III)."""
+FORMER_UPDATE_STEPS = 10
+"""The same for the generalist and the other presets (TrainConfig fills it in), and every run
+trained before 2026-11-30: halving them was measured to cost completions there."""
 
 
 @dataclass(frozen=True)
@@ -90,10 +97,10 @@ class CBFConfig:
     """Capacity of X_L (synthesised unsafe samples)."""
     batch_size: int = 256
     """Minibatch size from each of P_exp, X_L and T."""
-    updates_per_iter: int = 10
-    """Gradient steps on Eq. (9) per UPDATE(Ω, Θ)."""
-    nominal_updates_per_iter: int = 10
-    """Gradient steps on the nominal model per UPDATE."""
+    updates_per_iter: int | None = None
+    """Gradient steps on Eq. (9) per UPDATE(Ω, Θ); None: 5 on one layout with the default robot, else 10."""
+    nominal_updates_per_iter: int | None = None
+    """Gradient steps on the nominal model per UPDATE; None: as updates_per_iter's."""
     pretrain_samples: int = 16_384
     """Synthetic poses drawn for the cautious start."""
     pretrain_steps: int = 2_000
@@ -116,9 +123,20 @@ class CBFConfig:
         """The coefficient of α the runtime filter uses: filter_alpha_coef, or alpha_coef if unset."""
         return self.alpha_coef if self.filter_alpha_coef is None else self.filter_alpha_coef
 
+    @property
+    def eq9_steps(self) -> int:
+        """Steps on Eq. (9) per UPDATE(Ω, Θ): updates_per_iter, or ``UPDATE_STEPS`` if unset (a
+        TrainConfig always sets it; this is for a CBFConfig used on its own)."""
+        return UPDATE_STEPS if self.updates_per_iter is None else self.updates_per_iter
+
+    @property
+    def nominal_steps(self) -> int:
+        """Steps on f_n per UPDATE(Ω, Θ): nominal_updates_per_iter, or ``UPDATE_STEPS`` if unset."""
+        return UPDATE_STEPS if self.nominal_updates_per_iter is None else self.nominal_updates_per_iter
+
     def __post_init__(self):
         check_choice(self, "alpha", ALPHAS, "cbf")
-        check_fields(self, "cbf", nullable=("filter_alpha_coef",),
+        check_fields(self, "cbf", nullable=("filter_alpha_coef", "updates_per_iter", "nominal_updates_per_iter"),
                      widths=("hidden", "policy_hidden", "nominal_hidden"),
                      positive=("gamma_s", "gamma_u", "gamma_exp", "alpha_coef", "d", "unsafe_max", "sigma",
                                "filter_alpha_coef"),

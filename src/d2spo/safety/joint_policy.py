@@ -144,8 +144,7 @@ def update(key: jax.Array, state: SafetyState, data: SafetyData, *, nets: Safety
            features_fn: Callable, dt: float, u_rl_fn: Callable | None = None, pretrain: PretrainData | None = None):
     """UPDATE(Ω, Θ) of Algorithm 1 (line 17), plus refitting f_n on T. Returns (state, metrics).
 
-    Runs `cfg.nominal_updates_per_iter` steps on the nominal model, then `cfg.updates_per_iter`
-    steps of Eq. (9). `u_rl_fn(obs) -> u_rl` recomputes the current RL proposal for the sampled
+    Runs `cfg.nominal_steps` steps on the nominal model, then `cfg.eq9_steps` steps of Eq. (9). `u_rl_fn(obs) -> u_rl` recomputes the current RL proposal for the sampled
     transitions; without it the proposal stored at collection time is used. With `pretrain` (the
     cautious start's data) and `cfg.synthetic_replay > 0`, each step also replays a synthetic batch.
     """
@@ -161,7 +160,7 @@ def update(key: jax.Array, state: SafetyState, data: SafetyData, *, nets: Safety
         return (params, opt), loss
 
     (nominal, nominal_opt), nom_losses = jax.lax.scan(
-        nominal_body, (state.nominal, state.nominal_opt), jax.random.split(k_nom, cfg.nominal_updates_per_iter))
+        nominal_body, (state.nominal, state.nominal_opt), jax.random.split(k_nom, cfg.nominal_steps))
     state = state.replace(nominal=nominal, nominal_opt=nominal_opt)
 
     def joint_body(st, k):
@@ -172,9 +171,9 @@ def update(key: jax.Array, state: SafetyState, data: SafetyData, *, nets: Safety
         synthetic = synthetic_batch(k3, pretrain, cfg, batch.u_rl.shape[-1]) if replay else None
         return joint_step(st, batch, xu, wu, nets=nets, cfg=cfg, features_fn=features_fn, dt=dt, synthetic=synthetic)
 
-    state, metrics = jax.lax.scan(joint_body, state, jax.random.split(k_joint, cfg.updates_per_iter))
+    state, metrics = jax.lax.scan(joint_body, state, jax.random.split(k_joint, cfg.eq9_steps))
     metrics = jax.tree_util.tree_map(lambda m: m[-1], metrics)
-    if cfg.nominal_updates_per_iter > 0:
+    if cfg.nominal_steps > 0:
         metrics["safety/nominal_loss"] = nom_losses[-1]
     return state, metrics
 
