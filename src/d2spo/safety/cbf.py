@@ -100,7 +100,7 @@ class CBFConfig:
     updates_per_iter: int | None = None
     """Gradient steps on Eq. (9) per UPDATE(Ω, Θ); None: 5 on one layout with the default robot, else 10."""
     nominal_updates_per_iter: int | None = None
-    """Gradient steps on the nominal model per UPDATE; None: as updates_per_iter's."""
+    """Gradient steps on the nominal model per UPDATE; None: 5 on one layout with the default robot, else 10."""
     pretrain_samples: int = 16_384
     """Synthetic poses drawn for the cautious start."""
     pretrain_steps: int = 2_000
