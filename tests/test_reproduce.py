@@ -193,7 +193,7 @@ def test_runs_trained_with_other_settings_are_refused_unless_allowed(tmp_path, c
     assert rp.stale_runs(tmp_path, [spec]) == {} and main(args) == 0
 
 
-def test_the_published_runs_are_todays_defaults_and_render_without_training(tmp_path, capsys):
+def test_the_published_runs_are_todays_defaults_and_render_without_training(tmp_path):
     """docs/reproduce.md's recipe: the runs in docs/results/runs are what ``reproduce`` would train
     today (a changed default must come with runs trained again), and table3 renders from a copy."""
     from pathlib import Path
@@ -204,10 +204,10 @@ def test_the_published_runs_are_todays_defaults_and_render_without_training(tmp_
     assert all((rp.run_dir(published, s) / "summary.json").is_file() for s in specs)
     assert rp.stale_runs(published, specs) == {}
     for s in rp.runs_for("table3", 3, 20_000):
-        (tmp_path / "runs").mkdir(exist_ok=True)
         shutil.copytree(rp.run_dir(published, s), rp.run_dir(tmp_path, s))
     assert main(["reproduce", "table3", "--no-train", "--out", str(tmp_path)]) == 0
     assert "| D²SPO | 3 |" in (tmp_path / "table3.md").read_text()
+
 
 def test_snapshots_are_saved_and_loaded(tmp_path):
     from test_train import tiny  # its learner: the compiled chunk of tests/test_train.py is reused

@@ -204,7 +204,7 @@ def test_old_config_keeps_the_default_it_was_trained_with():
 
 
 def test_effective_differences_ignore_what_the_learner_does_not_read():
-    from d2spo.config import config_differences
+    from d2spo.config_diff import config_differences
     from d2spo.ltl.reward import RewardConfig
 
     base = TrainConfig()
@@ -223,7 +223,7 @@ def test_effective_differences_ignore_the_generalists_and_the_patrols_settings_w
     """One layout reads no generalist setting, and a task that is no recurrence reads no patrol
     setting; where they act (a generalist, a patrol) a change is a difference."""
     from d2spo.algos.td3 import TD3Config
-    from d2spo.config import config_differences
+    from d2spo.config_diff import config_differences
     from d2spo.envs import EnvConfig
 
     def changed(**kw):

@@ -28,7 +28,8 @@ from d2spo.certify import CertifyConfig, certify_run, load_cbf_run, write_output
 from d2spo.cli_docs import DocsCmd
 from d2spo.cli_export import ExportCmd
 from d2spo.cli_reproduce import ReportCmd, ReproduceCmd
-from d2spo.config import TrainConfig, algo_named, config_differences, config_file_named, flags_for, plain
+from d2spo.config import TrainConfig, algo_named, config_file_named, flags_for, plain
+from d2spo.config_diff import config_differences
 from d2spo.console import (
     error,
     print_certify,

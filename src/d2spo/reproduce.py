@@ -27,7 +27,8 @@ from datetime import date
 from pathlib import Path
 
 from d2spo import compile_cache, tables
-from d2spo.config import config_differences, config_from_dict
+from d2spo.config import config_from_dict
+from d2spo.config_diff import config_differences
 from d2spo.errors import ConfigError, RunInUseError, UserError
 from d2spo.progress import train_seeds_with_progress, train_with_progress
 from d2spo.run import GROUP_PREFIX, group_dir
@@ -58,7 +59,7 @@ def train_one(spec: RunSpec, out: str, progress: bool = False) -> dict:
 def stale_runs(out: Path, specs: Iterable[RunSpec]) -> dict[str, list[str]]:
     """Runs in OUT (finished or not) whose config.json differs from the config ``reproduce`` would
     train today, e.g. after a default changed: name -> ``'setting: theirs -> today's'``. Only
-    settings that can change the run (``config.effective_config``)."""
+    settings that can change the run (``config_diff.effective_config``)."""
     found: dict[str, list[str]] = {}
     for s in specs:
         path = run_dir(out, s) / "config.json"

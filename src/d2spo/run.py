@@ -22,7 +22,8 @@ from d2spo import memo
 from d2spo.algos import has_runtime_filter, make_learner
 from d2spo.algos.generalist import build_generalist
 from d2spo.checkpoint import has_checkpoint, load_checkpoint, run_fingerprint
-from d2spo.config import TrainConfig, config_differences, config_from_dict, config_to_dict
+from d2spo.config import TrainConfig, config_from_dict, config_to_dict
+from d2spo.config_diff import config_differences
 from d2spo.envs import layouts, make_env
 from d2spo.envs.preflight import preflight
 from d2spo.errors import ConfigError, RunDirError, RunDirWarning

@@ -144,9 +144,10 @@ def update(key: jax.Array, state: SafetyState, data: SafetyData, *, nets: Safety
            features_fn: Callable, dt: float, u_rl_fn: Callable | None = None, pretrain: PretrainData | None = None):
     """UPDATE(Ω, Θ) of Algorithm 1 (line 17), plus refitting f_n on T. Returns (state, metrics).
 
-    Runs `cfg.nominal_steps` steps on the nominal model, then `cfg.eq9_steps` steps of Eq. (9). `u_rl_fn(obs) -> u_rl` recomputes the current RL proposal for the sampled
-    transitions; without it the proposal stored at collection time is used. With `pretrain` (the
-    cautious start's data) and `cfg.synthetic_replay > 0`, each step also replays a synthetic batch.
+    Runs `cfg.nominal_steps` steps on the nominal model, then `cfg.eq9_steps` steps of Eq. (9).
+    `u_rl_fn(obs) -> u_rl` recomputes the current RL proposal for the sampled transitions; without
+    it the proposal stored at collection time is used. With `pretrain` (the cautious start's data)
+    and `cfg.synthetic_replay > 0`, each step also replays a synthetic batch.
     """
     _, _, tn = _txs(cfg)
     replay = pretrain is not None and cfg.synthetic_replay > 0
