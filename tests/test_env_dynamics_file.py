@@ -54,6 +54,12 @@ def test_train_reads_the_file_and_flags_override_it(tmp_path):
     assert cfg.env.v_max == 0.5 and cfg.env.omega_max == 1.0 and cfg.env.slip == 0.0
     assert cfg.env.v_gain == 0.7  # the flag wins over the file
     assert cli.parse(["train"]).config().env.v_max is None  # no file: the preset's
+    # UPDATE(Ω, Θ)'s steps: halved only for the default robot; a file's robot takes the former 10
+    # unless a flag says otherwise (config.TrainConfig._resolve_update_steps)
+    steps = lambda c: (c.cbf.nominal_updates_per_iter, c.cbf.updates_per_iter)  # noqa: E731
+    assert steps(cli.parse(["train"]).config()) == (5, 5)
+    assert steps(cfg) == (10, 10)
+    assert steps(cli.parse(["train", "--dynamics", str(path), "--cbf.updates-per-iter", "5"]).config()) == (10, 5)
 
 
 @pytest.mark.parametrize("content, field, words", [

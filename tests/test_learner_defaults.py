@@ -149,6 +149,8 @@ def _update_steps(cfg: TrainConfig) -> tuple:
     ({"generalist": True}, (10, 10)),
     ({"env": EnvConfig(preset="turtlebot")}, (10, 10)),
     ({"env": EnvConfig(preset="ideal")}, (10, 10)),
+    ({"env": EnvConfig(v_gain=0.9)}, (10, 10)),  # the default preset, but not its robot
+    ({"env": EnvConfig(robot_radius=0.1)}, (10, 10)),
 ])
 def test_update_omega_theta_is_halved_on_one_layout_with_the_default_robot_only(kw, steps):
     """UPDATE(Ω, Θ)'s steps None: 5 and 5 where halving them was measured to hold the tables, the former

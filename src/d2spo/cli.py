@@ -199,7 +199,9 @@ class TrainCmd:
             return cfg
         values = load_dynamics(self.dynamics)
         env = dataclasses.replace(cfg.env, **{k: v for k, v in values.items() if getattr(cfg.env, k) is None})
-        return dataclasses.replace(cfg, env=env)
+        # UPDATE(Ω, Θ)'s step counts the flags left unset follow the file's robot, not the preset's
+        cbf = dataclasses.replace(cfg.cbf, **dict.fromkeys(getattr(cfg, "filled_update_steps", ())))
+        return dataclasses.replace(cfg, env=env, cbf=cbf)
 
     def run(self) -> int:
         return train_with_progress(self.config(), self.out, self.resume, self.progress)

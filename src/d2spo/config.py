@@ -26,6 +26,7 @@ from d2spo.algos.sac_lag import SACLagConfig
 from d2spo.algos.td3 import DEFAULT_WIDTHS, TD3Config
 from d2spo.algos.td3_lag import TD3LagConfig
 from d2spo.envs import EnvConfig
+from d2spo.envs.dynamics import Preset
 from d2spo.errors import ConfigError, json_trouble
 from d2spo.fields import check_fields
 from d2spo.inputs import read_regular
@@ -205,14 +206,20 @@ class TrainConfig:
 
     def _resolve_update_steps(self) -> None:
         """Fill the unset step counts of UPDATE(Ω, Θ) (``cbf.updates_per_iter``, ``cbf.nominal_updates_per_iter``):
-        ``UPDATE_STEPS`` on one layout with the default robot, where halving the former count was
-        measured to hold Tables II-III; ``FORMER_UPDATE_STEPS`` with --generalist or another preset,
-        where it was seen to cost completions (bench/RESULTS.md, 2026-11-30). config.json records them."""
-        steps = UPDATE_STEPS if not self.generalist and self.env.preset == "default" else FORMER_UPDATE_STEPS
+        ``UPDATE_STEPS`` on one layout with the default robot (preset "default", none of its fields
+        set: no --dynamics file, no --v-gain, ...), where halving the former count was measured to
+        hold Tables II-III; ``FORMER_UPDATE_STEPS`` with --generalist or another robot, where it was
+        seen to cost completions (bench/RESULTS.md, 2026-11-30). config.json records them; the names
+        filled here are kept in ``filled_update_steps`` (not a field), so that a --dynamics file
+        applied after the flags decides them again (``cli.TrainCmd.config``)."""
+        default_robot = self.env.preset == "default" and all(
+            getattr(self.env, f.name) is None for f in dataclasses.fields(Preset))
+        steps = UPDATE_STEPS if not self.generalist and default_robot else FORMER_UPDATE_STEPS
         unset = {name: steps for name in ("updates_per_iter", "nominal_updates_per_iter")
                  if getattr(self.cbf, name) is None}
         if unset:
             object.__setattr__(self, "cbf", dataclasses.replace(self.cbf, **unset))
+        object.__setattr__(self, "filled_update_steps", tuple(unset))
 
     def _resolve_speed_settings(self) -> None:
         """Fill ``num_envs`` and ``td3.hidden`` where None: ``FAST_SETTINGS`` with ``fast`` (D²SPO and SL
@@ -367,5 +374,8 @@ def config_file(path: Path) -> TrainConfig:
 
 
 def plain(cfg: TrainConfig) -> TrainConfig:
-    """A ``TrainConfig`` with the values of ``cfg`` (an instance of a ``flags_for`` class)."""
-    return TrainConfig(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(TrainConfig)})
+    """A ``TrainConfig`` with the values of ``cfg`` (an instance of a ``flags_for`` class), and the
+    names of the step counts ``cfg`` filled itself (``filled_update_steps``)."""
+    out = TrainConfig(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(TrainConfig)})
+    object.__setattr__(out, "filled_update_steps", getattr(cfg, "filled_update_steps", ()))
+    return out
