@@ -207,14 +207,16 @@ class TrainConfig:
     def _resolve_update_steps(self) -> None:
         """Fill the unset step counts of UPDATE(Ω, Θ) (``cbf.updates_per_iter``, ``cbf.nominal_updates_per_iter``):
         ``UPDATE_STEPS`` on one layout with the default robot (preset "default", none of its fields
-        set: no --dynamics file, no --v-gain, ...), where halving the former count was measured to
-        hold Tables II-III; ``FORMER_UPDATE_STEPS`` with --generalist or another robot, where it was
-        seen to cost completions (bench/RESULTS.md, 2026-11-30). config.json records them; the names
-        filled here are kept in ``filled_update_steps`` (not a field), so that a --dynamics file
-        applied after the flags decides them again (``cli.TrainCmd.config``)."""
+        set: no --dynamics file, no --v-gain, ...) and the default networks, where halving the former
+        count was measured to hold Tables II-III; ``FORMER_UPDATE_STEPS`` with --generalist, another
+        robot or --fast, where it was seen to cost completions (bench/RESULTS.md, 2026-11-30; --fast's
+        ϕ1 seed 0: 85.20% complete with 5 and 5 against 99.70% with 10 and 10, 2026-12-01).
+        config.json records them; the names filled here are kept in ``filled_update_steps`` (not a
+        field), so that a --dynamics file applied after the flags decides them again
+        (``cli.TrainCmd.config``)."""
         default_robot = self.env.preset == "default" and all(
             getattr(self.env, f.name) is None for f in dataclasses.fields(Preset))
-        steps = UPDATE_STEPS if not self.generalist and default_robot else FORMER_UPDATE_STEPS
+        steps = UPDATE_STEPS if not (self.generalist or self.fast) and default_robot else FORMER_UPDATE_STEPS
         unset = {name: steps for name in ("updates_per_iter", "nominal_updates_per_iter")
                  if getattr(self.cbf, name) is None}
         if unset:
