@@ -155,8 +155,9 @@ def _update_steps(cfg: TrainConfig) -> tuple:
     ({"env": EnvConfig(robot_radius=0.1)}, (10, 10)),
 ])
 def test_update_omega_theta_is_halved_on_one_layout_with_the_default_robot_only(kw, steps):
-    """UPDATE(Ω, Θ)'s steps None: 5 and 5 where halving them was measured to hold the tables (the default
-    networks), the former 10 and 10 elsewhere (--fast included); a value given is kept, and config.json records the resolved counts."""
+    """UPDATE(Ω, Θ)'s steps None: 5 and 5 where halving them was measured to hold the tables (not
+    --fast), the former 10 and 10 elsewhere; a value given is kept, and config.json records the
+    resolved counts."""
     cfg = TrainConfig(**kw)
     assert _update_steps(cfg) == steps
     assert _update_steps(config_from_dict(config_to_dict(cfg))) == steps

@@ -207,7 +207,7 @@ class TrainConfig:
     def _resolve_update_steps(self) -> None:
         """Fill the unset step counts of UPDATE(Ω, Θ) (``cbf.updates_per_iter``, ``cbf.nominal_updates_per_iter``):
         ``UPDATE_STEPS`` on one layout with the default robot (preset "default", none of its fields
-        set: no --dynamics file, no --v-gain, ...) and the default networks, where halving the former
+        set: no --dynamics file, no --v-gain, ...) without --fast, where halving the former
         count was measured to hold Tables II-III; ``FORMER_UPDATE_STEPS`` with --generalist, another
         robot or --fast, where it was seen to cost completions (bench/RESULTS.md, 2026-11-30; --fast's
         ϕ1 seed 0: 85.20% complete with 5 and 5 against 99.70% with 10 and 10, 2026-12-01).
