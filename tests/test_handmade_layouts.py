@@ -84,3 +84,21 @@ def test_task_is_feasible_with_the_barrier_margin(file, task):
         warnings.simplefilter("error", TaskWarning)
         preflight.check_margin(env.task, BARRIER_MARGIN, task)  # a route keeps 0.3 m from obstacles and walls
         preflight.check_time(env.task, int(params.max_steps), env.config.dt, env.config.v_max * env.config.v_gain, task)
+
+
+def test_a_patrol_whose_every_cycle_passes_closer_than_the_margin_is_warned_of():
+    """``patrol2`` (GF A1 & GF A3 & G !A4) on corridor-5: the robot (0.15 m) gets from A1 to A3 only
+    between A4 and a box, where no route keeps the barrier's 0.3 m, so D²SPO trained 3334 episodes
+    without an accepting visit (2026-12-01). The margin check warns of a recurrence as of a co-safe
+    task; before, an empty list of visit lengths was the test and a list holding ``inf`` passed it."""
+    from d2spo.ltl import task_formula
+
+    formula = task_formula("patrol2")
+    env, _ = make_env(EnvConfig(layout=str(HANDMADE / "corridor-5.json")), formula)
+    assert env.task.recurrence and np.isfinite(env.task.route_length)  # the robot itself gets round
+    with pytest.warns(TaskWarning, match="while keeping 0.3 m from every obstacle and wall"):
+        preflight.check_margin(env.task, BARRIER_MARGIN, "patrol2")
+    paper, _ = make_env(EnvConfig(layout="paper"), formula)  # where a cycle keeps the margin: no warning
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", TaskWarning)
+        preflight.check_margin(paper.task, BARRIER_MARGIN, "patrol2")
