@@ -88,7 +88,7 @@ def test_task_is_feasible_with_the_barrier_margin(file, task):
 
 def test_a_patrol_whose_every_cycle_passes_closer_than_the_margin_is_warned_of():
     """``patrol2`` (GF A1 & GF A3 & G !A4) on corridor-5: the robot (0.15 m) gets from A1 to A3 only
-    between A4 and a box, where no route keeps the barrier's 0.3 m, so D²SPO trained 3334 episodes
+    between A4 and a box, where no route keeps the barrier's 0.3 m from the box; D²SPO trained 3334 episodes
     without an accepting visit (2026-12-01). The margin check warns of a recurrence as of a co-safe
     task; before, an empty list of visit lengths was the test and a list holding ``inf`` passed it."""
     from d2spo.ltl import task_formula
