@@ -68,8 +68,7 @@ def check_feasible(task: CompiledTask, name: str, radius: float | None = None, r
         if radius == task.robot_radius:
             visits = [task.route_length] if math.isfinite(task.route_length) else []
         else:
-            visits = [v for v in routes.visit_lengths(aut, layout, task.label_mode, radius, math.inf, 1)
-                      if math.isfinite(v)]  # inf: no route makes the visit (the list is never empty)
+            visits = routes.visit_lengths(aut, layout, task.label_mode, radius, math.inf, 1)
         if visits:
             return
     elif any(reached[q] for q in aut.accepting):

@@ -150,7 +150,7 @@ def visit_lengths(aut: Automaton, layout: Layout, label_mode: str, robot_radius:
         arrive = np.full(n, np.inf)
         np.minimum.at(arrive, v_dst, dist[v_src] + v_w)
         best = float(arrive.min()) if arrive.size else math.inf
-        if not best <= max_length:
+        if not (math.isfinite(best) and best <= max_length):  # inf: no visit, even with max_length inf
             break
         out.append(best)
         ends = np.flatnonzero(arrive <= max_length)
