@@ -14,17 +14,24 @@ from _counting import count_calls
 
 from d2spo.algos.d2spo import D2SPOConfig
 from d2spo.algos.generalist import build_generalist
+from d2spo.algos.td3 import TD3Config
 from d2spo.config import TrainConfig
 from d2spo.envs import EnvConfig, generator, layouts
 from d2spo.envs.generalist import view
 from d2spo.envs.task_plan import slot_max_steps
 from d2spo.errors import ConfigError
+from d2spo.safety.cbf import CBFConfig
 from d2spo.zero_shot import generalist_layout, task_tag
+
+SMALL = {"td3": TD3Config(buffer_size=1024),
+         "cbf": CBFConfig(transitions_capacity=1024, p_exp_capacity=1024, unsafe_capacity=1024)}
+"""Small replay buffer and safety datasets: the runs here are never trained, and a checkpoint of the
+default ones is 232 MB of zeros, written, copied and read by several tests (about 1 MB so)."""
 
 
 def _cfg(**d2spo) -> TrainConfig:
     return TrainConfig(algo="d2spo", task="phi1", generalist=True, generalist_layouts=1, num_envs=4,
-                       env=EnvConfig(preset="ideal"), d2spo=D2SPOConfig(pretrain=False, **d2spo))
+                       env=EnvConfig(preset="ideal"), d2spo=D2SPOConfig(pretrain=False, **d2spo), **SMALL)
 
 
 @pytest.fixture(scope="module")
