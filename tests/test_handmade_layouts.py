@@ -88,19 +88,19 @@ def test_task_is_feasible_with_the_barrier_margin(file, task):
 
 def test_a_patrol_whose_every_cycle_passes_closer_than_the_margin_is_warned_of():
     """``patrol2`` (GF A1 & GF A3 & G !A4) on corridor-5: the robot (0.15 m) gets from A1 to A3 only
-    between A4 and a box, where no route keeps the barrier's 0.3 m from the box; D²SPO trained 3334 episodes
-    without an accepting visit (2026-12-01). The margin check warns of a recurrence as of a co-safe
-    task; before, ``routes.visit_lengths`` with no length limit returned [inf] for "no visit", not
+    between A4 and a box, where no route keeps the barrier's 0.3 m from the box; D²SPO trained 3334
+    episodes without an accepting visit (2026-12-01). The margin check warns of a recurrence as of a
+    co-safe task; before, ``routes.visit_lengths`` with no length limit returned [inf] for "no visit", not
     the empty list, and preflight took that for a route."""
     from d2spo.ltl import task_formula
 
     formula = task_formula("patrol2")
     env, _ = make_env(EnvConfig(layout=str(HANDMADE / "corridor-5.json")), formula)
-    assert env.task.recurrence and np.isfinite(env.task.route_length)  # the robot itself gets round
     task = env.task
+    assert task.recurrence and np.isfinite(task.route_length)  # the robot itself gets round
     assert routes.visit_lengths(task.automaton, task.layout, task.label_mode, BARRIER_MARGIN, np.inf, 3) == []
     with pytest.warns(TaskWarning, match="while keeping 0.3 m from every obstacle and wall"):
-        preflight.check_margin(env.task, BARRIER_MARGIN, "patrol2")
+        preflight.check_margin(task, BARRIER_MARGIN, "patrol2")
     paper, _ = make_env(EnvConfig(layout="paper"), formula)  # where a cycle keeps the margin: no warning
     with warnings.catch_warnings():
         warnings.simplefilter("error", TaskWarning)
