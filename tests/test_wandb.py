@@ -76,6 +76,9 @@ def test_a_run_logs_tensorboards_scalars_to_wandb_and_a_resume_continues_its_run
     monkeypatch.setattr(record_mod.RunRecord, "record", record)
     run_id = (run / RUN_ID).read_text()
     summary = train(cfg, run, resume=True)
+    # CI once read the resumed session's file without its exit record (2026-12-01; not seen here in 62
+    # tries, under load or not): teardown waits for W&B's service to shut down, closing every file.
+    pytest.importorskip("wandb").teardown()
     assert (run / RUN_ID).read_text() == run_id  # the same W&B run, continued
     # one directory per session (W&B adds -1, -2, ... to a name taken in the same second)
     sessions = sorted((run / "wandb").glob(f"offline-run-*-{run_id}*"))
