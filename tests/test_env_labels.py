@@ -99,7 +99,7 @@ def _drive(waypoints, env, params):
     """A scripted robot (ideal dynamics): steer at each waypoint in turn, through env.step, until the
     episode ends. Returns (info of the last step, the areas the path entered)."""
     step = jitted_step()
-    state, _ = env.reset(jax.random.PRNGKey(0), params)
+    state, _ = jax.jit(env.reset)(jax.random.PRNGKey(0), params)
     key, k = jax.random.PRNGKey(1), 0
     entered = set()
     for _ in range(int(params.max_steps)):
@@ -217,7 +217,7 @@ def test_sensed_obstacles_keep_their_checkpoint_record():
 def test_observation_bounds_hold_on_the_office():
     env, params = office_env()
     low, high = observation_bounds(env)
-    _, obs = env.reset_batch(jax.random.PRNGKey(3), params, 4)
+    _, obs = jax.jit(env.reset_batch, static_argnums=2)(jax.random.PRNGKey(3), params, 4)
     assert low.shape == (env.observation_size,) and np.all((low <= obs) & (obs <= high))
 
 

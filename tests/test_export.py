@@ -96,16 +96,22 @@ def states(case):
     lidar scans (every obstacle sensed)."""
     _, _, _, learner, _ = case
     env, params = learner.env, learner.params
-    k1, k2, k3 = jax.random.split(jax.random.PRNGKey(7), 3)
-    n = 256
-    xy = jax.random.uniform(k1, (n, 2), minval=0.05, maxval=params.geom.arena_hi - 0.05)
-    theta = jax.random.uniform(k2, (n,), minval=-np.pi, maxval=np.pi)
-    q = jax.random.randint(k3, (n,), 0, env.n_states)
-    start = env.reset_state(jnp.zeros(3), params)
-    s = jax.vmap(lambda a, b, c: start.replace(pose=jnp.concatenate([a, b[None]]), q=c))(xy, theta, q)
-    obs = jax.vmap(lambda one: env.observe(one, params))(s)
-    everything = jnp.ones((params.geom.n_obstacles,), bool)
-    scans = jax.vmap(lambda p: sensors.lidar(p, params.geom, everything, env.n_rays, params.sensing_radius))(s.pose)
+
+    @jax.jit  # one program: run eagerly, each of its operations compiles on its own
+    def draw(key, params):
+        k1, k2, k3 = jax.random.split(key, 3)
+        n = 256
+        xy = jax.random.uniform(k1, (n, 2), minval=0.05, maxval=params.geom.arena_hi - 0.05)
+        theta = jax.random.uniform(k2, (n,), minval=-np.pi, maxval=np.pi)
+        q = jax.random.randint(k3, (n,), 0, env.n_states)
+        start = env.reset_state(jnp.zeros(3), params)
+        s = jax.vmap(lambda a, b, c: start.replace(pose=jnp.concatenate([a, b[None]]), q=c))(xy, theta, q)
+        obs = jax.vmap(lambda one: env.observe(one, params))(s)
+        everything = jnp.ones((params.geom.n_obstacles,), bool)
+        scans = jax.vmap(lambda p: sensors.lidar(p, params.geom, everything, env.n_rays, params.sensing_radius))(s.pose)
+        return s, obs, scans
+
+    s, obs, scans = draw(jax.random.PRNGKey(7), params)
     return s, np.asarray(obs), np.asarray(s.pose), np.asarray(s.q), np.asarray(scans)
 
 

@@ -140,7 +140,7 @@ def test_geodesic_reward_is_bit_identical_to_before_the_per_state_option():
     env, params = make_env(EnvConfig(layout="paper", label_radius=1.0,
                                      reward=RewardConfig(shaping_metric="geodesic")), task="phi2")
     n = 2
-    state, _ = env.reset_batch(jax.random.PRNGKey(3), params, n)
+    state, _ = jax.jit(env.reset_batch, static_argnums=2)(jax.random.PRNGKey(3), params, n)
     # XLA's default optimisation level (3) and fusion emitters, as the commands compile: the
     # suite's level 0 without fusion emitters (tests/conftest.py) computes the same function with
     # other roundings
@@ -162,8 +162,8 @@ def test_per_state_potential_in_the_env_reads_the_state_field():
                     reward=RewardConfig(shaping_metric="geodesic-per-state"))
     env, params = make_env(cfg, task="avoid-until")
     assert params.state_field.shape == (4, 101, 101)
-    state, _ = env.reset(jax.random.PRNGKey(0), params)
-    state, _, r, _, _, info = env.step(jax.random.PRNGKey(1), state, jnp.array([1.0, 0.0]), params)
+    state, _ = jax.jit(env.reset)(jax.random.PRNGKey(0), params)  # jitted: eager, each op compiles alone
+    state, _, r, _, _, info = jax.jit(env.step)(jax.random.PRNGKey(1), state, jnp.array([1.0, 0.0]), params)
     f = params.state_field
     before = float(geodesic.lookup(f, info["pose"][:2], index=0))
     after = float(geodesic.lookup(f, info["next_pose"][:2], index=0))
