@@ -152,7 +152,7 @@ def test_the_generalist_learner_reads_x_and_o_s_per_environment(built):
     bank, env, params = built
     learner = D2SPOLearner(env, params, TD3Config(), CBFConfig(), AnnealConfig(enabled=False), 4, 10, 100,
                            layouts=LayoutBank)
-    states, obs = jax.jit(env.reset_batch, static_argnums=2)(jax.random.PRNGKey(5), params, 16)  # eagerly: 208 programs of one operation
+    states, obs = jax.jit(env.reset_batch, static_argnums=2)(jax.random.PRNGKey(5), params, 16)  # eagerly: 208 one-op programs
     _, _, _, _, _, info = jax.jit(env.step_batch)(jax.random.PRNGKey(6), states, jnp.zeros((16, 2)), params)
     ctx = learner.context(info)
     all_sensed = sensed_all(ctx)

@@ -97,7 +97,7 @@ def states(case):
     _, _, _, learner, _ = case
     env, params = learner.env, learner.params
 
-    @jax.jit  # one program: run eagerly, each of its operations compiles on its own
+    @jax.jit  # eagerly: one program per op
     def draw(key, params):
         k1, k2, k3 = jax.random.split(key, 3)
         n = 256

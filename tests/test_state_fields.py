@@ -162,7 +162,7 @@ def test_per_state_potential_in_the_env_reads_the_state_field():
                     reward=RewardConfig(shaping_metric="geodesic-per-state"))
     env, params = make_env(cfg, task="avoid-until")
     assert params.state_field.shape == (4, 101, 101)
-    state, _ = jax.jit(env.reset)(jax.random.PRNGKey(0), params)  # jitted: eager, each op compiles alone
+    state, _ = jax.jit(env.reset)(jax.random.PRNGKey(0), params)  # eagerly: one program per op
     state, _, r, _, _, info = jax.jit(env.step)(jax.random.PRNGKey(1), state, jnp.array([1.0, 0.0]), params)
     f = params.state_field
     before = float(geodesic.lookup(f, info["pose"][:2], index=0))
