@@ -321,8 +321,11 @@ def test_a_patrol_on_one_layout_keeps_the_policy_that_visits_most(tmp_path, caps
     assert train(load_run_config(out), cut, stop_after_chunks=2) is None
     before = json.loads((cut / "checkpoint.json").read_text())["meta"]["validation"]
     assert 0 < len(before) < len(history)  # validated before the cut, and after it
-    resumed = train(load_run_config(out), cut, resume=True)
+    events = []
+    resumed = train(load_run_config(out), cut, resume=True, progress=events.append)
     assert resumed["validation"] == {**val, "seconds": resumed["validation"]["seconds"]}
+    chunks = [e for e in events if "phase" not in e]  # a patrol's progress line shows no completion
+    assert chunks and all(e.get("recurrence") is True and "accepting_visits" in e for e in chunks)
     assert (cut / "policy-best.msgpack").read_bytes() == (out / "policy-best.msgpack").read_bytes()
     # a co-safe task keeps its last policy, as does a patrol with --patrol-validation 0
     from d2spo.config import TrainConfig

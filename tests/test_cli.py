@@ -120,6 +120,13 @@ def test_ltl_distance_defaults_to_one_area_at_a_time(capsys):
     assert d == "-" and "'relaxed'" in note
 
 
+def test_ltl_refuses_an_unknown_label_mode_before_printing_anything(capsys):
+    """As `d2spo train --label-mode` does; it once printed the automaton and went on (exit 0)."""
+    assert cli.main(["ltl", "patrol2", "--label-mode", "foo"]) == 2
+    seen = capsys.readouterr()
+    assert seen.out == "" and seen.err.strip() == "d2spo: error: label_mode: must be one of ['event', 'step'], got 'foo'"
+
+
 def _help(args: list[str]) -> str:
     import contextlib
     import io

@@ -42,6 +42,23 @@ def test_evaluation_is_named_written_and_shown(tmp_path, capsys):
     assert "not the training" not in " ".join(capsys.readouterr().out.split())
 
 
+def test_a_patrol_on_one_layout_shows_the_count_that_keeps_the_margin(tmp_path, capsys, monkeypatch):
+    """docs/ltl.md: a patrol's row shows the route-optimal count keeping the barrier's margin where it
+    differs, on one layout as on several (the one-layout row is built from the mean's fields)."""
+    monkeypatch.setenv("COLUMNS", "200")  # rich's width: the cell on one line
+    one = _res(str(tmp_path), [("paper", 1.0)])
+    layout = {"route_optimal_visits": 10, "route_optimal_visits_margin": 8, "margin": 0.3, "visit_fraction": 0.5,
+              "accepting_visits_per_episode": 5.0}
+    one["per_layout"][0].update(layout)
+    one.update(accepting_visits_per_episode=5.0, visit_fraction=0.5)
+    print_evaluation(one, tmp_path / "e.json", filter_asked=None)
+    assert "5.00 of 10 (50.0%; 8 keeping 0.3 m)" in capsys.readouterr().out
+    one["per_layout"][0]["route_optimal_visits_margin"] = 10  # the same count: not repeated
+    print_evaluation(one, tmp_path / "e.json", filter_asked=None)
+    out = capsys.readouterr().out
+    assert "5.00 of 10 (50.0%)" in out and "keeping" not in out
+
+
 def test_a_non_finite_evaluation_leaves_the_earlier_file(tmp_path):
     good = _res(str(tmp_path), [("paper", 1.0)])
     path = write_evaluation(tmp_path, good)

@@ -168,6 +168,18 @@ def test_a_fifo_or_device_as_a_json_input_is_one_line(tmp_path, capsys, alarm, n
     assert "more than the 16 MiB" in one_error(capsys, "ltl", "phi1", "--layout", big)
 
 
+@pytest.mark.parametrize("content, kind", [("[1, 2]", "array"), ('"x"', "string"), ("3", "number"), ("null", "null")])
+def test_a_config_json_that_is_not_an_object_is_one_line(tmp_path, capsys, no_build, content, kind):
+    """Valid JSON of another kind than an object once went on to ``dict(...)`` and a traceback."""
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.json").write_text(content)
+    line = one_error(capsys, "eval", run)
+    assert f"{run / 'config.json'}: holds a JSON {kind} where the run's config is an object" in line
+    (run / "config.json").write_text('{"td3": 5}')  # an object, with a section that is not
+    assert one_error(capsys, "eval", run).endswith("td3: expected an object, got int")
+
+
 # ------------------------------------------------------------------------ 3. eval file names
 
 

@@ -317,6 +317,33 @@ def test_distances_to_the_next_accepting_transition():
     assert [dist[q] for q in task.rejecting] == [UNREACHABLE]
 
 
+def test_a_buchi_tasks_json_and_dot_carry_its_accepting_visits():
+    """`d2spo ltl patrol2 --json` once showed no accepting state and nothing else: a reader could not
+    tell a patrol from a task nothing accepts. Its visits and whether it is a recurrence are in it,
+    and round-trip; `--dot` draws the visits bold, as the DBA's accepting transitions."""
+    import json
+
+    from d2spo.ltl import task_automaton
+    from d2spo.ltl.buchi_task import BuchiTask
+
+    patrol = task_automaton("GF A1 & GF A3 & G !A4")
+    data = json.loads(json.dumps(patrol.to_json()))
+    assert data["accepting"] == [] and data["recurrence"] is True
+    assert data["visits"] == [[a for a, v in enumerate(row) if v] for row in patrol.visits]
+    assert data["visits"][patrol.initial] == [patrol.letter(["A1", "A3"])]  # both at once: a visit at once
+    again = BuchiTask.from_json(data)
+    assert again.visits == patrol.visits and again.to_json() == data
+    never = task_automaton("G !A4 & F A3")  # completes, with no visit
+    assert never.to_json()["recurrence"] is False and never.to_json()["accepting"]
+    dot = patrol.to_dot()
+    bold = [ln for ln in dot.splitlines() if "style=bold" in ln]
+    assert len(bold) == 2 and all("●" in ln for ln in bold) and "1 -> 0" in bold[1]
+    assert dot.count(" -> ") == 1 + sum(len({(t, v) for t, v in zip(row, vis)})
+                                        for row, vis in zip(patrol.delta, patrol.visits))
+    respond = task_automaton("G (A1 -> F A2) & G F A1")  # every state drawn, as Automaton.to_dot does
+    assert all(f"  {q} [shape=" in respond.to_dot() for q in range(respond.n_states))
+
+
 def test_api_and_rendering():
     dba = to_dba("G (A1 -> F A2)")
     assert dba.aps == ("A1", "A2") and dba.n_letters == 4 and not dba.rejecting and not dba.accepting_sinks

@@ -64,6 +64,18 @@ def test_plain_lines_when_not_a_terminal(monkeypatch):
     assert lines[5] == "tlgrl relaxed: evaluating the final policy (100 episodes)…" and len(lines) == 6
 
 
+def test_a_patrols_line_shows_visits_and_no_completion():
+    """A recurrence completes no episode: its line shows safety and visits, not 'done 0.0%'."""
+    reach = progress._stats({"safety_rate": 1.0, "completion_rate": 0.5, "completion_rate_relaxed": 0.5}, 2.0)
+    assert reach == "2.0 ep/s · safe 100.0% · done 50.0% (relaxed 50.0%)"
+    never = progress._stats({"safety_rate": 1.0, "completion_rate": 0.5, "completion_rate_relaxed": 0.5,
+                             "accepting_visits": 0.5}, 2.0)  # `reach-never`: a Büchi task that completes
+    assert "visits 0.50/ep" in never and "done 50.0%" in never
+    patrol = progress._stats({"safety_rate": 0.99, "completion_rate": 0.0, "completion_rate_relaxed": 0.0,
+                              "accepting_visits": 3.25, "recurrence": True}, 2.0)
+    assert patrol == "2.0 ep/s · safe 99.0% · visits 3.25/ep"
+
+
 def test_no_progress_prints_nothing():
     display = progress.progress_display(Console(file=io.StringIO()), show=False)
     with display:

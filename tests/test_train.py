@@ -72,9 +72,11 @@ def test_outputs_and_summary(tmp_path, capsys):
     capsys.readouterr()  # from here on stderr is the CLI's alone (train() above may warn the plain way)
     assert main(["eval", str(run), "--episodes", "4", "--plot", str(tmp_path / "ev.png")]) == 0
     assert (tmp_path / "ev.png").read_bytes()[:4] == b"\x89PNG"
-    # its progress, plain lines off a terminal: the first layout (which compiles), then all done
+    # its progress, plain lines off a terminal on stderr (as train's; stdout holds the table alone):
+    # the first layout (which compiles), then all done
     seen = capsys.readouterr()
-    shown = [ln for ln in seen.out.splitlines() if "layouts evaluated" in ln]
+    assert "layouts evaluated" not in seen.out
+    shown = [ln for ln in seen.err.splitlines() if "layouts evaluated" in ln]
     assert shown == [f"eval run: 0/1 layouts evaluated, {shown[0].split(', ')[1].split(';')[0]}; layout 'relaxed' "
                      "(compiling the rollout first)", shown[1]] and shown[1].startswith("eval run: 1/1 layouts evaluated")
     ev = json.loads((run / "eval-relaxed-default.json").read_text())
@@ -92,7 +94,7 @@ def test_outputs_and_summary(tmp_path, capsys):
     assert main(["eval", str(run), "--episodes", "4", "--dynamics", str(tmp_path / "slow.json"), "--slip", "0.2",
                  "--no-progress"]) == 0
     quiet = capsys.readouterr()
-    assert "layouts evaluated" not in quiet.out
+    assert "layouts evaluated" not in quiet.out + quiet.err
     ev = json.loads((run / "eval-relaxed-slow-slip0.2.json").read_text())
     assert ev["dynamics"] == "slow-slip0.2" and ev["dynamics_values"] == {**robot, "slip": 0.2}
     (tmp_path / "bad.json").write_text(json.dumps({**robot, "v_gain": -1}))
@@ -102,7 +104,7 @@ def test_outputs_and_summary(tmp_path, capsys):
     err = (seen.err + quiet.err + capsys.readouterr().err).strip().splitlines()
     # evaluation runs training's pre-flight check: these 40-step episodes are too short for the task
     assert any(ln.startswith("d2spo: warning:") and "cannot be completed" in ln for ln in err)
-    err = [ln for ln in err if not ln.startswith("d2spo: warning:")]
+    err = [ln for ln in err if not ln.startswith("d2spo: warning:") and "layouts evaluated" not in ln]
     assert err == [f"d2spo: error: dynamics.v_gain: must be positive, got -1 (in {tmp_path / 'bad.json'})",
                    "d2spo: error: noise_xy: must be non-negative, got -1.0",
                    f"d2spo: error: plot: {tmp_path / 'no' / 'ev.png'}: the folder {tmp_path / 'no'} does not exist"]

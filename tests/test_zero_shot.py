@@ -201,6 +201,20 @@ def test_eval_runs_the_validated_policy_unless_the_last_is_asked_for(gen_run, tm
     assert meta["policy"] == "best on validation (after 7 episodes)"
     with pytest.raises(RunDirError, match="no usable checkpoint"):
         load_policy(shared, "last")
+    # a damaged validated policy, or one of other shapes, is one RunDirError line, not a traceback
+    # from flax (or a policy of the wrong shapes handed on); the last checkpoint's is still there
+    good = best_policy_path(run).read_bytes()
+    best_policy_path(run).write_bytes(good[:100])
+    with pytest.raises(RunDirError, match=r"policy-best.msgpack cannot be restored .*--policy last"):
+        load_policy(run)
+    assert load_policy(run, "last")[3]["policy"].startswith("last")
+    best_policy_path(shared).write_bytes(good[:100])  # and where no checkpoint is left to fall back on
+    with pytest.warns(RunDirWarning), pytest.raises(RunDirError, match="cannot be restored"):
+        load_policy(shared)
+    wide = jax.tree_util.tree_map(lambda t: np.ones((*t.shape, 2), t.dtype), last)
+    best_policy_path(run).write_bytes(serialization.to_bytes(wide))
+    with pytest.raises(RunDirError, match="where this config builds .*another config"):
+        load_policy(run)
 
 
 def test_the_validation_layouts_are_held_out():

@@ -69,6 +69,33 @@ class _Damaged(Exception):
     """A checkpoint that cannot be used as it is; the message says why."""
 
 
+class DamagedState(ValueError):
+    """A saved pytree (a checkpoint's state, a policy file) that cannot be restored onto the
+    config's template; the message, one line, names the file and why."""
+
+
+def restore_bytes(template: Any, data: bytes, name: str) -> Any:
+    """``data`` (flax's msgpack, ``serialization.to_bytes``) restored onto ``template``'s structure.
+    Raises ``DamagedState`` when it cannot be read (truncated, not msgpack) or when its arrays'
+    count, shapes or dtypes are not the template's (written with another config): flax alone would
+    restore such arrays as they are, and the first program that uses them would fail."""
+    try:
+        state = serialization.from_bytes(template, data)
+    except Exception as e:  # noqa: BLE001 - a damaged or foreign file fails in many ways
+        raise DamagedState(f"{name} cannot be restored ({type(e).__name__})") from None
+    got = jax.tree_util.tree_flatten_with_path(state)[0]
+    want = jax.tree_util.tree_leaves(template)
+    if len(got) != len(want):
+        raise DamagedState(f"{name} holds {len(got)} arrays where this config builds {len(want)}; "
+                           "was it written with another config?")
+    for (where, a), b in zip(got, want):
+        if np.shape(a) != tuple(b.shape) or np.asarray(a).dtype != b.dtype:
+            raise DamagedState(f"{name} holds {jax.tree_util.keystr(where)} as {np.asarray(a).dtype}"
+                               f"{list(np.shape(a))} where this config builds {b.dtype}{list(b.shape)}; "
+                               "was it written with another config?")
+    return state
+
+
 @dataclass
 class _Manifest:
     file: str            # checkpoint.json or checkpoint.prev.json
@@ -166,20 +193,9 @@ class Checkpoints:
         if m.sha256 is not None and hashlib.sha256(data).hexdigest() != m.sha256:
             raise _Damaged(f"{m.state} fails its SHA-256 check")
         try:
-            state = serialization.from_bytes(template, data)
-        except Exception as e:  # noqa: BLE001 - a damaged or foreign file fails in many ways
-            raise _Damaged(f"{m.state} cannot be restored ({type(e).__name__})") from None
-        got = jax.tree_util.tree_flatten_with_path(state)[0]
-        want = jax.tree_util.tree_leaves(template)
-        if len(got) != len(want):
-            raise _Damaged(f"{m.state} holds {len(got)} arrays where this config builds {len(want)}; "
-                           "was it written with another config?")
-        for (where, a), b in zip(got, want):
-            if np.shape(a) != tuple(b.shape) or np.asarray(a).dtype != b.dtype:
-                raise _Damaged(f"{m.state} holds {jax.tree_util.keystr(where)} as {np.asarray(a).dtype}"
-                               f"{list(np.shape(a))} where this config builds {b.dtype}{list(b.shape)}; "
-                               "was it written with another config?")
-        return state
+            return restore_bytes(template, data, m.state)
+        except DamagedState as e:
+            raise _Damaged(str(e)) from None
 
     # ---------------------------------------------------------------------------------- write
     def save(self, state: Any, meta: dict) -> None:

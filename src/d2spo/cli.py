@@ -47,8 +47,9 @@ from d2spo.envs.nav import checked_layout
 from d2spo.envs.preflight import check_feasible
 from d2spo.errors import ConfigError, D2SPOWarning, LTLSyntaxError, NaNError, TaskWarning, UserError
 from d2spo.evaluate import EvalConfig, evaluate_run, write_evaluation
-from d2spo.fields import check_fields
+from d2spo.fields import check_choice, check_fields
 from d2spo.ltl import task_automaton, task_formula
+from d2spo.ltl.labelling import LABEL_MODES
 from d2spo.ltl.tasks import TASKS
 from d2spo.plotstyle import check_picture_path
 from d2spo.progress import EvalProgress, train_with_progress
@@ -73,7 +74,8 @@ class LtlCmd:
     formula: tyro.conf.Positional[str]
     """The formula, e.g. '(!A2 U A1) & F A2', or a named task."""
     json: bool = False
-    """Print exactly one JSON object (aps, initial, accepting, rejecting, delta, distance)."""
+    """Print exactly one JSON object (aps, initial, accepting, rejecting, delta, distance; a Büchi task
+    also visits, per state the letters that are accepting visits, and recurrence)."""
     dot: bool = False
     """Print the automaton in Graphviz dot format."""
     layout: str | None = None
@@ -94,6 +96,7 @@ class LtlCmd:
             raise UserError("--layout and --all-letters are exclusive; choose one")
         if self.plot is not None and self.layout is None:
             raise UserError("--plot needs --layout")
+        check_choice(self, "label_mode", LABEL_MODES)  # before anything is printed
         if self.plot is not None:
             check_picture_path(self.plot, "plot")
         warn_if_task_name_typo(self.formula)
@@ -229,7 +232,7 @@ class EvalCmd:
             check_fields(self, count=("plot_episodes",))
             check_picture_path(self.plot, "plot")
             keep = self.plot_episodes
-        with EvalProgress(Console(), self.progress, f"eval {self.run_dir.name}") as on_layout:
+        with EvalProgress(Console(stderr=True), self.progress, f"eval {self.run_dir.name}") as on_layout:  # as train's
             res = evaluate_run(self.run_dir, self.cfg, keep_paths=keep, on_layout=on_layout)
         paths = res.pop("paths", None)
         print_evaluation(res, write_evaluation(self.run_dir, res), filter_asked=self.cfg.runtime_filter)

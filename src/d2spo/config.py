@@ -264,7 +264,7 @@ def config_to_dict(obj: Any) -> Any:
 
 def _build(cls: type, data: dict, where: str) -> Any:
     if not isinstance(data, dict):
-        raise ConfigError(where or "config", f"expected an object, got {type(data).__name__}")
+        raise ConfigError(where.rstrip(".") or "config", f"expected an object, got {type(data).__name__}")
     hints = typing.get_type_hints(cls, include_extras=True)
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(data) - names)

@@ -120,7 +120,8 @@ def print_evaluation(res: dict, path: Path, filter_asked: bool | None) -> None:
             row(r["layout"], r, style="red" if r["safety_rate"] < 1.0 else None)
         row(f"all {len(per)}", res, end_section=False, style="bold")
     else:
-        row(per[0]["layout"], {**res, "route_optimal_visits": per[0].get("route_optimal_visits")})
+        counts = {k: per[0][k] for k in ("route_optimal_visits_margin", "margin") if k in per[0]}
+        row(per[0]["layout"], {**res, "route_optimal_visits": per[0].get("route_optimal_visits"), **counts})
     Console().print(t)
     if recurrence:  # a Büchi task: scored by its accepting visits too
         optimum = "" if res.get("visit_fraction") is None else f" ({100 * res['visit_fraction']:.1f}% of the route-optimal count)"

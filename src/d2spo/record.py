@@ -113,8 +113,9 @@ class RunRecord:
 
     def __init__(self, cfg: TrainConfig, out: Path, meta: dict | None, checkpoints: Checkpoints,
                  overhead: dict | None = None, validation: Validation | PatrolValidation | None = None, wandb: WandbRun | None = None,
-                 visits: bool = False):
+                 visits: bool = False, recurrence: bool = False):
         self.cfg, self.out, self.checkpoints, self.validation = cfg, Path(out), checkpoints, validation
+        self.recurrence = recurrence  # a patrol: no episode completes it, the progress shows no completion
         self.wandb = wandb
         self.meta = dict(meta or {"episodes": 0, "env_steps": 0, "chunks": 0, "wall_seconds": 0.0})
         # Time outside the training loop, summed over the sessions of a resumed run (0 in checkpoints
@@ -184,7 +185,8 @@ class RunRecord:
         if progress is not None:
             progress({"episodes": len(writer), "total": cfg.episodes, "env_steps": meta["env_steps"],
                       "wall_seconds": meta["wall_seconds"], **window_rates(writer.rows, 200),
-                      **({"accepting_visits": float(np.mean(self.visits[-200:]))} if self.visits else {})})
+                      **({"accepting_visits": float(np.mean(self.visits[-200:]))} if self.visits else {}),
+                      **({"recurrence": True} if self.recurrence else {})})
 
     def save(self, learner, carry, force: bool = False) -> bool:
         """Snapshots that are due, and the checkpoint every ``checkpoint_every`` episodes (or now).

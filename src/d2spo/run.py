@@ -21,7 +21,7 @@ from flax import serialization
 from d2spo import memo
 from d2spo.algos import has_runtime_filter, make_learner
 from d2spo.algos.generalist import build_generalist
-from d2spo.checkpoint import has_checkpoint, load_checkpoint, run_fingerprint
+from d2spo.checkpoint import DamagedState, has_checkpoint, load_checkpoint, restore_bytes, run_fingerprint
 from d2spo.config import TrainConfig, config_from_dict, config_to_dict
 from d2spo.config_diff import config_differences
 from d2spo.envs import layouts, make_env
@@ -187,7 +187,7 @@ def load_best_policy(run_dir: Path, learner, key: jax.Array | None = None):
     path = best_policy_path(run_dir)
     if not path.is_file():
         raise RunDirError(f"{run_dir}: no validated policy ({path.name})")
-    return serialization.from_bytes(policy_template(learner), path.read_bytes())
+    return _policy_from_file(path, learner, "; `--policy last` evaluates the newest checkpoint's policy instead")
 
 
 _TEMPLATES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
@@ -229,7 +229,16 @@ def load_snapshot(run_dir: Path, episodes: int, learner, key: jax.Array | None =
     path = snapshot_path(run_dir, episodes)
     if not path.is_file():
         raise RunDirError(f"{run_dir}: no policy snapshot after {episodes} episodes ({path.name})")
-    return serialization.from_bytes(policy_template(learner), path.read_bytes())
+    return _policy_from_file(path, learner)
+
+
+def _policy_from_file(path: Path, learner, hint: str = ""):
+    """A policy file (``save_snapshot``, the validated policy) restored onto the learner's policy
+    shapes; one ``RunDirError`` line when it is damaged or another config's."""
+    try:
+        return restore_bytes(policy_template(learner), path.read_bytes(), path.name)
+    except DamagedState as e:
+        raise RunDirError(f"{path.parent}: {e}{hint}") from None
 
 
 

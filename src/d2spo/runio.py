@@ -105,11 +105,15 @@ def read_json(path: Path, what: str) -> dict:
         raise RunDirError(f"{path.parent}: no {path.name} ({what}); is this a d2spo run directory?")
     data = read_regular(path, RunDirError)  # not /dev/zero, a FIFO or a directory in its place
     try:
-        return json.loads(data)
+        value = json.loads(data)
     except json.JSONDecodeError as e:
         raise RunDirError(f"{path}: not valid JSON ({e.msg} at line {e.lineno})") from None
     except (RecursionError, ValueError) as e:  # nested too deeply, not UTF-8, a number too long to read
         raise RunDirError(f"{path}: not valid JSON ({json_trouble(e)})") from None
+    if not isinstance(value, dict):  # every file of a run holds one object
+        kind = {list: "array", str: "string", bool: "boolean", type(None): "null"}.get(type(value), "number")
+        raise RunDirError(f"{path}: holds a JSON {kind} where {what} is an object")
+    return value
 
 
 def make_run_dir(path: Path) -> None:

@@ -20,6 +20,7 @@ import jax.numpy as jnp
 
 from d2spo import memo
 from d2spo._xla import long_running_options
+from d2spo.algos import runs_a_recurrence
 from d2spo.algos.generalist import Redraw
 from d2spo.checkpoint import Checkpoints, fingerprint, has_checkpoint, run_fingerprint
 from d2spo.config import TrainConfig, config_to_dict
@@ -90,7 +91,8 @@ def _train_locked(cfg: TrainConfig, out: Path, built, resume: bool, progress: Pr
             untrained = jax.tree_util.tree_map(jnp.copy, learner.policy(carry))  # ``chunk`` donates the carry
         overhead = _compiled(chunk, carry, t_enter, t_compile, [progress], [meta], cfg)
         validation = validation_for(cfg, env, params, learner)
-        run = RunRecord(cfg, out, meta, checkpoints, overhead, validation, wandb, visits=params.aut.visit is not None)
+        run = RunRecord(cfg, out, meta, checkpoints, overhead, validation, wandb, visits=params.aut.visit is not None,
+                        recurrence=runs_a_recurrence(env))
         redraw = Redraw(cfg, env) if cfg.generalist and cfg.generalist_redraw else None
         if redraw is not None:  # a resumed run's bank as its checkpoint left it
             chunk.params = redraw.apply(chunk.params, run.meta.get("redrawn", {}))
@@ -255,7 +257,8 @@ def _train_seeds_locked(cfgs: list[TrainConfig], outs: list[Path], built, progre
         overhead = _compiled(chunk, carry, t_enter, t_compile, progress, metas, cfgs[0])
         runs = [None if s_ is not None else RunRecord(c, o, m, Checkpoints(o, p), overhead,
                                                       validation_for(c, env, params, learner), wandb=w,
-                                                      visits=params.aut.visit is not None)
+                                                      visits=params.aut.visit is not None,
+                                                      recurrence=runs_a_recurrence(env))
                 for c, o, m, s_, p, w in zip(cfgs, outs, metas, summaries, prints, sinks)]
         chunks_this_call = 0
         while any(s_ is None for s_ in summaries):

@@ -23,19 +23,20 @@ from d2spo.algos.td3 import TD3Learner
 from d2spo.algos.td3_lag import TD3LagLearner
 
 
-def _recurrence(env) -> bool:
-    """Whether the one-layout env's task is a recurrence (a patrol): ``TD3Config.for_task``."""
+def runs_a_recurrence(env) -> bool:
+    """Whether the one-layout env's task is a recurrence (a patrol): ``TD3Config.for_task``, and the
+    progress line (no completion to show)."""
     task = getattr(env, "task", None)
     return bool(task is not None and task.recurrence)
 
 
 def _td3(cfg, env, params, anneal):
-    return TD3Learner(env, params, cfg.td3.for_task(_recurrence(env)), anneal, cfg.num_envs, cfg.chunk_steps,
+    return TD3Learner(env, params, cfg.td3.for_task(runs_a_recurrence(env)), anneal, cfg.num_envs, cfg.chunk_steps,
                       cfg.episodes)
 
 
 def _d2spo(cfg, env, params, anneal):
-    return D2SPOLearner(env, params, cfg.td3.for_task(_recurrence(env)), cfg.cbf, anneal, cfg.num_envs,
+    return D2SPOLearner(env, params, cfg.td3.for_task(runs_a_recurrence(env)), cfg.cbf, anneal, cfg.num_envs,
                         cfg.chunk_steps, cfg.episodes, cfg.d2spo)
 
 

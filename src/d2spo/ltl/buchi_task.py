@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import jax.numpy as jnp
 
-from d2spo.ltl.automaton import Automaton, AutomatonArrays, letters_to_guard
+from d2spo.ltl.automaton import Automaton, AutomatonArrays, _dot_escape, letters_to_guard
 from d2spo.ltl.buchi import BuchiAutomaton, letters_to_marked, to_dba
 from d2spo.ltl.formula import Formula
 from d2spo.ltl.translate import NeverCompletedWarning, translate
@@ -56,6 +56,37 @@ class BuchiTask(Automaton):
             if letters:
                 lines.append(f"  in {q}: {letters_to_guard(letters, self.aps)}")
         return "\n".join(lines if len(lines) > 2 else lines[:1] + ["accepting visits: none"])
+
+    def to_json(self, feasible_letters: Collection[int] | None = None) -> dict:
+        """``Automaton.to_json`` (``accepting``: the completed states), with ``visits``: per state,
+        the letters whose reading is an accepting visit, and ``recurrence``: whether no episode can
+        complete the task (``is_recurrence``: it is scored by those visits)."""
+        return {**super().to_json(feasible_letters),
+                "visits": [[a for a, v in enumerate(row) if v] for row in self.visits],
+                "recurrence": is_recurrence(self)}
+
+    @classmethod
+    def from_json(cls, data: dict) -> BuchiTask:
+        """Inverse of ``to_json``."""
+        width = 1 << len(data["aps"])
+        visits = [[a in set(row) for a in range(width)] for row in data["visits"]]
+        return cls(*(data[k] for k in ("aps", "initial", "accepting", "rejecting", "delta")), visits=visits)
+
+    def to_dot(self) -> str:
+        """``Automaton.to_dot``, with the transitions that hold an accepting visit drawn bold and
+        marked with a dot (as ``BuchiAutomaton.to_dot`` draws its accepting transitions): a visit's
+        letters get an edge of their own beside the same target's other letters."""
+        lines = super().to_dot().splitlines()
+        lines = lines[:next(i for i, ln in enumerate(lines) if ln.startswith("  init -> ")) + 1]  # the states
+        for q, row in enumerate(self.delta):
+            groups: dict[tuple[int, bool], list[int]] = {}
+            for letter, t in enumerate(row):
+                groups.setdefault((t, self.visits[q][letter]), []).append(letter)
+            for (t, visit), letters in groups.items():
+                guard = _dot_escape(letters_to_guard(letters, self.aps))
+                lines.append(f'  {q} -> {t} [label="{guard} ●", style=bold];' if visit
+                             else f'  {q} -> {t} [label="{guard}"];')
+        return "\n".join([*lines, "}"]) + "\n"
 
     def arrays(self, feasible_letters: Collection[int] | None = None,
                distance: list[int | None] | None = None) -> AutomatonArrays:
