@@ -108,6 +108,11 @@ def test_outputs_and_summary(tmp_path, capsys):
     assert err == [f"d2spo: error: dynamics.v_gain: must be positive, got -1 (in {tmp_path / 'bad.json'})",
                    "d2spo: error: noise_xy: must be non-negative, got -1.0",
                    f"d2spo: error: plot: {tmp_path / 'no' / 'ev.png'}: the folder {tmp_path / 'no'} does not exist"]
+    # a layout that does not load is the one line on stderr: refused before the progress starts
+    assert main(["eval", str(run), "--layout", "nosuch", "--episodes", "2"]) == 2
+    seen = capsys.readouterr()
+    assert seen.out == "" and seen.err.startswith("d2spo: error: layout: unknown layout 'nosuch'")
+    assert seen.err.count("\n") == 1, seen.err
 
 
 def test_same_seed_same_run_and_resume_is_exact(tmp_path):

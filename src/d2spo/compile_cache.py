@@ -14,13 +14,16 @@ Where it lives (``cache_dir``):
 A cache JAX was already told to use (``JAX_COMPILATION_CACHE_DIR``, or ``jax.config`` before the
 command) is kept. The cache is capped at ``MAX_BYTES`` (least recently used entries go first). A
 damaged entry is a miss: JAX warns and compiles afresh (``tests/test_compile_cache.py``; an entry that
-cannot be read for another reason, a missing package, is named so, not called damaged); a cache
-directory that cannot be made turns the cache off with one warning.
+cannot be read for another reason, a missing package, is named so, not called damaged), and the
+damaged file is deleted so that the fresh compilation's entry takes its place (``_heal_reads``:
+JAX never writes over an existing entry, so it would otherwise be a miss and a warning in every
+later command); a cache directory that cannot be made turns the cache off with one warning.
 """
 
 from __future__ import annotations
 
 import os
+import re
 import warnings
 from pathlib import Path
 
@@ -67,4 +70,33 @@ def enable(environ: dict | None = None) -> Path | None:
     jax.config.update("jax_compilation_cache_dir", str(path))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_SECONDS)
     jax.config.update("jax_compilation_cache_max_size", MAX_BYTES)
+    _heal_reads()
     return path
+
+
+_SETUP_TROUBLE = re.compile(r"[Pp]lease install|No module named")
+"""An entry that cannot be read for want of a package is not damaged: it is left alone."""
+
+
+def _heal_reads() -> None:
+    """Delete an entry JAX fails to read (cut short, not a compressed executable, a flipped byte), so
+    the compilation that follows writes a good one under its key. Wraps JAX's read of an entry
+    (``jax._src.compilation_cache.get_executable_and_time``, jax 0.10's; where a JAX lacks it, nothing
+    is wrapped and a damaged entry stays a miss); the exception still reaches JAX, which warns."""
+    from jax._src import compilation_cache as jax_cache
+
+    read = getattr(jax_cache, "get_executable_and_time", None)
+    if read is None or getattr(read, "_d2spo_heals", False):
+        return
+
+    def healing_read(cache_key, *args, **kwargs):
+        try:
+            return read(cache_key, *args, **kwargs)
+        except Exception as e:
+            if not _SETUP_TROUBLE.search(str(e)) and jax.config.jax_compilation_cache_dir:
+                for suffix in ("-cache", "-atime"):  # jax._src.lru_cache's file names
+                    (Path(jax.config.jax_compilation_cache_dir) / f"{cache_key}{suffix}").unlink(missing_ok=True)
+            raise
+
+    healing_read._d2spo_heals = True
+    jax_cache.get_executable_and_time = healing_read

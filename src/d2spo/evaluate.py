@@ -24,6 +24,7 @@ from d2spo.config import TrainConfig
 from d2spo.envs import dynamics as dyn
 from d2spo.envs.env_config import EnvConfig
 from d2spo.envs.layouts import RANDOM_KINDS, layout_file, random_seed
+from d2spo.envs.layouts import load as load_layout
 from d2spo.errors import ConfigError, NaNError
 from d2spo.fields import check_choice, check_fields, field_docstring
 from d2spo.inputs import sha256_of
@@ -247,9 +248,10 @@ def _specialist_rollouts(cfg: TrainConfig, learner, policy, ecfg: EvalConfig, ov
     compiled: dict = {}  # one compiled rollout per shape of the env params (random5 layouts share one)
     size = learner.env.observation_size
     names = ecfg.layouts()
+    for lay in names:  # every layout named loads, before the first progress line and rollout
+        if lay is not None:
+            load_layout(lay)
     for k, lay in enumerate(names):
-        if on_layout is not None:
-            on_layout(k, len(names), lay or cfg.layout)
         env, params, other = learner_on(cfg, lay, ecfg.dynamics, overrides)
         if lay is not None or ecfg.dynamics is not None or overrides or ecfg.max_steps is not None:
             # training checked its own layout at its own limit
@@ -258,6 +260,8 @@ def _specialist_rollouts(cfg: TrainConfig, learner, policy, ecfg: EvalConfig, ov
             raise ConfigError("layout", f"the policy was trained with observations of size {size}, "
                               f"layout {lay!r} gives {env.observation_size} (different number of areas or "
                               "automaton states)")
+        if on_layout is not None:  # after the checks: a refused layout is the one line the user sees
+            on_layout(k, len(names), lay or cfg.layout)
         leaves, tree = jax.tree_util.tree_flatten(params)  # the structure holds the static fields (n_rays, ...)
         shape = (tree, tuple((x.shape, x.dtype) for x in leaves))
         if shape not in compiled:
