@@ -177,7 +177,10 @@ def test_a_config_json_that_is_not_an_object_is_one_line(tmp_path, capsys, no_bu
     line = one_error(capsys, "eval", run)
     assert f"{run / 'config.json'}: holds a JSON {kind} where the run's config is an object" in line
     (run / "config.json").write_text('{"td3": 5}')  # an object, with a section that is not
-    assert one_error(capsys, "eval", run).endswith("td3: expected an object, got int")
+    assert one_error(capsys, "eval", run) == f"d2spo: error: {run / 'config.json'}: td3: expected an object, got int"
+    (run / "config.json").write_text('{"episodes": "abc"}')  # the file's value, not a flag: named so
+    assert one_error(capsys, "eval", run).startswith(f"d2spo: error: {run / 'config.json'}: episodes: ")
+    assert one_error(capsys, "eval", run / "config.json").endswith("config.json: is a file, not a run directory")
 
 
 # ------------------------------------------------------------------------ 3. eval file names

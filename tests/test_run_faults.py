@@ -41,7 +41,7 @@ def test_a_damaged_newest_checkpoint_falls_back_to_the_previous_one(run_referenc
     run = mid_run(run_reference, rng, tmp_path)
     target = run / "checkpoint.json" if damaged == "manifest" else state_file(run)
     flip_byte(target, rng, text=damaged == "manifest")
-    with pytest.warns(RunDirWarning, match="resuming from the previous checkpoint") as caught:
+    with pytest.warns(RunDirWarning, match="using the previous checkpoint") as caught:
         train(CFG, run, resume=True)
     assert len([w for w in caught if issubclass(w.category, RunDirWarning)]) == 1
     assert_same_run(run, ref, f"{target.name} damaged, D2SPO_FAULT_SEED={SEED}")

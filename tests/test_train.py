@@ -132,6 +132,14 @@ def test_same_seed_same_run_and_resume_is_exact(tmp_path):
     b = json.loads((tmp_path / "b" / "summary.json").read_text())
     for k in ("safety_rate", "completion_rate", "mean_return", "eval", "env_steps"):
         assert a[k] == b[k], k
+    # resuming a finished run trains and evaluates nothing: its summary.json stands, byte for byte
+    # (it once compiled, evaluated again and added the time to compile_seconds and wall_seconds_total)
+    from d2spo.errors import RunDirWarning
+
+    before = (tmp_path / "b" / "summary.json").read_bytes()
+    with pytest.warns(RunDirWarning, match="the run finished .*nothing was trained or evaluated again"):
+        assert train(cfg, tmp_path / "b", resume=True) == b
+    assert (tmp_path / "b" / "summary.json").read_bytes() == before
 
 
 def test_a_checkpoint_taken_before_an_interrupt_is_written_and_resumes_exactly(tmp_path, monkeypatch):

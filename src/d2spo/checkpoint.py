@@ -145,7 +145,7 @@ class Checkpoints:
                 failed.append(f"{name}: {e}")
                 continue
             if failed:
-                warnings.warn(f"{self.dir}: {failed[0]}; resuming from the previous checkpoint "
+                warnings.warn(f"{self.dir}: {failed[0]}; using the previous checkpoint "
                               f"({_describe(m.meta)}) instead", RunDirWarning, stacklevel=3)
             self.latest, self._previous = m.meta, m
             self.generation = max(self.generation, m.generation)

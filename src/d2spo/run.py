@@ -159,8 +159,13 @@ def default_out(cfg: TrainConfig) -> Path:
 def load_run_config(run_dir: Path) -> TrainConfig:
     """The config a run was trained with (its config.json)."""
     if not Path(run_dir).is_dir():
-        raise RunDirError(f"{run_dir}: no such run directory")
-    return config_from_dict(read_json(Path(run_dir) / "config.json", "the run's config"))
+        raise RunDirError(f"{run_dir}: is a file, not a run directory" if Path(run_dir).exists()
+                          else f"{run_dir}: no such run directory")
+    path = Path(run_dir) / "config.json"
+    try:
+        return config_from_dict(read_json(path, "the run's config"))
+    except ConfigError as e:  # a value of the file's, not a flag of the command's: say where
+        raise RunDirError(f"{path}: {e}") from None
 
 
 

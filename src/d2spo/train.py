@@ -78,6 +78,11 @@ def _train_locked(cfg: TrainConfig, out: Path, built, resume: bool, progress: Pr
     if resume and has_checkpoint(out):
         carry, meta = checkpoints.load(carry_template(learner))
         checkpoints.tidy()
+        if meta["episodes"] >= cfg.episodes and (out / "summary.json").is_file():
+            # finished: compiling, evaluating and rewriting summary.json again would add to its times
+            warnings.warn(f"{out}: the run finished ({meta['episodes']} episodes); its summary.json stands, "
+                          "nothing was trained or evaluated again", RunDirWarning, stacklevel=3)
+            return read_json(out / "summary.json", "the run's summary")
         carry = jax.tree_util.tree_map(jnp.asarray, carry)
     with wandb_run(cfg, out, continuing=meta is not None) as wandb:  # None without --wandb
         t_compile = _compiling([progress], [meta], cfg)
