@@ -139,6 +139,16 @@ def test_a_gap_the_barriers_margin_closes_gives_no_visits_keeping_it():
     assert "route_optimal_visits_margin" not in visit_optimum(open_, 600, cfg, 2.0)  # no barrier, no margin
 
 
+def test_a_patrol_no_letter_sequence_visits_is_refused_in_a_patrols_words():
+    """A patrol never completes: on a layout without its areas the refusal says it cannot make one
+    accepting visit (it said 'cannot be completed', which no patrol ever is)."""
+    with pytest.raises(ConfigError, match=r"patrol2 cannot make one accepting visit in layout 'relaxed' "
+                                          r"\(propositions with no area, always false: \['A3', 'A4'\]\)"):
+        make_env(EnvConfig(layout="relaxed"), "patrol2")
+    with pytest.raises(ConfigError, match="cannot be completed in layout 'relaxed'"):  # a task that completes
+        make_env(EnvConfig(layout="relaxed"), "reach-never")
+
+
 def test_an_episode_too_short_for_one_visit_is_refused_before_training():
     from d2spo.envs.preflight import preflight
 

@@ -127,6 +127,26 @@ def test_ltl_refuses_an_unknown_label_mode_before_printing_anything(capsys):
     assert seen.out == "" and seen.err.strip() == "d2spo: error: label_mode: must be one of ['event', 'step'], got 'foo'"
 
 
+@pytest.mark.parametrize("args,hint", [(["eval", "RUN", "--episodes", "abc"], "d2spo eval --help"),
+                                       (["env", "show", "--bogus"], "d2spo env show --help"),
+                                       (["frob"], "d2spo --help")])
+def test_a_usage_error_points_to_its_subcommands_help(args, hint, capsys):
+    with pytest.raises(SystemExit) as e:
+        cli.main(args)
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].endswith(f"(see {hint})"), err
+
+
+def test_the_help_hints_know_every_subcommand():
+    import typing
+
+    names = {typing.get_args(a)[1].name for a in typing.get_args(cli.commands("d2spo"))}
+    assert names == set(cli.SUBCOMMANDS)
+    env = {typing.get_args(a)[1].name for a in typing.get_args(cli.EnvCommands)}
+    assert env == set(cli.ENV_SUBCOMMANDS)
+
+
 def _help(args: list[str]) -> str:
     import contextlib
     import io

@@ -130,6 +130,19 @@ def test_builtin_layouts_validate_for_every_preset(name):
         workspace.check_robot_fits(scaled, preset.robot_radius, 0.05 * preset.layout_scale)
 
 
+def test_an_arena_searched_coarser_than_5_cm_says_so_when_an_area_is_unreached():
+    """Over 50 m the reachability grid's cells grow past 0.05 m (1000 a side): a hand-made corridor
+    written in millimetres (arena 1000 x 1000) then shows no passage, and the refusal says why."""
+    import pathlib
+
+    path = pathlib.Path(__file__).parent / "data" / "layouts" / "handmade" / "corridor-5.json"
+    data = json.loads(path.read_text())
+    workspace.check_robot_fits(layouts.from_json(data), 0.15)  # as drawn: reachable
+    data["arena"] = [1000.0, 1000.0]
+    with pytest.raises(ConfigError, match=r"cannot be reached .* grid of 1 m cells.* in metres\?"):
+        workspace.check_robot_fits(layouts.from_json(data), 0.15)
+
+
 def test_random5_layouts_are_feasible_and_deterministic():
     assert layouts.load("random5") == layouts.load("random5:0")
     assert layouts.load("random5:7") == generator.random_layout(7) != layouts.load("random5:8")

@@ -144,6 +144,13 @@ def test_observation_from_the_robots_readings_is_the_envs(case, states):
     back = np.stack([policy.pose_of_observation(o) for o in obs])
     assert np.abs(back[:, :2] - poses[:, :2]).max() < 1e-5
     assert np.abs(np.angle(np.exp(1j * (back[:, 2] - poses[:, 2])))).max() < 1e-5
+    # a driver's readings that cannot be used, each said for what it is
+    with pytest.raises(ValueError, match=f"expected {len(scans[0])} lidar ranges, got 3"):
+        policy.observation(scans[0][:3], poses[0], qs[0])
+    holes = scans[0].copy()
+    holes[[1, 4]] = np.nan
+    with pytest.raises(ValueError, match=r"lidar ranges \[1, 4\] are NaN; give \+inf"):
+        policy.observation(holes, poses[0], qs[0])
 
 
 def test_actions_equal_the_jax_policys_without_the_filter(case, states):

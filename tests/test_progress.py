@@ -80,3 +80,21 @@ def test_no_progress_prints_nothing():
     display = progress.progress_display(Console(file=io.StringIO()), show=False)
     with display:
         assert display.add("x", 10) is None
+
+
+def test_ctrl_c_in_training_says_how_to_resume_where_a_checkpoint_is(tmp_path, monkeypatch, capsys):
+    """`d2spo train` stopped by Ctrl-C: one line, exit 130, and where a checkpoint was written the
+    command that continues from it (without one, the plain line)."""
+    from d2spo import cli
+
+    def stopped(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(progress, "train", stopped)
+    args = ["train", "--task", "F A1", "--layout", "relaxed", "--no-progress", "--out", str(tmp_path / "run")]
+    assert cli.main(args) == 130
+    assert capsys.readouterr().err.strip().splitlines() == ["d2spo: error: interrupted"]
+    monkeypatch.setattr(progress, "has_checkpoint", lambda out: True)
+    assert cli.main(args) == 130
+    assert capsys.readouterr().err.strip().splitlines() == [
+        f"d2spo: error: interrupted; `d2spo train --resume {tmp_path / 'run'}` continues from its last checkpoint"]

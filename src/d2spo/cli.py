@@ -69,7 +69,8 @@ def warn_if_task_name_typo(formula: str) -> None:
 
 @dataclasses.dataclass
 class LtlCmd:
-    """Translate an LTL formula (or a task name: phi1, phi1-printed, phi2, relaxed) to an automaton."""
+    """Translate an LTL formula, or a named task (the paper's phi1, phi1-printed, phi2, relaxed; the
+    suite's tour3, patrol2, respond, ...: docs/ltl.md lists them all), to an automaton."""
 
     formula: tyro.conf.Positional[str]
     """The formula, e.g. '(!A2 U A1) & F A2', or a named task."""
@@ -342,6 +343,21 @@ def commands(algo: str, base: TrainConfig | None = None):
     ]
 
 
+SUBCOMMANDS = ("train", "eval", "ltl", "env", "demo", "reproduce", "report", "certify", "export", "docs")
+ENV_SUBCOMMANDS = ("show", "check")
+
+
+def help_command(args: list[str]) -> str:
+    """The help a usage error points to: the subcommand's (``d2spo env show --help``) when ``args``
+    name one, else ``d2spo --help``."""
+    words = ["d2spo"]
+    if args and args[0] in SUBCOMMANDS:
+        words.append(args[0])
+        if args[0] == "env" and len(args) > 1 and args[1] in ENV_SUBCOMMANDS:
+            words.append(args[1])
+    return " ".join([*words, "--help"])
+
+
 def parse(args: list[str]):
     """Parse the command line; on a usage error print one line and exit 2."""
     if args in (["--version"], ["-V"]):
@@ -356,7 +372,7 @@ def parse(args: list[str]):
                                         "`d2spo --version` prints the version.")
     except SystemExit as e:
         if e.code not in (0, None):
-            error(tyro_error_line(buf.getvalue(), args) + " (see d2spo --help)")
+            error(tyro_error_line(buf.getvalue(), args) + f" (see {help_command(args)})")
             raise SystemExit(2) from None
         raise
 
@@ -389,8 +405,8 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as e:  # the machine's fault: a full disk, a read-only or vanished directory
         error(f"{e.filename}: {e.strerror}" if e.filename and e.strerror else str(e))
         return 1
-    except KeyboardInterrupt:
-        error("interrupted")
+    except KeyboardInterrupt as e:
+        error("interrupted" + (f"; {e}" if str(e) else ""))  # the hint to resume, where there is one
         if argv is None:  # the `d2spo` command (a caller's main(args) returns): leave now, for an XLA
             sys.stdout.flush()  # compilation still running on another thread would hold the exit for
             sys.stderr.flush()  # its seconds, and interpreter teardown under it has crashed

@@ -366,7 +366,7 @@ def config_file(path: Path) -> TrainConfig:
     try:
         data = json.loads(text)
     except json.JSONDecodeError as e:
-        raise fail(f"not valid JSON ({e.msg} at line {e.lineno})") from None
+        raise fail(f"not valid JSON ({e.msg}: line {e.lineno}, column {e.colno})") from None
     except (RecursionError, ValueError) as e:
         raise fail(f"not valid JSON ({json_trouble(e)})") from None
     try:

@@ -18,6 +18,7 @@ from rich.progress import (
 from rich.table import Column, Table
 from rich.text import Text
 
+from d2spo.checkpoint import has_checkpoint
 from d2spo.config import TrainConfig
 from d2spo.run import default_out, load_run_config
 from d2spo.train import train, train_seeds
@@ -73,7 +74,12 @@ def train_with_progress(cfg: TrainConfig, out: Path | None, resume: Path | None,
     out = Path(out) if out is not None else default_out(cfg)
     with progress_display(console, show) as display:
         on_event = display.add(_label(cfg), cfg.episodes)
-        summary = train(cfg, out, resume=resume is not None, progress=on_event)
+        try:
+            summary = train(cfg, out, resume=resume is not None, progress=on_event)
+        except KeyboardInterrupt:  # the CLI's "interrupted" line says how to go on, where it can
+            if has_checkpoint(out):
+                raise KeyboardInterrupt(f"`d2spo train --resume {out}` continues from its last checkpoint") from None
+            raise
     Console().print(summary_table(summary, f"{cfg.algo} on {cfg.task} / {summary.get('layout', cfg.layout)} (seed {cfg.seed}) → {out}"))
     return 0
 

@@ -107,7 +107,7 @@ def read_json(path: Path, what: str) -> dict:
     try:
         value = json.loads(data)
     except json.JSONDecodeError as e:
-        raise RunDirError(f"{path}: not valid JSON ({e.msg} at line {e.lineno})") from None
+        raise RunDirError(f"{path}: not valid JSON ({e.msg}: line {e.lineno}, column {e.colno})") from None
     except (RecursionError, ValueError) as e:  # nested too deeply, not UTF-8, a number too long to read
         raise RunDirError(f"{path}: not valid JSON ({json_trouble(e)})") from None
     if not isinstance(value, dict):  # every file of a run holds one object

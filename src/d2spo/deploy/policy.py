@@ -124,8 +124,11 @@ class Policy:
         heading + 2πk/K counter-clockwise from the robot centre; above H or +inf read H), the pose
         (x, y, θ) in the layout's frame and the automaton state q (``TaskTracker.q``)."""
         ranges = np.asarray(ranges, F32).reshape(-1)
-        if ranges.shape[0] != self.n_rays or np.isnan(ranges).any():
-            raise ValueError(f"expected {self.n_rays} lidar ranges without NaN, got {ranges.shape[0]}: {ranges}")
+        if ranges.shape[0] != self.n_rays:
+            raise ValueError(f"expected {self.n_rays} lidar ranges, got {ranges.shape[0]}")
+        if np.isnan(ranges).any():  # a driver's "no return" is +inf (read as H), never NaN
+            raise ValueError(f"lidar ranges {np.flatnonzero(np.isnan(ranges)).tolist()} are NaN; "
+                             "give +inf for a ray with no return")
         if not 0 <= int(q) < self.automaton.n_states:
             raise ValueError(f"automaton state {q} outside 0..{self.automaton.n_states - 1}")
         pose = np.asarray(pose, F32).reshape(3)

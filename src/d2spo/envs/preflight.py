@@ -39,7 +39,8 @@ def check_letters(task: CompiledTask, what: str) -> None:
         layout = task.layout
         missing = sorted(set(task.automaton.aps) - set(layout.labels))
         hint = f" (propositions with no area, always false: {missing})" if missing else ""
-        raise ConfigError("task", f"{what} cannot be completed in layout {layout.name!r}{hint}: no sequence of the "
+        done = "make one accepting visit" if task.recurrence else "be completed"  # a patrol never completes
+        raise ConfigError("task", f"{what} cannot {done} in layout {layout.name!r}{hint}: no sequence of the "
                           "letters it can produce (areas entered alone, or together where they overlap) does it")
 
 

@@ -252,6 +252,9 @@ def check_robot_fits(layout: Layout, robot_radius: float, start_jitter_xy: float
     for i, a in enumerate(layout.areas):
         inside = np.linalg.norm(centres - np.asarray(a.center), axis=-1) <= a.radius
         if not np.any(reach & inside):
+            coarse = (f" (searched on a grid of {resolution:g} m cells, the finest of at most 1000 a side: a "
+                      "passage narrower than about two cells may not show; is the layout in metres?)"
+                      if resolution > 0.05 else "")
             raise ConfigError(f"layout.areas[{i}]", f"area {a.name} cannot be reached from the start by a robot "
-                              f"of radius {robot_radius}")
+                              f"of radius {robot_radius}{coarse}")
 
