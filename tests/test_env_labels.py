@@ -57,6 +57,8 @@ def test_round_trip_keeps_labels_and_disks():
     del expected["description"]
     assert written == expected  # the label only where it differs from the name; the disk as center + radius
     assert layouts.from_json(json.loads(json.dumps(written))) == lay
+    assert lay.describe_areas() == "desk-1 (desk), desk-2 (desk), kitchen"
+    assert dataclasses.replace(lay, areas=()).describe_areas() == "none (no task can name an area here)"
     half = lay.scaled(0.5)
     assert half.disks == (DiskObstacle((1.25, 1.25), 0.2),) and [a.label for a in half.areas] == ["desk", "desk", "kitchen"]
     assert Area("A1", (1.0, 1.0), 0.3).label == "A1"  # no label: the name

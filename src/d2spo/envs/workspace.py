@@ -91,7 +91,10 @@ class Layout:
         return tuple(dict.fromkeys(a.label for a in self.areas))
 
     def describe_areas(self) -> str:
-        """The areas by name, each followed by its label where that differs: ``desk-1 (desk), kitchen``."""
+        """The areas by name, each followed by its label where that differs: ``desk-1 (desk), kitchen``;
+        ``none (no task can name an area here)`` for a layout without any."""
+        if not self.areas:
+            return "none (no task can name an area here)"
         return ", ".join(a.name if a.label == a.name else f"{a.name} ({a.label})" for a in self.areas)
 
     @property
