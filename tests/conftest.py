@@ -35,11 +35,12 @@ import jax  # noqa: E402
 import pytest  # noqa: E402
 
 import d2spo  # noqa: E402, F401  (sets XLA flags before the first computation starts the backend: d2spo/_xla.py)
-from d2spo import memo  # noqa: E402
+from d2spo import compile_cache, memo  # noqa: E402
 
 _CACHE = Path(os.environ.get("D2SPO_TEST_JAX_CACHE", Path(__file__).resolve().parent.parent / ".pytest_cache" / "jax"))
 jax.config.update("jax_compilation_cache_dir", str(_CACHE))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+compile_cache.portable_keys()  # the keys the commands use, so that child commands share the entries
 # `d2spo` commands the tests start in child processes (tests/test_reproduce.py's Ray backend, the
 # command-line checks) use the same cache (d2spo/compile_cache.py), not the user's ~/.cache/d2spo.
 os.environ["D2SPO_COMPILE_CACHE"] = str(_CACHE)

@@ -88,6 +88,23 @@ def test_a_damaged_entry_is_a_warning_and_a_fresh_compilation(tmp_path, damage):
     assert len(_entries(tmp_path)) == len(entries)
 
 
+def test_a_cache_copied_or_moved_elsewhere_still_hits(tmp_path):
+    """An entry's key holds no path of the cache's (JAX's GPU autotuning cache folder was in it): a
+    copy under another path serves every program, so the run there writes no entry of its own."""
+    if compile_cache._accelerator_plugins():
+        pytest.skip("a GPU plugin is installed: JAX keeps its autotuning cache, whose folder is in the keys")
+    import shutil
+
+    first = _run(str(tmp_path / "a"))
+    assert first.returncode == 0, first.stderr
+    shutil.copytree(tmp_path / "a", tmp_path / "b")
+    names = [p.name for p in _entries(tmp_path / "b")]
+    assert len(names) >= 2
+    second = _run(str(tmp_path / "b"))
+    assert second.returncode == 0 and second.stdout.splitlines()[-1] == first.stdout.splitlines()[-1]
+    assert [p.name for p in _entries(tmp_path / "b")] == names  # all hits: nothing compiled, nothing new
+
+
 def test_the_cache_can_be_turned_off(tmp_path):
     off = _run("off")
     assert off.returncode == 0, off.stderr

@@ -17,7 +17,9 @@ damaged entry is a miss: JAX warns and compiles afresh (``tests/test_compile_cac
 cannot be read for another reason, a missing package, is named so, not called damaged), and the
 damaged file is deleted so that the fresh compilation's entry takes its place (``_heal_reads``:
 JAX never writes over an existing entry, so it would otherwise be a miss and a warning in every
-later command); a cache directory that cannot be made turns the cache off with one warning.
+later command); a cache directory that cannot be made turns the cache off with one warning. The
+keys hold no path of the cache's on a CPU-only install (``portable_keys``): a cache moved or copied
+elsewhere still serves every program.
 """
 
 from __future__ import annotations
@@ -70,8 +72,29 @@ def enable(environ: dict | None = None) -> Path | None:
     jax.config.update("jax_compilation_cache_dir", str(path))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_SECONDS)
     jax.config.update("jax_compilation_cache_max_size", MAX_BYTES)
+    portable_keys()
     _heal_reads()
     return path
+
+
+def portable_keys() -> None:
+    """Entries whose keys hold no path, where no GPU plugin is installed. JAX also turns on XLA's
+    GPU autotuning cache in a folder of the cache directory, and that folder's path is part of
+    every entry's key: a cache moved or copied elsewhere (another ``$D2SPO_COMPILE_CACHE``, a CI
+    cache restored under another home) would miss on every program. Without a GPU there is nothing
+    to autotune, so that cache goes off (``jax_persistent_cache_enable_xla_caches``); with one, JAX's
+    default stands. The test suite calls it too, so that its programs and its child commands' share
+    their entries."""
+    if not _accelerator_plugins():
+        jax.config.update("jax_persistent_cache_enable_xla_caches", "")
+
+
+def _accelerator_plugins() -> list[str]:
+    """The JAX plugins installed (``jax-cuda13-plugin`` and the like register under the entry-point
+    group ``jax_plugins``); empty on a CPU-only install."""
+    from importlib.metadata import entry_points
+
+    return [e.name for e in entry_points(group="jax_plugins")]
 
 
 _SETUP_TROUBLE = re.compile(r"[Pp]lease install|No module named")
