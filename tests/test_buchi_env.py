@@ -147,6 +147,12 @@ def test_a_patrol_no_letter_sequence_visits_is_refused_in_a_patrols_words():
         make_env(EnvConfig(layout="relaxed"), "patrol2")
     with pytest.raises(ConfigError, match="cannot be completed in layout 'relaxed'"):  # a task that completes
         make_env(EnvConfig(layout="relaxed"), "reach-never")
+    # a misspelt task name is one proposition of that name: the refusal says which names were meant
+    with pytest.raises(ConfigError, match=r"\['patrol22'\]\) \(not a task name: did you mean patrol2, patrol3\?\)"):
+        make_env(EnvConfig(layout="paper"), "patrol22")
+    with pytest.raises(ConfigError, match=r"\['B7'\]\): no sequence") as e:  # no name is close: no guess
+        make_env(EnvConfig(layout="paper"), "F B7")
+    assert "did you mean" not in str(e.value)
 
 
 def test_an_episode_too_short_for_one_visit_is_refused_before_training():

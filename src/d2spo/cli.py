@@ -9,11 +9,9 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import difflib
 import io
 import json
 import os
-import re
 import sys
 import threading
 import warnings
@@ -50,7 +48,7 @@ from d2spo.evaluate import EvalConfig, evaluate_run, write_evaluation
 from d2spo.fields import check_choice, check_fields
 from d2spo.ltl import task_automaton, task_formula
 from d2spo.ltl.labelling import LABEL_MODES
-from d2spo.ltl.tasks import TASKS
+from d2spo.ltl.tasks import close_task_names
 from d2spo.plotstyle import check_picture_path
 from d2spo.progress import EvalProgress, train_with_progress
 from d2spo.repair import RepairConfig, repair_run
@@ -59,9 +57,7 @@ from d2spo.repair import RepairConfig, repair_run
 def warn_if_task_name_typo(formula: str) -> None:
     """One warning line when ``formula`` is a single word that is no task name but close to one
     (``phi3``): it is read as a formula over one proposition of that name, which is rarely meant."""
-    if formula in TASKS or not re.fullmatch(r"[A-Za-z_][\w-]*", formula):
-        return
-    close = difflib.get_close_matches(formula, TASKS, n=3, cutoff=0.6)
+    close = close_task_names(formula)
     if close:
         warnings.warn(f"{formula!r} is not a task name (did you mean {', '.join(close)}?); read as a formula: "
                       f"the proposition {formula}", TaskWarning, stacklevel=2)

@@ -15,6 +15,7 @@ from d2spo.envs.compiled_task import CompiledTask
 from d2spo.envs.state_fields import FORBIDDEN, TARGET, named_areas
 from d2spo.errors import ConfigError, TaskWarning
 from d2spo.ltl.automaton import UNREACHABLE
+from d2spo.ltl.tasks import close_task_names
 
 TIGHT_FRACTION = 0.6
 """``check_time`` warns when the shortest route needs more than this fraction of the episode's steps
@@ -39,6 +40,9 @@ def check_letters(task: CompiledTask, what: str) -> None:
         layout = task.layout
         missing = sorted(set(task.automaton.aps) - set(layout.labels))
         hint = f" (propositions with no area, always false: {missing})" if missing else ""
+        close = close_task_names(what)  # `--task patrol22`: a misspelt name, read as a proposition
+        if close:
+            hint += f" (not a task name: did you mean {', '.join(close)}?)"
         done = "make one accepting visit" if task.recurrence else "be completed"  # a patrol never completes
         raise ConfigError("task", f"{what} cannot {done} in layout {layout.name!r}{hint}: no sequence of the "
                           "letters it can produce (areas entered alone, or together where they overlap) does it")

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import difflib
+import re
+
 import numpy as np
 
 TASKS: dict[str, str] = {
@@ -137,3 +140,12 @@ def patrol_tasks(n: int, seed: int = 0, areas: int = 4) -> list[str]:
         seen.add(key)
         out.append(f)
     return out
+
+
+def close_task_names(word: str) -> list[str]:
+    """The task names ``word`` may be a misspelling of (``patrol22``: patrol2, patrol3), when it is
+    a single word and no task name itself: read as a formula, it is one proposition of that name,
+    which is rarely meant. Empty otherwise."""
+    if word in TASKS or not re.fullmatch(r"[A-Za-z_][\w-]*", word):
+        return []
+    return difflib.get_close_matches(word, TASKS, n=3, cutoff=0.6)
