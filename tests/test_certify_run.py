@@ -92,6 +92,12 @@ def test_bad_input_gets_one_line_and_exit_2(tmp_path, capsys, untrained_run):
     assert "eps_safe" in _one_error_line(capsys, ["certify", str(untrained_run), "--eps-safe", "0"])
     assert "eps_unsafe" in _one_error_line(capsys, ["certify", str(untrained_run), "--repair", "--eps-unsafe", "-1",
                                                     "--out", str(tmp_path / "r")])
+    # the repair's flags without --repair would be ignored (no repaired run written): refused, before any work
+    assert _one_error_line(capsys, ["certify", str(untrained_run), "--out", str(tmp_path / "r")]).endswith(
+        "--out acts only with --repair; add --repair, or leave it out")
+    assert "--rounds, --calls act only with --repair" in _one_error_line(
+        capsys, ["certify", str(untrained_run), "--rounds", "3", "--calls", "5"])
+    assert not (tmp_path / "r").exists()
 
 
 def test_bad_epsilon_through_the_command_line_has_no_traceback(untrained_run):

@@ -49,8 +49,14 @@ def test_cli_input_errors_exit_2(tmp_path, capsys):
                  "--episodes", "1", "--out", str(tmp_path / "x")]) == 2
     assert main(["report", str(tmp_path / "missing")]) == 2
     assert main(["report", str(tmp_path)]) == 2  # exists but holds nothing
+    # a cluster address without the Ray backend would start every run here: refused
+    assert main(["reproduce", "table2", "--address", "auto", "--out", str(tmp_path / "y")]) == 2
+    (tmp_path / "afile").write_text("x")  # --out a file: one line, exit 2, as train's (it was exit 1)
+    assert main(["reproduce", "table2", "--no-train", "--out", str(tmp_path / "afile")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 5 and all(line.startswith("d2spo: error:") for line in err)
+    assert len(err) == 7 and all(line.startswith("d2spo: error:") for line in err)
+    assert "address: is a Ray cluster's, for --backend ray" in err[5] and not (tmp_path / "y").exists()
+    assert err[6].endswith("afile: exists and is not a directory")
 
 
 def test_table3_trains_once_reuses_and_reports(tmp_path, monkeypatch):

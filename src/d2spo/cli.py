@@ -301,6 +301,14 @@ class CertifyCmd:
 
     def run(self) -> int:
         console = Console()
+        if not self.repair:  # their help begins "With --repair:": given without it, they would be ignored
+            given = ["--out"] if self.out is not None else []
+            given += [f"--{f.name.replace('_', '-')}" for f in dataclasses.fields(RepairConfig)
+                      if getattr(self.fix, f.name) != f.default]
+            if given:
+                one = len(given) == 1
+                raise UserError(f"{', '.join(given)} {'acts' if one else 'act'} only with --repair; add --repair, "
+                                f"or leave {'it' if one else 'them'} out")
         if self.repair:
             out = self.out or self.run_dir.with_name(self.run_dir.name + "-repaired")
             res = repair_run(self.run_dir, out, self.check, self.fix,

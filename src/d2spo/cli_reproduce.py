@@ -8,6 +8,7 @@ from pathlib import Path
 
 import tyro
 
+from d2spo.errors import ConfigError
 from d2spo.report import build_report
 from d2spo.reproduce import reproduce
 
@@ -42,6 +43,9 @@ class ReproduceCmd:
     an older d2spo) instead of stopping; the report counts them."""
 
     def run(self) -> int:
+        if self.address is not None and self.backend != "ray":  # else 18 runs of 20000 episodes start here
+            raise ConfigError("address", f"is a Ray cluster's, for --backend ray (given: --backend {self.backend}); "
+                              "add --backend ray, or leave --address out")
         reproduce(self.targets, self.out, self.seeds, self.episodes, self.backend, self.address, self.methods,
                   self.progress, train=self.train, vmap_seeds=self.vmap_seeds, allow_stale=self.allow_stale)
         return 0

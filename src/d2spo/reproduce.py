@@ -32,7 +32,7 @@ from d2spo.config_diff import config_differences
 from d2spo.errors import ConfigError, RunInUseError, UserError
 from d2spo.progress import train_seeds_with_progress, train_with_progress
 from d2spo.run import GROUP_PREFIX, group_dir
-from d2spo.runio import atomic_write_json, read_json, run_holder
+from d2spo.runio import atomic_write_json, make_run_dir, read_json, run_holder
 from d2spo.targets import METHODS, TABLE_SETTING, TARGETS, RunSpec, expand, is_finished, run_dir, runs_for
 from d2spo.train import train_seeds
 
@@ -297,7 +297,7 @@ def reproduce(targets: Iterable[str], out: Path, seeds: int = 3, episodes: int =
     if not targets:
         raise UserError(f"name at least one target: {', '.join(TARGETS)} or all")
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    make_run_dir(out)  # a file in the way is one line, exit 2 (as `train --out`)
     specs: list[RunSpec] = []
     for t in targets:
         for s in runs_for(t, seeds, episodes, methods):
