@@ -143,14 +143,15 @@ def test_a_patrol_no_letter_sequence_visits_is_refused_in_a_patrols_words():
     """A patrol never completes: on a layout without its areas the refusal says it cannot make one
     accepting visit (it said 'cannot be completed', which no patrol ever is)."""
     with pytest.raises(ConfigError, match=r"patrol2 cannot make one accepting visit in layout 'relaxed' "
-                                          r"\(propositions with no area, always false: \['A3', 'A4'\]\)"):
+                                          r"\(propositions with no area, always false: \['A3', 'A4'\]; its labels: A1, A2\)"):
         make_env(EnvConfig(layout="relaxed"), "patrol2")
     with pytest.raises(ConfigError, match="cannot be completed in layout 'relaxed'"):  # a task that completes
         make_env(EnvConfig(layout="relaxed"), "reach-never")
     # a misspelt task name is one proposition of that name: the refusal says which names were meant
-    with pytest.raises(ConfigError, match=r"\['patrol22'\]\) \(not a task name: did you mean patrol2, patrol3\?\)"):
+    with pytest.raises(ConfigError, match=r"\['patrol22'\]; its labels: A1, A2, A3, A4\) \(not a task name: did you mean "
+                                          r"patrol2, patrol3\?\)"):
         make_env(EnvConfig(layout="paper"), "patrol22")
-    with pytest.raises(ConfigError, match=r"\['B7'\]\): no sequence") as e:  # no name is close: no guess
+    with pytest.raises(ConfigError, match=r"\['B7'\]; its labels: A1, A2, A3, A4\): no sequence") as e:  # no guess
         make_env(EnvConfig(layout="paper"), "F B7")
     assert "did you mean" not in str(e.value)
 

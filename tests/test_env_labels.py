@@ -256,7 +256,12 @@ def test_env_check_and_show_accept_the_office(tmp_path, capsys):
 
 @pytest.mark.parametrize("args, message", [
     (["--task", "F lounge"], "F lounge cannot be completed in layout 'office' (propositions with no area, always "
-                             "false: ['lounge'])"),
+                             "false: ['lounge']; its labels: desk, kitchen)"),
+    # a slip of case or spelling: the label it was likely meant to be
+    (["--task", "F (Desk & F kitchen)"], "(propositions with no area, always false: ['Desk']; its labels: desk, "
+                                         "kitchen; did you mean desk for Desk?)"),
+    (["--task", "F (desk & F kitchn)"], "always false: ['kitchn']; its labels: desk, kitchen; did you mean kitchen "
+                                        "for kitchn?)"),
     (["--task", "F desk | F lounge"], "proposition 'lounge' names no area of layout 'office' (no area has that label; "
                                       "its labels: desk, kitchen)"),
 ])

@@ -56,6 +56,10 @@ def field_of(excinfo) -> str:
         (lambda d: d.update(arena=[4.0]), "layout.arena"),
         (lambda d: d.update(start="home"), "layout.start"),
         (lambda d: d.update(colour="red"), "layout"),
+        # a misspelt key inside an area or obstacle (it was dropped without a word, and a label with it)
+        (lambda d: d["areas"][1].update(lable="dock"), "layout.areas[1].lable"),
+        (lambda d: d["areas"][0].update(colour="red"), "layout.areas[0].colour"),
+        (lambda d: d["obstacles"][0].update(height=1.0), "layout.obstacles[0].height"),
     ],
 )
 def test_bad_layout_json_names_the_field(tmp_path, change, field):
@@ -64,6 +68,17 @@ def test_bad_layout_json_names_the_field(tmp_path, change, field):
     with pytest.raises(ConfigError) as e:
         layouts.load(write(tmp_path, data))
     assert field_of(e) == field
+
+
+def test_a_misspelt_key_is_named_with_the_key_it_is_closest_to(tmp_path):
+    data = json.loads(json.dumps(TINY))
+    data["areas"][1]["lable"] = "dock"
+    with pytest.raises(ConfigError, match=r"areas\[1\]\.lable: unknown key \(did you mean 'label'\?\); an area has "):
+        layouts.load(write(tmp_path, data))
+    data = json.loads(json.dumps(TINY))
+    data["obstacles"][0] = {"center": data["obstacles"][0]["center"], "radious": 0.3}  # not "half_extents: missing"
+    with pytest.raises(ConfigError, match=r"obstacles\[0\]\.radious: unknown key \(did you mean 'radius'\?\)"):
+        layouts.load(write(tmp_path, data))
 
 
 def test_good_json_layout_loads_and_round_trips(tmp_path):

@@ -11,6 +11,7 @@ on a layout, ``letters_at`` the letter at given points.
 
 from __future__ import annotations
 
+import difflib
 import functools
 import itertools
 import json
@@ -62,6 +63,23 @@ def _get(obj: dict, key: str, field: str):
     return obj[key]
 
 
+AREA_KEYS = ("name", "label", "center", "radius")
+OBSTACLE_KEYS = ("center", "half_extents", "radius")
+
+
+def _no_unknown_keys(obj, known: tuple[str, ...], field: str, what: str) -> None:
+    """ConfigError naming a key of ``obj`` (an object) that is not one of ``known``, with the known
+    key it is closest to: a misspelt ``label`` would otherwise be dropped without a word, and the
+    area's label with it."""
+    if not isinstance(obj, dict):
+        raise ConfigError(field, f"expected an object, got {obj!r}")
+    for key in obj:
+        if key not in known:
+            close = difflib.get_close_matches(str(key), known, n=1, cutoff=0.6)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            raise ConfigError(f"{field}.{key}", f"unknown key{hint}; {what} has {', '.join(known)}")
+
+
 def from_json(data: dict, default_name: str = "custom") -> Layout:
     """A validated layout from a dict with keys arena, start, obstacles, areas (and optional name)."""
     f = "layout"
@@ -85,6 +103,7 @@ def from_json(data: dict, default_name: str = "custom") -> Layout:
     areas = []
     for i, a in enumerate(areas_raw):
         g = f"{f}.areas[{i}]"
+        _no_unknown_keys(a, AREA_KEYS, g, "an area")
         area_name = _get(a, "name", g)
         if not isinstance(area_name, str) or not area_name.strip():
             raise ConfigError(f"{g}.name", f"expected a non-empty string, got {area_name!r}")
@@ -102,6 +121,7 @@ def from_json(data: dict, default_name: str = "custom") -> Layout:
 
 def _obstacle(o, g: str) -> Obstacle | DiskObstacle:
     """One obstacle entry: a box (``half_extents``) or a disk (``radius``)."""
+    _no_unknown_keys(o, OBSTACLE_KEYS, g, "an obstacle (a box or a disk)")
     center = _vector(_get(o, "center", g), 2, f"{g}.center")
     if "radius" in o and "half_extents" in o:
         raise ConfigError(g, "give half_extents (a box) or radius (a disk), not both")

@@ -7,6 +7,7 @@ the task's shortest route.
 
 from __future__ import annotations
 
+import difflib
 import math
 import warnings
 
@@ -39,7 +40,13 @@ def check_letters(task: CompiledTask, what: str) -> None:
     if int(arrays.distance[int(arrays.initial)]) >= UNREACHABLE:
         layout = task.layout
         missing = sorted(set(task.automaton.aps) - set(layout.labels))
-        hint = f" (propositions with no area, always false: {missing})" if missing else ""
+        hint = ""
+        if missing:  # with the labels there are, and the one each was likely meant to be (`Dock`: dock)
+            meant = [f"{close[0]} for {p}" for p in missing
+                     if (close := [lab for lab in layout.labels if lab.lower() == p.lower()]
+                         or difflib.get_close_matches(p, layout.labels, n=1, cutoff=0.6))]
+            hint = (f" (propositions with no area, always false: {missing}; its labels: "
+                    f"{', '.join(layout.labels) or 'none'}{'; did you mean ' + ', '.join(meant) + '?' if meant else ''})")
         close = close_task_names(what)  # `--task patrol22`: a misspelt name, read as a proposition
         if close:
             hint += f" (not a task name: did you mean {', '.join(close)}?)"
