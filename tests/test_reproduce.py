@@ -171,6 +171,9 @@ def test_report_says_per_section_how_it_was_rendered(tmp_path):
     report = build_report(tmp_path).read_text()
     assert "`d2spo reproduce fig3 --seeds 1 --episodes 20000`: 0 of 8 runs finished" in report
     assert "`d2spo reproduce table2 --seeds 3 --episodes 20000 --methods cpo`: 0 of 3 runs finished" in report
+    # the last command, as the footer: with its methods (copying it without them would train all six)
+    assert f"Last command: `d2spo reproduce table2 --seeds 3 --episodes 20000 --methods cpo --out {tmp_path} --no-train`" \
+        in report
 
 
 def test_runs_trained_with_other_settings_are_refused_unless_allowed(tmp_path, capsys):

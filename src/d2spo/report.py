@@ -12,6 +12,7 @@ import jax
 
 from d2spo.errors import RunDirError, json_trouble
 from d2spo.inputs import read_regular
+from d2spo.targets import METHODS
 
 SECTIONS = (
     ("table2", "md", "Table II: ϕ1"),
@@ -112,8 +113,11 @@ def build_report(out: Path) -> Path:
     meta = read_meta(meta_path) if meta_path.exists() else {}
     parts = ["# d2spo: reproduction report", ""]
     if meta:
+        chosen = meta.get("methods")  # a subset of the methods (`--methods cpo d2spo`) is part of the command
+        methods = (f" --methods {' '.join(chosen)}" if isinstance(chosen, list) and chosen
+                   and chosen != list(METHODS) else "")
         parts += [f"Last command: `d2spo reproduce {' '.join(meta.get('targets', []))} --seeds {meta.get('seeds')} "
-                  f"--episodes {meta.get('episodes')} --out {out}{'' if meta.get('train', True) else ' --no-train'}` "
+                  f"--episodes {meta.get('episodes')}{methods} --out {out}{'' if meta.get('train', True) else ' --no-train'}` "
                   f"(backend {meta.get('backend')}); "
                   f"{meta.get('finished', '?')} of {len(meta.get('runs', []))} runs finished. Report written {date.today().isoformat()} on {machine()}.", ""]
     found = 0
