@@ -90,9 +90,7 @@ class CBFRun(NamedTuple):
 def load_cbf_run(run_dir: Path) -> CBFRun:
     """Load a run of a learner with a learned CBF (d2spo, sl). RunDirError/ConfigError on bad input."""
     run_dir = Path(run_dir)
-    if not run_dir.is_dir():
-        raise RunDirError(f"{run_dir}: no such run directory")
-    cfg = load_run_config(run_dir)
+    cfg = load_run_config(run_dir)  # a missing run directory, or a file given as one, is one line there
     if "cbf" not in config_sections(cfg.algo):
         raise RunDirError(f"{run_dir}: a {cfg.algo!r} run has no learned CBF to certify (use a d2spo or sl run)")
     if cfg.generalist:  # its barrier is checked per layout of a bank: the grid and search here take one layout
