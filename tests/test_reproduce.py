@@ -194,6 +194,7 @@ def test_runs_trained_with_other_settings_are_refused_unless_allowed(tmp_path, c
     assert main(args) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "env.reward.shaping_clearance: None -> 0.3" in err[0] and "--allow-stale" in err[0]
+    assert f"1 run in {tmp_path / 'runs'} was trained with other settings" in err[0]
     assert main(args + ["--allow-stale"]) == 0
     assert json.loads((tmp_path / "reproduce.json").read_text())["rendered"]["table2"]["stale"] == 1
     assert "1 of them trained with other settings" in build_report(tmp_path).read_text()

@@ -309,11 +309,11 @@ def reproduce(targets: Iterable[str], out: Path, seeds: int = 3, episodes: int =
     if stale:
         name, diffs = next(iter(stale.items()))
         more = f" (and {len(diffs) - 1} more settings)" if len(diffs) > 1 else ""
-        what = f"{len(stale)} run{'s' if len(stale) > 1 else ''} in {out / 'runs'}"
+        what = f"{len(stale)} run{'s' if len(stale) > 1 else ''} in {out / 'runs'} {'were' if len(stale) > 1 else 'was'}"
         if not allow_stale:
-            raise UserError(f"{what} were trained with other settings than today's, e.g. {name}: {diffs[0]}{more}; "
+            raise UserError(f"{what} trained with other settings than today's, e.g. {name}: {diffs[0]}{more}; "
                             f"use a new --out, or --allow-stale to use them as they are")
-        log(f"warning: {what} were trained with other settings than today's (--allow-stale), e.g. "
+        log(f"warning: {what} trained with other settings than today's (--allow-stale), e.g. "
             f"{name}: {diffs[0]}{more}")
     if not train:
         log(f"{sum(is_finished(out, s) for s in specs)} of {len(specs)} runs finished in {out}; rendering only")
