@@ -301,6 +301,8 @@ class CertifyCmd:
 
     def run(self) -> int:
         console = Console()
+        if not console.is_terminal and "COLUMNS" not in os.environ:  # a log or a pipe: rich's 80 columns cut
+            console = Console(width=160)  # the table's numbers short ("0.0005…"); a file has room for them all
         if not self.repair:  # their help begins "With --repair:": given without it, they would be ignored
             given = ["--out"] if self.out is not None else []
             given += [f"--{f.name.replace('_', '-')}" for f in dataclasses.fields(RepairConfig)
