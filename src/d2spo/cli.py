@@ -22,7 +22,7 @@ import tyro
 from rich.console import Console
 
 from d2spo import compile_cache, interrupts
-from d2spo.certify import CertifyConfig, certify_run, load_cbf_run, write_outputs
+from d2spo.cli_certify import CertifyCmd
 from d2spo.cli_docs import DocsCmd
 from d2spo.cli_export import ExportCmd
 from d2spo.cli_reproduce import ReportCmd, ReproduceCmd
@@ -30,9 +30,7 @@ from d2spo.config import TrainConfig, algo_named, config_file_named, flags_for, 
 from d2spo.config_diff import config_differences
 from d2spo.console import (
     error,
-    print_certify,
     print_evaluation,
-    print_repair_round,
     show_warning,
     tyro_error_line,
     version,
@@ -51,7 +49,6 @@ from d2spo.ltl.labelling import LABEL_MODES
 from d2spo.ltl.tasks import close_task_names
 from d2spo.plotstyle import check_picture_path
 from d2spo.progress import EvalProgress, train_with_progress
-from d2spo.repair import RepairConfig, repair_run
 
 
 def warn_if_task_name_typo(formula: str) -> None:
@@ -269,10 +266,9 @@ class EnvCheckCmd:
         return 0
 
 
-EnvCommands = Union[
-    Annotated[EnvShowCmd, tyro.conf.subcommand("show", prefix_name=False)],
-    Annotated[EnvCheckCmd, tyro.conf.subcommand("check", prefix_name=False)],
-]
+ENV_SUBCOMMANDS = {"show": EnvShowCmd, "check": EnvCheckCmd}
+EnvCommands = Union[tuple(Annotated[cmd, tyro.conf.subcommand(name, prefix_name=False)]
+                          for name, cmd in ENV_SUBCOMMANDS.items())]
 
 
 @dataclasses.dataclass
@@ -285,47 +281,6 @@ class EnvCmd:
         return self.cmd.run()
 
 
-@dataclasses.dataclass
-class CertifyCmd:
-    """Check Propositions 1-2 (the learned CBF) on a trained d2spo/sl run; writes RUN/certify.json and
-    RUN/certify.png. With --repair, trains h and π_Ω on the counterexamples into a new run directory."""
-
-    run_dir: tyro.conf.Positional[Path]
-    """A run directory written by `d2spo train --algo d2spo` (or sl)."""
-    check: Annotated[CertifyConfig, tyro.conf.arg(name="")] = dataclasses.field(default_factory=CertifyConfig)
-    repair: bool = False
-    """Add the counterexamples to the datasets and train h and π_Ω until the certified fraction stops rising."""
-    out: Path | None = None
-    """With --repair: the new run directory (default: RUN-repaired)."""
-    fix: Annotated[RepairConfig, tyro.conf.arg(name="")] = dataclasses.field(default_factory=RepairConfig)
-
-    def run(self) -> int:
-        console = Console()
-        if not console.is_terminal and "COLUMNS" not in os.environ:  # a log or a pipe: rich's 80 columns cut
-            console = Console(width=160)  # the table's numbers short ("0.0005…"); a file has room for them all
-        if not self.repair:  # their help begins "With --repair:": given without it, they would be ignored
-            given = ["--out"] if self.out is not None else []
-            given += [f"--{f.name.replace('_', '-')}" for f in dataclasses.fields(RepairConfig)
-                      if getattr(self.fix, f.name) != f.default]
-            if given:
-                one = len(given) == 1
-                raise UserError(f"{', '.join(given)} {'acts' if one else 'act'} only with --repair; add --repair, "
-                                f"or leave {'it' if one else 'them'} out")
-        if self.repair:
-            out = self.out or self.run_dir.with_name(self.run_dir.name + "-repaired")
-            res = repair_run(self.run_dir, out, self.check, self.fix,
-                             progress=lambda r: print_repair_round(console, r, self.fix.eval_episodes))
-            print_certify(console, res["after"])
-            print(f"wrote the repaired run {out} (round {res['kept']} kept; certify.json, certify.png, checkpoint)")
-            return 0
-        run = load_cbf_run(self.run_dir)
-        summary, nets = certify_run(self.run_dir, self.check, run=run)
-        j, p = write_outputs(self.run_dir, run, self.check, summary, nets)
-        print_certify(console, summary)
-        print(f"wrote {j} and {p}")
-        return 0
-
-
 def commands(algo: str, base: TrainConfig | None = None):
     """The subcommands, ``train`` with the flags of the learner ``algo`` (``config.flags_for``), their
     defaults ``base``'s (the ``--config`` file's) if given."""
@@ -335,29 +290,20 @@ def commands(algo: str, base: TrainConfig | None = None):
     train.__doc__ = TrainCmd.__doc__
     default = None if base is None else train(cfg=flags(**{f.name: getattr(base, f.name)
                                                             for f in dataclasses.fields(TrainConfig)}))
-    return Union[
-        Annotated[train, tyro.conf.subcommand("train", default=default)],
-        Annotated[EvalCmd, tyro.conf.subcommand("eval")],
-        Annotated[LtlCmd, tyro.conf.subcommand("ltl")],
-        Annotated[EnvCmd, tyro.conf.subcommand("env")],
-        Annotated[DemoCmd, tyro.conf.subcommand("demo")],
-        Annotated[ReproduceCmd, tyro.conf.subcommand("reproduce")],
-        Annotated[ReportCmd, tyro.conf.subcommand("report")],
-        Annotated[CertifyCmd, tyro.conf.subcommand("certify")],
-        Annotated[ExportCmd, tyro.conf.subcommand("export")],
-        Annotated[DocsCmd, tyro.conf.subcommand("docs")],
-    ]
+    return Union[(Annotated[train, tyro.conf.subcommand("train", default=default)],
+                  *(Annotated[cmd, tyro.conf.subcommand(name)] for name, cmd in SUBCOMMANDS.items()))]
 
 
-SUBCOMMANDS = ("train", "eval", "ltl", "env", "demo", "reproduce", "report", "certify", "export", "docs")
-ENV_SUBCOMMANDS = ("show", "check")
+SUBCOMMANDS = {"eval": EvalCmd, "ltl": LtlCmd, "env": EnvCmd, "demo": DemoCmd, "reproduce": ReproduceCmd,
+               "report": ReportCmd, "certify": CertifyCmd, "export": ExportCmd, "docs": DocsCmd}
+"""The subcommands after ``train`` (whose flags depend on ``--algo``: ``commands``), by name."""
 
 
 def help_command(args: list[str]) -> str:
     """The help a usage error points to: the subcommand's (``d2spo env show --help``) when ``args``
     name one, else ``d2spo --help``."""
     words = ["d2spo"]
-    if args and args[0] in SUBCOMMANDS:
+    if args and (args[0] == "train" or args[0] in SUBCOMMANDS):
         words.append(args[0])
         if args[0] == "env" and len(args) > 1 and args[1] in ENV_SUBCOMMANDS:
             words.append(args[1])

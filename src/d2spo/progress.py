@@ -111,10 +111,9 @@ def _label(cfg: TrainConfig, width: int = 22) -> str:
 def _stats(d: dict, eps_per_s: float) -> str:
     pct = lambda v: "–" if v != v else f"{100 * v:.1f}%"  # NaN before the first episode ends
     visits = f" · visits {d['accepting_visits']:.2f}/ep" if "accepting_visits" in d else ""  # a Büchi task
-    if d.get("recurrence"):  # a patrol: no episode completes it
-        return f"{eps_per_s:.1f} ep/s · safe {pct(d['safety_rate'])}{visits}"
-    return (f"{eps_per_s:.1f} ep/s · safe {pct(d['safety_rate'])}{visits} · done {pct(d['completion_rate'])} "
-            f"(relaxed {pct(d['completion_rate_relaxed'])})")
+    done = "" if d.get("recurrence") else (  # a patrol: no episode completes it
+        f" · done {pct(d['completion_rate'])} (relaxed {pct(d['completion_rate_relaxed'])})")
+    return f"{eps_per_s:.1f} ep/s · safe {pct(d['safety_rate'])}{visits}{done}"
 
 
 def _clock(seconds: float) -> str:

@@ -42,17 +42,22 @@ def check_letters(task: CompiledTask, what: str) -> None:
         missing = sorted(set(task.automaton.aps) - set(layout.labels))
         hint = ""
         if missing:  # with the labels there are, and the one each was likely meant to be (`Dock`: dock)
-            meant = [f"{close[0]} for {p}" for p in missing
-                     if (close := [lab for lab in layout.labels if lab.lower() == p.lower()]
-                         or difflib.get_close_matches(p, layout.labels, n=1, cutoff=0.6))]
+            meant = [f"{label} for {p}" for p in missing if (label := _label_meant(p, layout.labels))]
+            guess = f"; did you mean {', '.join(meant)}?" if meant else ""
             hint = (f" (propositions with no area, always false: {missing}; its labels: "
-                    f"{', '.join(layout.labels) or 'none'}{'; did you mean ' + ', '.join(meant) + '?' if meant else ''})")
+                    f"{', '.join(layout.labels) or 'none'}{guess})")
         close = close_task_names(what)  # `--task patrol22`: a misspelt name, read as a proposition
         if close:
             hint += f" (not a task name: did you mean {', '.join(close)}?)"
         done = "make one accepting visit" if task.recurrence else "be completed"  # a patrol never completes
         raise ConfigError("task", f"{what} cannot {done} in layout {layout.name!r}{hint}: no sequence of the "
                           "letters it can produce (areas entered alone, or together where they overlap) does it")
+
+
+def _label_meant(prop: str, labels: tuple[str, ...]) -> str | None:
+    """The label ``prop`` was likely meant to be: the one it equals but for case, else the closest."""
+    same = [lab for lab in labels if lab.lower() == prop.lower()]
+    return (same or difflib.get_close_matches(prop, labels, n=1, cutoff=0.6) or [None])[0]
 
 
 def check_feasible(task: CompiledTask, name: str, radius: float | None = None, robot: str | None = None) -> None:

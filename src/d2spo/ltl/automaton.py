@@ -213,10 +213,13 @@ class Automaton:
             label = f"{q}\\n{_dot_escape(self.state_formulas[q])}"
             lines.append(f'  {q} [shape={shape}{style}, label="{label}"];')
         lines.append(f"  init -> {self.initial};")
-        for q, t, guard in self.edges():
-            lines.append(f'  {q} -> {t} [label="{_dot_escape(guard)}"];')
+        lines += self._dot_edges()
         lines.append("}")
         return "\n".join(lines) + "\n"
+
+    def _dot_edges(self) -> list[str]:
+        """``to_dot``'s edges: one per pair of states with a transition, labelled with its guard."""
+        return [f'  {q} -> {t} [label="{_dot_escape(guard)}"];' for q, t, guard in self.edges()]
 
     def pretty(self, feasible_letters: Collection[int] | None = None) -> str:
         """A text table: state, status, distance (with ``feasible_letters``), formula, and the

@@ -72,12 +72,10 @@ class BuchiTask(Automaton):
         visits = [[a in set(row) for a in range(width)] for row in data["visits"]]
         return cls(*(data[k] for k in ("aps", "initial", "accepting", "rejecting", "delta")), visits=visits)
 
-    def to_dot(self) -> str:
-        """``Automaton.to_dot``, with the transitions that hold an accepting visit drawn bold and
-        marked with a dot (as ``BuchiAutomaton.to_dot`` draws its accepting transitions): a visit's
-        letters get an edge of their own beside the same target's other letters."""
-        lines = super().to_dot().splitlines()
-        lines = lines[:next(i for i, ln in enumerate(lines) if ln.startswith("  init -> ")) + 1]  # the states
+    def _dot_edges(self) -> list[str]:
+        """``Automaton.to_dot``'s edges, with the letters of an accepting visit on an edge of their own,
+        drawn bold and marked with a dot (as ``BuchiAutomaton.to_dot`` draws accepting transitions)."""
+        lines = []
         for q, row in enumerate(self.delta):
             groups: dict[tuple[int, bool], list[int]] = {}
             for letter, t in enumerate(row):
@@ -86,7 +84,7 @@ class BuchiTask(Automaton):
                 guard = _dot_escape(letters_to_guard(letters, self.aps))
                 lines.append(f'  {q} -> {t} [label="{guard} ●", style=bold];' if visit
                              else f'  {q} -> {t} [label="{guard}"];')
-        return "\n".join([*lines, "}"]) + "\n"
+        return lines
 
     def arrays(self, feasible_letters: Collection[int] | None = None,
                distance: list[int | None] | None = None) -> AutomatonArrays:
