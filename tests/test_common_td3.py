@@ -212,3 +212,40 @@ def test_the_saturation_term_pulls_a_pinned_actor_back_to_where_the_tanh_has_a_s
     # within the bound the term is exactly 0
     inside, m_in = td3_actor_loss(params, None, obs, actor.apply, flat, saturation=2.0, saturation_bound=50.0)
     assert float(inside) == 0.0 and float(m_in["values/actor_saturation"]) == 0.0
+
+
+def test_the_speed_search_pulls_a_stalled_actor_to_the_speed_the_critic_prefers():
+    """``speed_search``: a forward-only actor stalled deep in its tanh (speed 0) under a critic that
+    values speed gets almost no policy gradient, and the search term gives it one towards speed 1;
+    where the proposal is already the critic's best, or no candidate beats it by the margin, the term
+    is 0."""
+    from d2spo.algos.common.networks import DeterministicActor
+    from d2spo.algos.common.td3_losses import SPEED_SEARCH_MARGIN
+
+    actor = DeterministicActor(2, (8,), low=(0.0, -1.0))
+    params = actor.init(jax.random.PRNGKey(0), jnp.zeros((1, 3)))
+    obs = jax.random.normal(jax.random.PRNGKey(1), (5, 3))
+    stalled = jax.tree_util.tree_map(lambda x: x, params)
+    bias = params["params"]["MLP_0"]["Dense_1"]["bias"]
+    stalled["params"]["MLP_0"]["Dense_1"]["bias"] = bias + jnp.array([-9.0, 0.0])
+    assert float(jnp.max(actor.apply(stalled, obs)[:, 0])) < 1e-6  # speed 0
+    rising = lambda c, s, a: jnp.stack([a[:, 0], a[:, 0]])  # Q1 = Q2 = the speed
+
+    def bias_grad(p, weight):
+        g = jax.grad(lambda q: td3_actor_loss(q, None, obs, actor.apply, rising, speed_search=weight, speed_low=0.0)[0])(p)
+        return np.asarray(g["params"]["MLP_0"]["Dense_1"]["bias"])
+
+    assert abs(bias_grad(stalled, 0.0)[0]) < 1e-6  # the plain policy gradient is lost in the tanh
+    assert bias_grad(stalled, 1.0)[0] < -1.0  # the search raises the speed's z
+    loss, m = td3_actor_loss(stalled, None, obs, actor.apply, rising, speed_search=1.0, speed_low=0.0)
+    assert float(m["values/actor_speed_search"]) == 1.0  # every sample pulled
+    # an actor already at full speed: no candidate beats it, the term is 0
+    fast = jax.tree_util.tree_map(lambda x: x, params)
+    fast["params"]["MLP_0"]["Dense_1"]["bias"] = bias + jnp.array([9.0, 0.0])
+    plain, _ = td3_actor_loss(fast, None, obs, actor.apply, rising)
+    searched, m_fast = td3_actor_loss(fast, None, obs, actor.apply, rising, speed_search=1.0, speed_low=0.0)
+    assert float(searched) == pytest.approx(float(plain)) and float(m_fast["values/actor_speed_search"]) == 0.0
+    # a critic flatter than the margin across the speeds pulls nothing either
+    gentle = lambda c, s, a: jnp.stack([a[:, 0], a[:, 0]]) * (SPEED_SEARCH_MARGIN / 2)
+    _, m_gentle = td3_actor_loss(stalled, None, obs, actor.apply, gentle, speed_search=1.0, speed_low=0.0)
+    assert float(m_gentle["values/actor_speed_search"]) == 0.0

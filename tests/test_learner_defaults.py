@@ -116,13 +116,13 @@ def test_td3_lag_refuses_an_annealed_exploration_noise(capsys):
     assert len(err) == 1 and "td3_lag.td3.exploration_noise_final" in err[0]
 
 
-@pytest.mark.parametrize("term", ["smoothness", "saturation"])
+@pytest.mark.parametrize("term", ["smoothness", "saturation", "speed-search"])
 def test_td3_lag_refuses_the_actor_terms_its_loss_lacks(capsys, term):
     with pytest.raises(SystemExit) as e:
         main(["train", "--algo", "td3-lag", f"--td3-lag.td3.{term}", "1", "--out", "/nonexistent/x"])
     assert e.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and f"td3_lag.td3.{term}" in err[0]
+    assert len(err) == 1 and f"td3_lag.td3.{term.replace('-', '_')}" in err[0]
 
 
 def test_the_actor_terms_check_their_values():
@@ -137,6 +137,9 @@ def test_the_actor_terms_check_their_values():
     with pytest.raises(ConfigError, match="saturation_bound"):
         TD3Config(saturation_bound=0.0)
     assert TD3Config().saturation == 0.0  # off by default: the actor's loss as before
+    with pytest.raises(ConfigError, match="speed_search"):
+        TD3Config(speed_search=-1.0)
+    assert TD3Config().speed_search == 0.0
 
 
 def _update_steps(cfg: TrainConfig) -> tuple:

@@ -95,6 +95,11 @@ class TD3Config:
     a slope can still be moved to the other side of an action's range; 0: none (the default)."""
     saturation_bound: float = 2.5
     """|z| beyond which the saturation term counts (tanh(2.5) = 0.987 of the bound)."""
+    speed_search: float = 0.0
+    """Weight of a term in the actor's loss that pulls its linear speed towards the best of a few
+    speeds over its range where the critic values that one more than the proposal
+    (``td3_losses.td3_actor_loss``): an actor stalled at a local maximum of Q, or deep in its tanh,
+    reaches the faster speed the critic prefers; 0: none (the default)."""
     exploration_noise_space: str = "action"
     """Where the exploration noise is added: "action" (TD3's: clip(pi(s) + N(0, noise^2)), which
     slows an actor at full speed on average, by 0.4 noise) or "pre-tanh" (to the actor's output
@@ -132,7 +137,7 @@ class TD3Config:
                      widths=("hidden",), lr=("actor_lr", "critic_lr"), discount=("gamma",),
                      rate=("tau",), positive=("saturation_bound",),
                      non_negative=("policy_noise", "noise_clip", "exploration_noise", "exploration_noise_final",
-                                   "recurrence_noise_final", "smoothness", "saturation"),
+                                   "recurrence_noise_final", "smoothness", "saturation", "speed_search"),
                      count=("policy_delay", "batch_size", "buffer_size", "updates_per_step"),
                      natural=("learning_starts",), flag=("critic_layer_norm", "forward_only"))
         dims = self.smoothness_dims
@@ -222,7 +227,8 @@ def td3_update(nets: TD3Nets, agent: TD3Agent, batch: Transition, key: jax.Array
     def actor_step(_):
         (_, a_metrics), a_grads = jax.value_and_grad(td3_actor_loss, has_aux=True)(
             agent.actor, critic, batch.obs, actor_apply, critic_apply, None, execute_fn, proposal_weight,
-            batch.next_obs, cfg.smoothness, cfg.smoothness_dims, cfg.saturation, cfg.saturation_bound)
+            batch.next_obs, cfg.smoothness, cfg.smoothness_dims, cfg.saturation, cfg.saturation_bound,
+            cfg.speed_search, nets.actor.speed_low())
         a_upd, actor_opt = nets.actor_tx.update(a_grads, agent.actor_opt, agent.actor)
         actor = optax.apply_updates(agent.actor, a_upd)
         return (actor, actor_opt, soft_update(agent.actor_target, actor, cfg.tau),

@@ -54,12 +54,10 @@ class TD3LagConfig:
         if self.td3.exploration_noise_final is not None:  # the loop's behaviour hook sees no episode count
             raise ConfigError("td3_lag.td3.exploration_noise_final", "is for td3, tlgrl, d2spo and sl; "
                               "td3-lag explores with the constant td3_lag.td3.exploration_noise")
-        if self.td3.smoothness:
-            raise ConfigError("td3_lag.td3.smoothness", "is for td3, tlgrl, d2spo and sl; td3-lag's actor loss "
-                              "has no smoothness term")
-        if self.td3.saturation:
-            raise ConfigError("td3_lag.td3.saturation", "is for td3, tlgrl, d2spo and sl; td3-lag's actor loss "
-                              "has no saturation term")
+        for term in ("smoothness", "saturation", "speed_search"):
+            if getattr(self.td3, term):
+                raise ConfigError(f"td3_lag.td3.{term}", f"is for td3, tlgrl, d2spo and sl; td3-lag's actor loss "
+                                  f"has no {term.replace('_', ' ')} term")
 
 
 @struct.dataclass

@@ -84,6 +84,10 @@ class DeterministicActor(nn.Module):
         clipping to it is the plain [-1, 1] clip), else ``low`` as an [action_dim] array."""
         return -1.0 if self.low is None else jnp.asarray(self.low, jnp.float32)
 
+    def speed_low(self) -> float:
+        """The smallest linear speed (action[0]): -1.0, or 0.0 for a forward-only actor."""
+        return -1.0 if self.low is None else float(self.low[0])
+
 
 class QNetwork(nn.Module):
     """Q(s, a) -> [...] from the concatenation of observation and action."""

@@ -147,6 +147,8 @@ def td3_actor_loss(
     smoothness_dims: tuple[int, ...] | None = None,
     saturation: float = 0.0,
     saturation_bound: float = 2.5,
+    speed_search: float = 0.0,
+    speed_low: float = -1.0,
 ) -> tuple[jax.Array, dict[str, jax.Array]]:
     """Deterministic policy gradient: mean(-Q1(s, a) + penalty_fn(s, a)), a = pi(s).
 
@@ -167,6 +169,14 @@ def td3_actor_loss(
     (``actor_apply(params, obs, pre_tanh=True)``), keeps z where the tanh still has a slope
     (tanh(2.5) = 0.987): an actor pinned at an action's bound gets no gradient towards the other
     side of the box. Off (0) by default.
+
+    ``speed_search``: the proposal with its linear speed (action[0]) replaced by each of
+    ``SPEED_SEARCH_POINTS`` speeds spread over [``speed_low``, 1] is scored by Q1 (through the safety
+    layer); where the best of them beats the proposal by more than ``SPEED_SEARCH_MARGIN``, the
+    actor's speed output before its tanh is pulled towards that speed's,
+    ``speed_search * (z_0 - atanh(·))²``. The policy gradient climbs Q1 only locally, and where the
+    actor's output sits deep in its tanh (a stall at speed 0) it gets almost no gradient at all;
+    this term reaches the better speed the critic already knows. Off (0) by default.
     """
     proposal = actor_apply(actor_params, obs)
     action = proposal if execute_fn is None else execute_fn(obs, proposal)
@@ -189,6 +199,10 @@ def td3_actor_loss(
         beyond = jnp.sum(excess**2, axis=-1)
         per_sample = per_sample + saturation * beyond
         metrics["values/actor_saturation"] = jnp.mean(beyond)
+    if speed_search > 0:
+        search = _speed_search(actor_params, critic_params, obs, actor_apply, critic_apply, execute_fn, q1, speed_low)
+        per_sample = per_sample + speed_search * search
+        metrics["values/actor_speed_search"] = jnp.mean(search > 0)
     if penalty_fn is not None:
         penalty = penalty_fn(obs, action)
         per_sample = per_sample + penalty
@@ -196,6 +210,32 @@ def td3_actor_loss(
     loss = jnp.mean(per_sample)
     metrics["losses/actor"] = loss
     return loss, metrics
+
+
+SPEED_SEARCH_POINTS = 5
+"""Candidate linear speeds of ``td3_actor_loss``'s speed search, evenly over the actor's range."""
+SPEED_SEARCH_MARGIN = 0.05
+"""How much more Q1 a candidate speed must promise than the proposal before the actor is pulled."""
+
+
+def _speed_search(actor_params, critic_params, obs, actor_apply, critic_apply, execute_fn, q1, speed_low):
+    """Per sample, ``(z_0 - atanh(t))²`` towards the best candidate speed where it beats the proposal
+    by ``SPEED_SEARCH_MARGIN`` in Q1, else 0 (``td3_actor_loss``'s ``speed_search``)."""
+    z0 = actor_apply(actor_params, obs, pre_tanh=True)[..., 0]
+    proposal = jax.lax.stop_gradient(actor_apply(actor_params, obs))
+    speeds = jnp.linspace(speed_low, 1.0, SPEED_SEARCH_POINTS)
+
+    def q_at(v):
+        candidate = proposal.at[..., 0].set(v)
+        executed = candidate if execute_fn is None else execute_fn(obs, candidate)
+        return critic_apply(critic_params, obs, executed)[0]
+
+    q = jax.lax.stop_gradient(jax.vmap(q_at)(speeds))  # [K, B]
+    better = jnp.max(q, axis=0) > jax.lax.stop_gradient(q1) + SPEED_SEARCH_MARGIN
+    # the best speed in the tanh's coordinate, kept inside (-0.95, 0.95) where the tanh has a slope
+    c0, c1 = (1.0 + speed_low) / 2.0, (1.0 - speed_low) / 2.0
+    target = jnp.arctanh(jnp.clip((speeds[jnp.argmax(q, axis=0)] - c0) / c1, -0.95, 0.95))
+    return jnp.where(better, (z0 - target) ** 2, 0.0)
 
 
 def soft_update(target: Any, online: Any, tau: float) -> Any:
