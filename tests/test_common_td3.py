@@ -217,8 +217,8 @@ def test_the_saturation_term_pulls_a_pinned_actor_back_to_where_the_tanh_has_a_s
 def test_the_speed_search_pulls_a_stalled_actor_to_the_speed_the_critic_prefers():
     """``speed_search``: a forward-only actor stalled deep in its tanh (speed 0) under a critic that
     values speed gets almost no policy gradient, and the search term gives it one towards speed 1;
-    where the proposal is already the critic's best, or no candidate beats it by the margin, the term
-    is 0."""
+    where the proposal is already the critic's best, is not a near stall, or no candidate beats it by
+    the margin, the term is 0."""
     from d2spo.algos.common.networks import DeterministicActor
     from d2spo.algos.common.td3_losses import SPEED_SEARCH_MARGIN
 
@@ -245,6 +245,12 @@ def test_the_speed_search_pulls_a_stalled_actor_to_the_speed_the_critic_prefers(
     plain, _ = td3_actor_loss(fast, None, obs, actor.apply, rising)
     searched, m_fast = td3_actor_loss(fast, None, obs, actor.apply, rising, speed_search=1.0, speed_low=0.0)
     assert float(searched) == pytest.approx(float(plain)) and float(m_fast["values/actor_speed_search"]) == 0.0
+    # an actor at half speed is not stalled: the critic's policy gradient moves it, the search does not
+    half = jax.tree_util.tree_map(lambda x: x, params)
+    half["params"]["MLP_0"]["Dense_1"]["bias"] = bias - actor.apply(params, obs, pre_tanh=True)[0] * jnp.array([1.0, 0.0])
+    assert float(jnp.min(actor.apply(half, obs[:1])[:, 0])) == pytest.approx(0.5, abs=1e-5)
+    _, m_half = td3_actor_loss(half, None, obs[:1], actor.apply, rising, speed_search=1.0, speed_low=0.0)
+    assert float(m_half["values/actor_speed_search"]) == 0.0
     # a critic flatter than the margin across the speeds pulls nothing either
     gentle = lambda c, s, a: jnp.stack([a[:, 0], a[:, 0]]) * (SPEED_SEARCH_MARGIN / 2)
     _, m_gentle = td3_actor_loss(stalled, None, obs, actor.apply, gentle, speed_search=1.0, speed_low=0.0)

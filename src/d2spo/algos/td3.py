@@ -96,8 +96,8 @@ class TD3Config:
     saturation_bound: float = 2.5
     """|z| beyond which the saturation term counts (tanh(2.5) = 0.987 of the bound)."""
     speed_search: float = 0.0
-    """Weight of a term in the actor's loss that pulls its linear speed towards the best of a few
-    speeds over its range where the critic values that one more than the proposal
+    """Weight of a term in the actor's loss that pulls a near-stalled proposal's linear speed towards
+    the best of a few speeds over its range where the critic values that one more
     (``td3_losses.td3_actor_loss``): an actor stalled at a local maximum of Q, or deep in its tanh,
     reaches the faster speed the critic prefers; 0: none (the default)."""
     exploration_noise_space: str = "action"
