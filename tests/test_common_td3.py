@@ -251,6 +251,16 @@ def test_the_speed_search_pulls_a_stalled_actor_to_the_speed_the_critic_prefers(
     assert float(jnp.min(actor.apply(half, obs[:1])[:, 0])) == pytest.approx(0.5, abs=1e-5)
     _, m_half = td3_actor_loss(half, None, obs[:1], actor.apply, rising, speed_search=1.0, speed_low=0.0)
     assert float(m_half["values/actor_speed_search"]) == 0.0
+    # an actor that may reverse: its stall is speed 0 (the middle of its range), not -1
+    both = DeterministicActor(2, (8,))
+    p2 = both.init(jax.random.PRNGKey(0), jnp.zeros((1, 3)))
+    b2 = p2["params"]["MLP_0"]["Dense_1"]["bias"]
+    for shift, pulled in ((-9.0, 0.0), (0.0, 1.0)):  # full astern: a choice; speed 0: a stall
+        q2 = jax.tree_util.tree_map(lambda x: x, p2)
+        q2["params"]["MLP_0"]["Dense_1"]["bias"] = b2 - both.apply(p2, obs, pre_tanh=True)[0] * jnp.array([1.0, 0.0]) \
+            + jnp.array([shift, 0.0])
+        _, m2 = td3_actor_loss(q2, None, obs[:1], both.apply, rising, speed_search=1.0, speed_low=-1.0)
+        assert float(m2["values/actor_speed_search"]) == pulled, shift
     # a critic flatter than the margin across the speeds pulls nothing either
     gentle = lambda c, s, a: jnp.stack([a[:, 0], a[:, 0]]) * (SPEED_SEARCH_MARGIN / 2)
     _, m_gentle = td3_actor_loss(stalled, None, obs, actor.apply, gentle, speed_search=1.0, speed_low=0.0)

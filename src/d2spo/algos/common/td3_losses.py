@@ -172,8 +172,9 @@ def td3_actor_loss(
 
     ``speed_search``: the proposal with its linear speed (action[0]) replaced by each of
     ``SPEED_SEARCH_POINTS`` speeds spread over [``speed_low``, 1] is scored by Q1 (through the safety
-    layer); where the proposal is slower than the second of them (a near stall) and the best of them
-    beats it by more than ``SPEED_SEARCH_MARGIN``, the
+    layer); where the proposal is slower than a quarter of the speed range either way (a near stall:
+    0.25 for a forward-only actor) and the best of them beats it by more than
+    ``SPEED_SEARCH_MARGIN``, the
     actor's speed output before its tanh is pulled towards that speed's,
     ``speed_search * (z_0 - atanh(·))²``. The policy gradient climbs Q1 only locally, and where the
     actor's output sits deep in its tanh (a stall at speed 0) it gets almost no gradient at all;
@@ -232,8 +233,9 @@ def _speed_search(actor_params, critic_params, obs, actor_apply, critic_apply, e
         return critic_apply(critic_params, obs, executed)[0]
 
     q = jax.lax.stop_gradient(jax.vmap(q_at)(speeds))  # [K, B]
-    # only a proposal slower than the second candidate (a quarter of the range): a stall, not a choice
-    better = (jnp.max(q, axis=0) > jax.lax.stop_gradient(q1) + SPEED_SEARCH_MARGIN) & (proposal[..., 0] < speeds[1])
+    # only a proposal slower than a quarter of the speed range, either way: a stall, not a choice
+    stalled = jnp.abs(proposal[..., 0]) < (1.0 - speed_low) / 4.0
+    better = (jnp.max(q, axis=0) > jax.lax.stop_gradient(q1) + SPEED_SEARCH_MARGIN) & stalled
     # the best speed in the tanh's coordinate, kept inside (-0.95, 0.95) where the tanh has a slope
     c0, c1 = (1.0 + speed_low) / 2.0, (1.0 - speed_low) / 2.0
     target = jnp.arctanh(jnp.clip((speeds[jnp.argmax(q, axis=0)] - c0) / c1, -0.95, 0.95))
