@@ -24,6 +24,7 @@ import numpy as np
 import d2spo.envs  # noqa: F401  registers d2spo/Nav-v0
 from d2spo.config import config_from_dict
 from d2spo.deploy import Policy
+from d2spo.errors import UserError
 
 
 def exported(path: Path) -> Path:
@@ -47,9 +48,14 @@ def main() -> None:
     args = parser.parse_args()
 
     # ROS 2: in the node's __init__: load the policy once and make the tracker of the task's state.
-    policy = Policy.load(exported(args.path))
+    try:
+        policy = Policy.load(exported(args.path))
+    except UserError as e:  # not an export nor a run, damaged, ...: one line, as the d2spo commands say it
+        parser.exit(2, f"{parser.prog}: error: {e}\n")
     task = policy.task_tracker()
     use_filter = None if args.filter == "default" else args.filter == "on"
+    if use_filter and policy.runtime_filter is None:
+        parser.exit(2, f"{parser.prog}: error: --filter on: this policy has no runtime filter (only D²SPO's has one)\n")
     m = policy.manifest
     cfg = config_from_dict(m["config"])
     env = gym.make("d2spo/Nav-v0", task=cfg.task, config=cfg.env_config())
@@ -84,7 +90,7 @@ def main() -> None:
               f"{'completed' if completed else 'not completed'} (last command v={v:.2f} m/s, omega={omega:.2f} rad/s"
               f"{'' if not mismatches else f'; automaton state differed from the env in {mismatches} steps'})")
     collided, completed, steps = map(np.array, zip(*results))
-    filt = "none" if policy.filter is None else ("on" if (policy.filter_on if use_filter is None else use_filter)
+    filt = "none" if policy.runtime_filter is None else ("on" if (policy.filter_on if use_filter is None else use_filter)
                                                  else "off")
     print(json.dumps({"episodes": len(results), "safety_rate": float(1 - collided.mean()),
                       "completion_rate": float(completed.mean()), "mean_length": float(steps.mean()),

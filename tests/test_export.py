@@ -145,7 +145,7 @@ def test_observation_from_the_robots_readings_is_the_envs(case, states):
     assert np.abs(back[:, :2] - poses[:, :2]).max() < 1e-5
     assert np.abs(np.angle(np.exp(1j * (back[:, 2] - poses[:, 2])))).max() < 1e-5
     # a driver's readings that cannot be used, each said for what it is
-    with pytest.raises(ValueError, match=f"expected {len(scans[0])} lidar ranges, got 3"):
+    with pytest.raises(ValueError, match=f"ranges must be {len(scans[0])} lidar ranges .*got 3 values"):
         policy.observation(scans[0][:3], poses[0], qs[0])
     holes = scans[0].copy()
     holes[[1, 4]] = np.nan
@@ -259,10 +259,10 @@ def test_onnx_graphs_run_as_the_numpy_networks(case, states):
     assert np.abs(a - b).max() < 1e-5
     x = np.stack([numpy_policy.x_of_observation(o) for o in obs])
     h = onnxruntime.InferenceSession(str(out / "cbf.onnx")).run(["h"], {"x": x})[0][:, 0]
-    assert np.abs(h - np.array([numpy_policy.filter.h(v) for v in x])).max() < 1e-5
+    assert np.abs(h - np.array([numpy_policy.runtime_filter.h(v) for v in x])).max() < 1e-5
     u = np.random.default_rng(0).uniform(-1, 1, (len(obs), 2)).astype(np.float32)
     rate = onnxruntime.InferenceSession(str(out / "nominal.onnx")).run(["rate"], {"s": poses, "u": u})[0]
-    mine = np.stack([numpy_policy.filter.nominal(np.r_[np.cos(p[2]), np.sin(p[2]), v].astype(np.float32))
+    mine = np.stack([numpy_policy.runtime_filter.nominal(np.r_[np.cos(p[2]), np.sin(p[2]), v].astype(np.float32))
                      for p, v in zip(poses, u)])
     assert np.abs(rate - mine).max() < 1e-5
 
@@ -294,6 +294,34 @@ def test_the_example_drives_the_export_from_a_gymnasium_loop(tiny, capsys, monke
     assert json.loads(lines[-1])["episodes"] == 2 and json.loads(lines[-1])["runtime_filter"] == "on"
 
 
+def test_a_new_export_removes_the_files_only_the_one_it_replaces_had(tiny, tmp_path):
+    """An earlier export with --onnx left policy.onnx & co.; exporting again without --onnx must not
+    leave them beside the new manifest, where a robot stack reading policy.onnx would run the old run."""
+    import shutil
+
+    out = tmp_path / "again"
+    shutil.copytree(tiny[1], out)
+    manifest = json.loads((out / "manifest.json").read_text())
+    if not manifest["onnx"]:  # where the onnx package is missing, as an export with --onnx lists them
+        manifest["onnx"] = {"policy": {"file": "policy.onnx", "sha256": "0"}, "cbf": {"file": "cbf.onnx", "sha256": "0"}}
+        (out / "manifest.json").write_text(json.dumps(manifest))
+        for name in ("policy.onnx", "cbf.onnx"):
+            (out / name).write_bytes(b"old")
+    assert any(f.suffix == ".onnx" for f in out.iterdir())
+    (out / "notes.txt").write_text("mine")  # not listed by the export: left alone
+    export_run(tiny[0], out, ExportConfig(onnx=False))
+    assert sorted(f.name for f in out.iterdir()) == ["manifest.json", "notes.txt", "weights.npz"]
+
+
+def test_the_example_refuses_a_path_that_is_not_a_policy_in_one_line(tiny, tmp_path, capsys, monkeypatch):
+    for path in (tmp_path / "nope", tiny[1] / "manifest.json"):
+        monkeypatch.setattr(sys, "argv", ["deploy_gym_loop.py", str(path)])
+        with pytest.raises(SystemExit) as e:
+            runpy.run_path(str(ROOT / "examples" / "deploy_gym_loop.py"), run_name="__main__")
+        err = capsys.readouterr().err.strip().splitlines()
+        assert e.value.code == 2 and len(err) == 1 and "error:" in err[0], err
+
+
 def _one_error_line(capsys, args) -> str:
     assert cli.main(args) == 2
     err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
@@ -306,7 +334,7 @@ def test_export_command_and_bad_input(tiny, tmp_path, capsys):
     assert cli.main(["export", str(run), "--out", str(tmp_path / "cli"), "--runtime-filter", "True",
                      "--filter-iters", "5"]) == 0
     assert "runtime filter on by default" in capsys.readouterr().out
-    assert Policy.load(tmp_path / "cli").filter_on and Policy.load(tmp_path / "cli").filter.iters == 5
+    assert Policy.load(tmp_path / "cli").filter_on and Policy.load(tmp_path / "cli").runtime_filter.iters == 5
     assert cli.main(["export", str(run), "--out", str(tmp_path / "cli")]) == 0  # an earlier export is replaced
     assert not Policy.load(tmp_path / "cli").filter_on
     assert "no such run directory" in _one_error_line(capsys, ["export", str(tmp_path / "nothing"), "--out",
@@ -327,8 +355,15 @@ def test_export_command_and_bad_input(tiny, tmp_path, capsys):
 
 
 def test_a_damaged_or_foreign_export_is_refused(tiny, tmp_path):
+    with pytest.raises(ArtefactError, match="is a run directory, not an export; `d2spo export"):
+        Policy.load(tiny[0])
+    with pytest.raises(ArtefactError, match="no such directory"):
+        Policy.load(tmp_path / "nope")
+    with pytest.raises(ArtefactError, match=r"is a file; give the directory `d2spo export` wrote \("):
+        Policy.load(tiny[1] / "manifest.json")
+    (tmp_path / "empty").mkdir()
     with pytest.raises(ArtefactError, match="no manifest.json"):
-        Policy.load(tiny[0])  # a run directory
+        Policy.load(tmp_path / "empty")
     import shutil
 
     copy = tmp_path / "copy"
@@ -345,3 +380,48 @@ def test_a_damaged_or_foreign_export_is_refused(tiny, tmp_path):
     (copy / "manifest.json").write_text(json.dumps({k: v for k, v in manifest.items() if k != "automaton"}))
     with pytest.raises(ArtefactError, match="damaged .KeyError"):
         Policy.load(copy)
+
+
+@pytest.mark.parametrize("call, match", [
+    (lambda p, r, pose: p.act(r, (0.6, 0.6, float("nan")), 0), r"pose must be .*entries \[2\] are not finite"),
+    (lambda p, r, pose: p.act(r, (0.6, float("inf"), 0.0), 0), r"pose must be .*not finite"),
+    (lambda p, r, pose: p.act(r, (0.6, 0.6), 0), "pose must be .*got 2 values"),
+    (lambda p, r, pose: p.act(r, (50.0, 0.6, 0.0), 0), "outside the arena.*layout's frame, in metres"),
+    (lambda p, r, pose: p.act(r[:3], pose, 0), "ranges must be 16 lidar ranges.*got 3 values"),
+    (lambda p, r, pose: p.act(r.reshape(2, 8), pose, 0), "ranges must be 16 lidar ranges"),
+    (lambda p, r, pose: p.act(["1.0"] * 16, pose, 0), "ranges must be 16 lidar ranges"),
+    (lambda p, r, pose: p.act(None, pose, 0), "ranges must be 16 lidar ranges"),
+    (lambda p, r, pose: p.act(np.where(np.arange(16) == 3, -0.5, r), pose, 0), r"lidar ranges \[3\] are negative"),
+    (lambda p, r, pose: p.act(r, pose, 1.5), "q must be an integer automaton state"),
+    (lambda p, r, pose: p.act(r, pose, True), "q must be an integer automaton state"),
+    (lambda p, r, pose: p.act(r, pose, None), "q must be an integer automaton state"),
+    (lambda p, r, pose: p.act(r, pose, 0, filter="yes"), "filter must be True, False or None"),
+    (lambda p, r, pose: p.act_observation(np.full(p.observation_size, np.nan)), "obs must be .*not finite"),
+    (lambda p, r, pose: p.act_observation(np.zeros(10)), "obs must be an observation of .*got 10 values"),
+    (lambda p, r, pose: p.command([float("nan"), 0.0]), "action must be .*not finite"),
+    (lambda p, r, pose: p.command(0.5), "action must be .*got 1 value$"),
+    (lambda p, r, pose: p.filter(pose, [float("nan"), 0.0]), "u0 must be .*not finite"),
+    (lambda p, r, pose: p.filter(pose, [0.1]), "u0 must be .*got 1 value"),
+    (lambda p, r, pose: p.scan((float("nan"), 0.6, 0.0)), "pose must be"),
+    (lambda p, r, pose: p.task_tracker().update(0.6, 0.6), "update before reset"),
+    (lambda p, r, pose: p.task_tracker().reset(float("nan"), 0.6), "x must be a finite number"),
+    (lambda p, r, pose: p.task_tracker().reset(0.6, None), "y must be a finite number"),
+])
+def test_every_runtime_call_refuses_malformed_input_in_one_value_error(tiny, call, match):
+    """A robot's driver may hand the runtime a NaN pose, a scan of the wrong size or a float state:
+    each is one ValueError naming the argument, never a NaN action (the first case returned
+    [nan, nan] before) nor numpy's own message."""
+    policy = Policy.load(tiny[1])
+    pose = (0.6, 0.6, 0.0)
+    with pytest.raises(ValueError, match=match):
+        call(policy, policy.scan(pose), pose)
+
+
+def test_a_policy_without_a_filter_says_so_when_asked_to_filter(tiny):
+    """``policy.filter`` of an export without one (not D²SPO) is a ValueError, not 'NoneType' is not callable."""
+    from d2spo.deploy.policy import Policy as P
+
+    policy = P.load(tiny[1])
+    policy.runtime_filter = None
+    with pytest.raises(ValueError, match="no runtime filter"):
+        policy.filter((0.6, 0.6, 0.0), [0.1, 0.0])

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import io
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -133,6 +134,7 @@ def write_export(out: Path, cfg, built, policy, source: dict, ecfg: ExportConfig
         "filter": _filter(cfg, ecfg, float(env.config.dt)) if filtered else None,
         "config": config_to_dict(cfg),
     }
+    earlier = _listed_files(out)  # an earlier export's files, replaced below
     make_run_dir(out)
     buf = io.BytesIO()
     np.savez_compressed(buf, **arrays)
@@ -145,7 +147,19 @@ def write_export(out: Path, cfg, built, policy, source: dict, ecfg: ExportConfig
         m["onnx"] = write_onnx(out, m, arrays)
     atomic_write_json(out / MANIFEST, m)
     files = [WEIGHTS, MANIFEST] + ([v["file"] for v in m["onnx"].values()] if m["onnx"] else [])
+    for name in earlier - set(files):  # e.g. the ONNX graphs of an earlier export with --onnx
+        (out / name).unlink(missing_ok=True)
     return {**m, "sizes": {f: (out / f).stat().st_size for f in files}}
+
+
+def _listed_files(out: Path) -> set[str]:
+    """The files an earlier export in ``out`` lists in its manifest (plain names only), or none."""
+    try:
+        m = json.loads((out / MANIFEST).read_text())
+        names = {m["weights"]["file"]} | {v["file"] for v in (m.get("onnx") or {}).values()}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return set()
+    return {n for n in names if isinstance(n, str) and n == Path(n).name and n not in ("", ".", "..")}
 
 
 PART_DOCS = {

@@ -34,6 +34,35 @@ def file_sha256(path: Path) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
+POSE_SLACK = 0.5
+"""How far (m) outside the arena a pose may lie before it is refused: a localisation estimate at a
+wall may stray a little; a pose in another frame (an origin at the arena's centre, millimetres)
+strays far."""
+
+
+def numbers(value, name: str, size: int | None, what: str) -> np.ndarray:
+    """``value`` as float32 [size] (any size when None), or one ValueError that names the argument:
+    a nested or ragged sequence, a string, a count other than ``size``, or a NaN or infinity (except
+    where the caller allows +inf) is refused. ``what`` says what the argument holds."""
+    try:
+        a = np.asarray(value)
+    except ValueError:  # ragged
+        a = None
+    if a is None or a.ndim > 1 or not np.issubdtype(a.dtype, np.number):
+        raise ValueError(f"{name} must be {what}; got {value!r:.80}")
+    a = a.astype(F32).reshape(-1)
+    if size is not None and a.shape[0] != size:
+        raise ValueError(f"{name} must be {what}; got {a.shape[0]} value{'s' if a.shape[0] != 1 else ''}")
+    return a
+
+
+def finite(a: np.ndarray, name: str, what: str) -> np.ndarray:
+    bad = np.flatnonzero(~np.isfinite(a))
+    if bad.size:
+        raise ValueError(f"{name} must be {what}; entries {bad.tolist()[:8]} are not finite: {a[bad[:3]].tolist()}")
+    return a
+
+
 def _array(data, name: str, where: Path) -> np.ndarray:
     if name not in data:
         raise ArtefactError(f"{where}: {WEIGHTS} has no array {name!r}")
@@ -72,10 +101,11 @@ class Policy:
         self.safety_policy = None if sp is None else SafetyPolicy(
             Mlp(layers(sp["hidden"])), *layers([sp["beta"], sp["a"]]), self.H)
         f = m.get("filter")
-        self.filter = None if f is None else Filter(Mlp(layers(nets["cbf"]["layers"])),
+        self.runtime_filter = None if f is None else Filter(Mlp(layers(nets["cbf"]["layers"])),
                                                     Mlp(layers(nets["nominal"]["layers"])), self.map, float(f["dt"]),
                                                     f["alpha"], float(f["alpha_coef"]), int(f["iters"]),
                                                     int(f["n_bisect"]))
+        """The runtime filter (``deploy.filter.Filter``; None for a policy without one: not D²SPO)."""
         self.filter_on = bool(f is not None and f["enabled"])
         """Whether ``act`` filters by default: as the run was trained, or as ``d2spo export`` set it."""
         act = m["action"]
@@ -95,6 +125,14 @@ class Policy:
         directory = Path(directory)
         path = directory / MANIFEST
         if not path.is_file():
+            if not directory.exists():
+                raise ArtefactError(f"{directory}: no such directory")
+            if directory.is_file():
+                raise ArtefactError(f"{directory}: is a file; give the directory `d2spo export` wrote"
+                                    + (f" ({directory.parent})" if directory.name == MANIFEST else ""))
+            if (directory / "config.json").is_file():
+                raise ArtefactError(f"{directory}: is a run directory, not an export; `d2spo export {directory} "
+                                    "--out DIR` writes one")
             raise ArtefactError(f"{directory}: no {MANIFEST}; is this a directory `d2spo export` wrote?")
         try:
             manifest = json.loads(path.read_bytes())
@@ -123,15 +161,15 @@ class Policy:
         """float32 [observation_size]: the env's observation from the lidar ``ranges`` [K] (m, ray k at
         heading + 2πk/K counter-clockwise from the robot centre; above H or +inf read H), the pose
         (x, y, θ) in the layout's frame and the automaton state q (``TaskTracker.q``)."""
-        ranges = np.asarray(ranges, F32).reshape(-1)
-        if ranges.shape[0] != self.n_rays:
-            raise ValueError(f"expected {self.n_rays} lidar ranges, got {ranges.shape[0]}")
+        ranges = numbers(ranges, "ranges", self.n_rays, f"{self.n_rays} lidar ranges (m), one per ray")
         if np.isnan(ranges).any():  # a driver's "no return" is +inf (read as H), never NaN
             raise ValueError(f"lidar ranges {np.flatnonzero(np.isnan(ranges)).tolist()} are NaN; "
                              "give +inf for a ray with no return")
-        if not 0 <= int(q) < self.automaton.n_states:
-            raise ValueError(f"automaton state {q} outside 0..{self.automaton.n_states - 1}")
-        pose = np.asarray(pose, F32).reshape(3)
+        if (ranges < 0).any():
+            raise ValueError(f"lidar ranges {np.flatnonzero(ranges < 0).tolist()} are negative "
+                             f"({ranges[ranges < 0][:3].tolist()}); a range is a distance >= 0 (m), +inf for no return")
+        q = self.state(q)
+        pose = self.pose(pose)
         xy, c, s = pose[:2], np.cos(pose[2]), np.sin(pose[2])
         lo, hi = self.map.arena_lo, self.map.arena_hi
         extent = hi - lo
@@ -151,6 +189,26 @@ class Policy:
         for name, part in self.parts.items():
             obs[part] = values[name]
         return obs
+
+    def pose(self, pose) -> np.ndarray:
+        """``pose`` checked: float32 (x, y, θ), three finite numbers, (x, y) in metres in the layout's
+        frame (within ``POSE_SLACK`` of the arena), θ in radians. ValueError otherwise."""
+        what = "(x, y, theta): three finite numbers, metres in the layout's frame and radians"
+        p = finite(numbers(pose, "pose", 3, what), "pose", what)
+        lo, hi = self.map.arena_lo - F32(POSE_SLACK), self.map.arena_hi + F32(POSE_SLACK)
+        if (p[:2] < lo).any() or (p[:2] > hi).any():
+            raise ValueError(f"pose ({p[0]:g}, {p[1]:g}) lies outside the arena, x {self.map.arena_lo[0]:g}..."
+                             f"{self.map.arena_hi[0]:g}, y {self.map.arena_lo[1]:g}...{self.map.arena_hi[1]:g} m; "
+                             "is it in the layout's frame, in metres?")
+        return p
+
+    def state(self, q) -> int:
+        """``q`` checked: an integer automaton state (``TaskTracker.q``). ValueError otherwise."""
+        if isinstance(q, (bool, np.bool_)) or not isinstance(q, (int, np.integer)):
+            raise ValueError(f"q must be an integer automaton state (TaskTracker.q); got {q!r:.40}")
+        if not 0 <= int(q) < self.automaton.n_states:
+            raise ValueError(f"automaton state {q} outside 0..{self.automaton.n_states - 1}")
+        return int(q)
 
     def _descent(self, xy: np.ndarray, q: int) -> np.ndarray:
         """``envs.geodesic.descent`` of state q's field at xy."""
@@ -188,18 +246,29 @@ class Policy:
     def act_observation(self, obs, pose=None, filter: bool | None = None) -> np.ndarray:
         """The action [2] for an observation as the env gives it; the filter reads ``pose`` (default:
         the pose the observation reports)."""
-        obs = np.asarray(obs, F32)
-        use_filter = self.filter_on if filter is None else filter
-        if use_filter and self.filter is None:
+        what = f"an observation of {self.observation_size} finite numbers (Policy.observation)"
+        obs = finite(numbers(obs, "obs", self.observation_size, what), "obs", what)
+        if filter is not None and not isinstance(filter, (bool, np.bool_)):
+            raise ValueError(f"filter must be True, False or None; got {filter!r:.40}")
+        use_filter = self.filter_on if filter is None else bool(filter)
+        if use_filter and self.runtime_filter is None:
             raise ValueError("this policy has no runtime filter (only D²SPO's has one)")
         if self.safety_policy is None:
             return self._run_onnx(obs) if self._session else self.actor(obs)
         x = self.x_of_observation(obs)
         u = self._run_onnx(obs, x) if self._session else self.safety_policy(x, self.actor(obs))
         if use_filter:
-            pose = self.pose_of_observation(obs) if pose is None else pose
-            u = self.filter(pose, u)[0]
+            pose = self.pose_of_observation(obs) if pose is None else self.pose(pose)
+            u = self.runtime_filter(pose, u)[0]
         return u
+
+    def filter(self, pose, u0):
+        """(action, whether c >= 0 holds, c): the runtime filter alone on the action ``u0`` [2] at
+        ``pose``. ValueError for a policy without a filter (not D²SPO) or a malformed argument."""
+        if self.runtime_filter is None:
+            raise ValueError("this policy has no runtime filter (only D²SPO's has one)")
+        what = "an action of two finite numbers (linear, angular) in [-1, 1]"
+        return self.runtime_filter(self.pose(pose), finite(numbers(u0, "u0", 2, what), "u0", what))
 
     def _run_onnx(self, obs: np.ndarray, x: np.ndarray | None = None) -> np.ndarray:
         feeds = {"obs": obs[None]} if x is None else {"obs": obs[None], "x": x[None]}
@@ -208,7 +277,8 @@ class Policy:
     def command(self, action) -> tuple[float, float]:
         """(v, ω) the robot is commanded: the action clipped to [-1, 1], a₀ mapped onto [v_min, v_max]
         (v = a₀ · v_max for a robot that reverses) and a₁ times ω_max."""
-        a = np.clip(np.asarray(action, F32), -1.0, 1.0)
+        what = "an action of two finite numbers (linear, angular) in [-1, 1]"
+        a = np.clip(finite(numbers(action, "action", 2, what), "action", what), -1.0, 1.0)
         return float(a[0]) * (self.v_max - self.v_mid) + self.v_mid, float(a[1]) * self.omega_max
 
     def task_tracker(self) -> TaskTracker:
@@ -217,7 +287,7 @@ class Policy:
 
     def scan(self, pose) -> np.ndarray:
         """[K] the ranges the env's lidar reads at ``pose`` on the map (for a simulator, or to check a real scan)."""
-        pose = np.asarray(pose, F32)
+        pose = self.pose(pose)
         return self.map.lidar(pose[:2], np.cos(pose[2]), np.sin(pose[2]))
 
 

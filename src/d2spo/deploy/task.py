@@ -60,6 +60,15 @@ class Automaton:
         return int(self.delta[q, letter])
 
 
+def _position(x, y) -> tuple[float, float]:
+    """(x, y) as floats, or a ValueError: each a finite real number (m, the layout's frame)."""
+    for name, v in (("x", x), ("y", y)):
+        if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.integer, np.floating)) \
+                or not np.isfinite(v):
+            raise ValueError(f"TaskTracker: {name} must be a finite number (m, the layout's frame); got {v!r:.40}")
+    return float(x), float(y)
+
+
 class TaskTracker:
     """The automaton state along one run of the robot: ``reset`` at the start pose, then ``update``
     after every control step with the pose reached. ``q`` is what the policy observes."""
@@ -68,9 +77,12 @@ class TaskTracker:
         self.automaton = automaton
         self.q = self.q_true = automaton.initial
         self.letter = self.letter_true = 0
+        self.started = False
 
     def reset(self, x: float, y: float) -> int:
         """A new run from (x, y): the automaton reads the start's letter (as the env's reset does)."""
+        x, y = _position(x, y)
+        self.started = True
         aut = self.automaton
         self.letter, self.letter_true = aut.letter(x, y), aut.letter(x, y, true=True)
         self.q = aut.advance(aut.initial, self.letter, 0)
@@ -79,6 +91,9 @@ class TaskTracker:
 
     def update(self, x: float, y: float) -> int:
         """After a step to (x, y): the new state q."""
+        x, y = _position(x, y)
+        if not self.started:
+            raise ValueError("TaskTracker.update before reset: call reset(x, y) at the start pose first")
         aut = self.automaton
         letter, letter_true = aut.letter(x, y), aut.letter(x, y, true=True)
         self.q = aut.advance(self.q, letter, self.letter)
