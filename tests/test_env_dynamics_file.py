@@ -69,6 +69,7 @@ def test_train_reads_the_file_and_flags_override_it(tmp_path):
     ({**SLOW_ROBOT, "dt": 0}, "dynamics.dt", "must be positive"),
     ({**SLOW_ROBOT, "slip": 1.0}, "dynamics.slip", "must be in [0, 1)"),
     ({**SLOW_ROBOT, "wheel_base": 0.2}, "dynamics", "unknown keys ['wheel_base']"),
+    ({**SLOW_ROBOT, "robot_radius": 0.2}, "dynamics", "robot_radius is not dynamics: the robot's size is --robot-radius"),
     ([1, 2], "dynamics", "expected a JSON object"),
     ('{"dt": 0.1,', "dynamics", "malformed JSON"),
     ('{"name": "r\xe9"}'.encode("latin-1"), "dynamics", "not UTF-8"),
@@ -82,6 +83,16 @@ def test_bad_files_give_one_line_and_exit_2(tmp_path, capsys, content, field, wo
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"d2spo: error: {field}: ") and words in err[0], err
     assert not (tmp_path / "run").exists()  # nothing written
+
+
+def test_a_file_that_starts_with_a_byte_order_mark_loads(tmp_path):
+    """Windows editors write UTF-8 with a BOM: the file is read as the same JSON."""
+    import json
+
+    plain = load_dynamics(write(tmp_path, SLOW_ROBOT))
+    path = tmp_path / "bom.json"
+    path.write_bytes(b"\xef\xbb\xbf" + json.dumps(SLOW_ROBOT).encode())
+    assert load_dynamics(path) == plain
 
 
 def test_missing_file(tmp_path, capsys):

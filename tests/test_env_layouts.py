@@ -86,6 +86,9 @@ def test_good_json_layout_loads_and_round_trips(tmp_path):
     assert layout.name == "mine" and len(layout.obstacles) == 1 and layout.area_names == ("A1", "A2")
     again = layouts.load(write(tmp_path, layout.to_json(), "again.json"))
     assert again == layout
+    bom = tmp_path / "bom.json"  # as a Windows editor saves it: UTF-8 with a byte order mark
+    bom.write_bytes(b"\xef\xbb\xbf" + (tmp_path / "mine.json").read_bytes())
+    assert layouts.load(bom).obstacles == layout.obstacles  # a pathlib.Path too
 
 
 def test_malformed_json_missing_file_and_unknown_names(tmp_path):

@@ -90,6 +90,15 @@ DYNAMICS_FIELDS = ("dt", "v_max", "omega_max", "actuator_tau", "v_gain", "omega_
                    "noise_theta")
 """The ``EnvConfig`` fields that make up the robot's motion: what a dynamics file gives (all of them)."""
 
+NOT_DYNAMICS = {
+    "robot_radius": "the robot's size is --robot-radius",
+    "radius": "the robot's size is --robot-radius",
+    "sensing_radius": "the lidar's range is --sensing-radius",
+    "n_rays": "the lidar's rays are --n-rays",
+    "reverse": "a robot that cannot reverse is --no-reverse",
+}
+"""Keys a robot's description may hold that are not its motion: the flag each is given by."""
+
 _POSITIVE = ("dt", "v_max", "omega_max", "v_gain", "omega_gain")
 
 
@@ -112,7 +121,7 @@ def load_dynamics(path: str | Path) -> dict[str, float]:
     out-of-range value) raises ConfigError naming ``dynamics`` or ``dynamics.FIELD``."""
     path = Path(path)
     try:
-        text = read_regular(path, lambda message: ConfigError("dynamics", message)).decode("utf-8")
+        text = read_regular(path, lambda message: ConfigError("dynamics", message)).decode("utf-8-sig")  # a BOM too
     except UnicodeDecodeError as e:
         raise ConfigError("dynamics", f"{path}: not UTF-8 text (byte {e.start})") from None
     try:
@@ -125,7 +134,11 @@ def load_dynamics(path: str | Path) -> dict[str, float]:
         raise ConfigError("dynamics", f"{path}: expected a JSON object, got {type(data).__name__}")
     unknown = sorted(set(data) - set(DYNAMICS_FIELDS) - {"name", "description"})
     if unknown:
-        raise ConfigError("dynamics", f"{path}: unknown keys {unknown}; the fields are {list(DYNAMICS_FIELDS)}")
+        flags = [k for k in unknown if k in NOT_DYNAMICS]
+        hint = (f"; {', '.join(flags)} {'is' if len(flags) == 1 else 'are'} not dynamics: "
+                f"{', '.join(NOT_DYNAMICS[k] for k in flags)}" if flags else "")
+        raise ConfigError("dynamics", f"{path}: unknown keys {unknown}; the fields are {list(DYNAMICS_FIELDS)}, "
+                                      f"with 'name' and 'description'{hint}")
     for key in ("name", "description"):
         if key in data and not isinstance(data[key], str):
             raise ConfigError(f"dynamics.{key}", f"expected a string, got {data[key]!r} (in {path})")

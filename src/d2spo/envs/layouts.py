@@ -17,6 +17,7 @@ import itertools
 import json
 import math
 import operator
+import os
 from importlib import resources
 from pathlib import Path
 
@@ -185,9 +186,11 @@ def _circle_intersections(c1, r1, c2, r2) -> list[np.ndarray]:
 # ----------------------------------------------------------------------------------- loading
 
 
-def load(name_or_path: str) -> Layout:
+def load(name_or_path: str | os.PathLike) -> Layout:
     """A validated layout by built-in name, ``random[:SEED]`` (``generator.generate``), ``random5[:SEED]``
-    (``generator.random_layout``), or JSON file path."""
+    (``generator.random_layout``), or JSON file path (a string or a ``pathlib.Path``)."""
+    if isinstance(name_or_path, os.PathLike):
+        name_or_path = os.fspath(name_or_path)
     if not isinstance(name_or_path, str) or not name_or_path:
         raise ConfigError("layout", f"expected a layout name or a JSON path, got {name_or_path!r}")
     if name_or_path in BUILTIN:
@@ -212,7 +215,7 @@ def load(name_or_path: str) -> Layout:
     path = Path(name_or_path)
     if path.suffix == ".json" or path.exists():
         try:
-            text = read_regular(path, lambda message: ConfigError("layout", message)).decode("utf-8")
+            text = read_regular(path, lambda message: ConfigError("layout", message)).decode("utf-8-sig")  # a BOM too
         except UnicodeDecodeError as e:
             raise ConfigError("layout", f"{path}: not UTF-8 text (byte {e.start})") from None
         try:
