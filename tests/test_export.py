@@ -322,6 +322,13 @@ def test_the_example_refuses_a_path_that_is_not_a_policy_in_one_line(tiny, tmp_p
         assert e.value.code == 2 and len(err) == 1 and "error:" in err[0], err
 
 
+def test_an_export_given_where_a_run_is_asked_for_is_named_as_an_export(tiny, capsys):
+    for command in (["eval", str(tiny[1])], ["export", str(tiny[1]), "--out", str(tiny[1].parent / "x")]):
+        assert cli.main(command) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "is an exported policy (`d2spo export`), not a run directory" in err[0], err
+
+
 def _one_error_line(capsys, args) -> str:
     assert cli.main(args) == 2
     err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
@@ -345,6 +352,9 @@ def test_export_command_and_bad_input(tiny, tmp_path, capsys):
     assert "exists and is not a directory" in _one_error_line(capsys, ["export", str(run), "--out",
                                                                        str(tmp_path / "file")])
     assert "holds no exported policy" in _one_error_line(capsys, ["export", str(run), "--out", str(run)])
+    # a filter of no iterations would return the action as it is: refused, as eval and training refuse it
+    assert "filter_iters: must be a positive integer, got 0" in _one_error_line(
+        capsys, ["export", str(run), "--out", str(tmp_path / "o"), "--filter-iters", "0"])
     write_run(tmp_path / "ppo", tiny_cfg("ppo-lag"))
     assert "ppo-lag is not exported" in _one_error_line(capsys, ["export", str(tmp_path / "ppo"), "--out",
                                                                  str(tmp_path / "o")])

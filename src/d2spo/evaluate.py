@@ -94,8 +94,8 @@ class EvalConfig:
 
     def __post_init__(self):
         check_fields(self, nullable=("filter_iters", "filter_alpha", "max_steps"),
-                     count=("episodes", "layout_seeds", "max_steps"),
-                     seed=("seed",), natural=("filter_iters",), positive=("filter_alpha",))
+                     count=("episodes", "layout_seeds", "max_steps", "filter_iters"),
+                     seed=("seed",), positive=("filter_alpha",))
         check_choice(self, "policy", POLICY_CHOICES)
         if self.layout_seeds != 1 and _family(self.layout) is None:
             raise ConfigError("layout_seeds", f"only applies with a drawn layout, --layout "

@@ -61,7 +61,7 @@ class ExportConfig:
     """Also write the networks as ONNX graphs (needs the extra: pip install 'd2spo[onnx]')."""
 
     def __post_init__(self):
-        check_fields(self, nullable=("filter_iters", "filter_alpha"), natural=("filter_iters",),
+        check_fields(self, nullable=("filter_iters", "filter_alpha"), count=("filter_iters",),
                      positive=("filter_alpha",), flag=("onnx",))
         check_choice(self, "policy", POLICY_CHOICES)
 

@@ -102,6 +102,9 @@ def remove_tmp_files(directory: Path) -> None:
 def read_json(path: Path, what: str) -> dict:
     path = Path(path)
     if not path.exists():
+        if (path.parent / "manifest.json").is_file():  # what `d2spo export` writes (d2spo.deploy.policy.MANIFEST)
+            raise RunDirError(f"{path.parent}: is an exported policy (`d2spo export`), not a run directory; give "
+                              "the run it was exported from, or load it with d2spo.deploy.Policy.load")
         raise RunDirError(f"{path.parent}: no {path.name} ({what}); is this a d2spo run directory?")
     data = read_regular(path, RunDirError)  # not /dev/zero, a FIFO or a directory in its place
     try:

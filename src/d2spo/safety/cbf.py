@@ -114,7 +114,7 @@ class CBFConfig:
     replay_correction: bool = True
     """T_e at π_Ω's current action on replayed data; False: Eq. (6) as printed."""
     filter_iters: int = 3
-    """Iterations of the runtime safety filter."""
+    """Iterations of the runtime safety filter (at least 1: with none it would return the action as it is)."""
     filter_alpha_coef: float | None = None
     """a of α in the runtime filter; None: alpha_coef."""
 
@@ -143,8 +143,8 @@ class CBFConfig:
                      lr=("cbf_lr", "policy_lr", "nominal_lr"),
                      non_negative=("lambda_s", "lambda_u", "lambda_e", "lambda_g", "weight_decay", "synthetic_replay"),
                      count=("transitions_capacity", "p_exp_capacity", "unsafe_capacity", "batch_size",
-                            "ring_newton_iters", "pretrain_samples", "updates_per_iter", "pretrain_steps"),
-                     natural=("nominal_updates_per_iter", "prior_steps", "filter_iters"),
+                            "ring_newton_iters", "pretrain_samples", "updates_per_iter", "pretrain_steps", "filter_iters"),
+                     natural=("nominal_updates_per_iter", "prior_steps"),
                      flag=("te_in_band", "replay_correction"))
 
 
