@@ -192,7 +192,7 @@ def fake_rollouts(monkeypatch):
     rates = {"episodes": 1, "safety_rate": 1.0, "completion_rate": 0.0, "mean_return": 0.0, "mean_length": 1.0,
              "mean_distance": 0.0}
     monkeypatch.setattr("d2spo.evaluate.load_policy",
-                        lambda run_dir, which: (None, None, None, {"policy": "last (after 0 episodes)"}))
+                        lambda run_dir, which, **kw: (None, None, None, {"policy": "last (after 0 episodes)"}))
     monkeypatch.setattr("d2spo.evaluate._specialist_rollouts", lambda cfg, learner, policy, ecfg, *a, **kw:
                         [dict(rates) for _ in ecfg.layouts()])
 
@@ -238,6 +238,28 @@ def test_a_layout_file_edited_since_the_run_started_is_refused(tmp_path, capsys,
     assert f"to evaluate on it as it is now, pass --layout {lab}" in line
     recorded = json.loads((run / "inputs.json").read_text())["layout"]
     assert recorded["file"] == str(lab) and len(recorded["sha256"]) == 64
+
+
+def test_a_run_on_a_relative_layout_path_is_found_from_another_directory(tmp_path, capsys, no_build, monkeypatch):
+    """config.json keeps the layout's path as given (``lab.json``); from another directory the run's
+    file is found where inputs.json recorded it, or at the --layout given, if it holds the same bytes."""
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    monkeypatch.chdir(tmp_path / "a")
+    layout_file(tmp_path / "a" / "lab.json")
+    run = started_run(tmp_path / "a" / "run", "lab.json")
+    monkeypatch.chdir(tmp_path / "b")
+    for command in (["train", "--resume", str(run), "--no-progress"], ["eval", str(run)]):
+        with pytest.raises(Built):  # found through inputs.json's absolute path
+            main(command)
+    (tmp_path / "a" / "lab.json").rename(tmp_path / "b" / "moved.json")
+    line = one_error(capsys, "eval", run)
+    assert f"its layout file lab.json (at {tmp_path / 'a' / 'lab.json'} when it started) is not found from" in line
+    assert "pass --layout PATH" in line
+    with pytest.raises(Built):  # the same bytes elsewhere, named by --layout
+        main(["eval", str(run), "--layout", "moved.json"])
+    layout_file(tmp_path / "b" / "other.json", "open")
+    assert "is not found from" in one_error(capsys, "eval", run, "--layout", "other.json")  # other bytes
 
 
 def test_a_run_without_a_recorded_layout_hash_still_resumes_and_evaluates(tmp_path, no_build):

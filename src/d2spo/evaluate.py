@@ -181,7 +181,7 @@ def evaluate_run(run_dir: Path, ecfg: EvalConfig = EvalConfig(), keep_paths: int
     first ``keep_paths`` episodes, for ``plots.evaluation_figure`` (arrays: drop the key before
     writing JSON). ``on_layout(k, n, name)``, if given, is called before the rollouts of the k-th of the
     n layouts (the first also compiles) and once more with k = n when they are done (a progress display)."""
-    cfg = load_run_config(run_dir)
+    cfg = load_run_config(run_dir, ecfg.layout)
     overrides = given(ecfg.overrides)
     if ecfg.task is not None and not cfg.generalist and ecfg.task != cfg.task:
         raise ConfigError("task", f"only a generalist (d2spo train --generalist) runs another task than it "
@@ -209,7 +209,7 @@ def evaluate_run(run_dir: Path, ecfg: EvalConfig = EvalConfig(), keep_paths: int
     if cfg.generalist:
         results, limit, which = _generalist_rollouts(run_dir, cfg, ecfg, env_cfg, layouts, keep_paths, on_layout)
     else:
-        _, learner, policy, meta = load_policy(run_dir, ecfg.policy)
+        _, learner, policy, meta = load_policy(run_dir, ecfg.policy, layout=ecfg.layout)
         results = _specialist_rollouts(cfg, learner, policy, ecfg, overrides, keep_paths, on_layout)
         limit, which = ecfg.max_steps, meta["policy"]
     if on_layout is not None:

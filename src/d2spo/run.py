@@ -110,7 +110,30 @@ def record_inputs(out: Path, cfg: TrainConfig) -> None:
     if file is None:
         remove_file(path)  # left by an earlier start of this directory on a layout file
         return
-    atomic_write_json(path, {"layout": {"file": cfg.layout, "sha256": sha256_of(file, _layout_error)}})
+    atomic_write_json(path, {"layout": {"file": cfg.layout, "sha256": sha256_of(file, _layout_error),
+                                        "path": str(file.resolve())}})  # for commands run from elsewhere
+
+
+def _found_layout(run_dir: Path, cfg: TrainConfig, given: str | None) -> TrainConfig:
+    """``cfg`` with its layout file found from here: a path relative to where the run was trained is
+    looked up at the absolute path ``INPUTS`` recorded, then at ``given`` (a command's --layout), each
+    taken only if it holds what the run started with (the recorded SHA-256). RunDirError when none is
+    found. A built-in or random layout, or a file readable from here, is left as it is."""
+    file = None if cfg.generalist else layouts.layout_file(cfg.layout)
+    if file is None or file.exists():
+        return cfg
+    entry = {}
+    if (Path(run_dir) / INPUTS).is_file():
+        data = read_json(Path(run_dir) / INPUTS, "the hash of the run's layout file")
+        entry = data.get("layout") if isinstance(data, dict) and isinstance(data.get("layout"), dict) else {}
+    for candidate in (entry.get("path"), given):
+        if isinstance(candidate, str) and layouts.layout_file(candidate) is not None and Path(candidate).is_file() \
+                and sha256_of(Path(candidate), _layout_error) == entry.get("sha256"):
+            return dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, layout=candidate))
+    where = f" (at {entry['path']} when it started)" if isinstance(entry.get("path"), str) else ""
+    raise RunDirError(f"{run_dir}: its layout file {cfg.layout}{where} is not found from {Path.cwd()}; run the "
+                      "command from the directory it was trained in, or pass --layout PATH to that file where "
+                      "the command takes one")
 
 
 def check_layout_unchanged(run_dir: Path, cfg: TrainConfig, remedy: str) -> None:
@@ -156,16 +179,18 @@ def default_out(cfg: TrainConfig) -> Path:
     return Path("runs") / f"{cfg.algo}-{task}-{layout}-s{cfg.seed}"
 
 
-def load_run_config(run_dir: Path) -> TrainConfig:
-    """The config a run was trained with (its config.json)."""
+def load_run_config(run_dir: Path, layout: str | None = None) -> TrainConfig:
+    """The config a run was trained with (its config.json), its layout file found from here
+    (``_found_layout``; ``layout``: a command's --layout, tried too)."""
     if not Path(run_dir).is_dir():
         raise RunDirError(f"{run_dir}: is a file, not a run directory" if Path(run_dir).exists()
                           else f"{run_dir}: no such run directory")
     path = Path(run_dir) / "config.json"
     try:
-        return config_from_dict(read_json(path, "the run's config"))
+        cfg = config_from_dict(read_json(path, "the run's config"))
     except ConfigError as e:  # a value of the file's, not a flag of the command's: say where
         raise RunDirError(f"{path}: {e}") from None
+    return _found_layout(run_dir, cfg, layout)
 
 
 
@@ -268,16 +293,16 @@ POLICY_CHOICES = ("best", "last")
 """Which policy of a run ``load_policy`` returns (``d2spo eval --policy``)."""
 
 
-def load_policy(run_dir: Path, which: str = "best", learner=None):
+def load_policy(run_dir: Path, which: str = "best", learner=None, layout: str | None = None):
     """(cfg, learner, policy, meta) of a finished or checkpointed run. ``which``: "best" is a
     validated run's kept policy (a generalist's, ``TrainConfig.validation_layouts``; a patrol's on one
     layout, ``TrainConfig.patrol_validation``) where there is one, else the last; "last" is the
     newest checkpoint's. ``meta["policy"]`` says which was taken.
     ``learner``: one already built with this run's array shapes (an evaluation's, elsewhere); by
-    default one is built from config.json."""
+    default one is built from config.json. ``layout``: as ``load_run_config``'s."""
     if which not in POLICY_CHOICES:
         raise ConfigError("policy", f"expected one of {', '.join(POLICY_CHOICES)}, got {which!r}")
-    cfg = load_run_config(run_dir)
+    cfg = load_run_config(run_dir, layout)
     if learner is None:
         # a generalist's checkpoint holds no layout: a one-layout bank gives the same shapes, fast
         _, _, learner = build(dataclasses.replace(cfg, generalist_layouts=1, generalist_tasks=0, generalist_patrols=0,
