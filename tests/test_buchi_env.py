@@ -198,6 +198,23 @@ def test_a_formula_without_a_dba_is_refused_in_one_line_at_the_cli(capsys):
     assert status == 2 and len(lines) == 1 and "no deterministic Büchi automaton" in lines[0], err
 
 
+@pytest.mark.parametrize("task, refused", [("GF A1", True), ("G (A1 -> F A2)", True), ("GF A1 & GF A3", False),
+                                           ("G (A1 -> F A2) & GF A1", False)])
+def test_a_recurrence_whose_next_visit_is_a_step_away_is_refused(capsys, task, refused):
+    """``GF A1``: leaving A1 and entering it again is a visit, so visits would count moves at its edge
+    and the route-optimal count is nearly one per step (a review saw 997 in 1000 steps). Refused, in
+    `env check` as in `train`; patrols between areas and `respond` are not."""
+    from d2spo.cli import main
+
+    status = main(["env", "check", "--task", task])
+    captured = capsys.readouterr()
+    lines = [ln for ln in captured.err.splitlines() if ln.strip()]
+    if refused:
+        assert status == 2 and len(lines) == 1 and "so its visits would count moves at an area's edge" in lines[0]
+    else:
+        assert status == 0 and not lines and "area visit" in captured.out, captured
+
+
 def test_a_tiny_training_on_a_never_part_writes_no_visits(tmp_path, capsys):
     from d2spo.cli import main
 

@@ -77,7 +77,7 @@ def test_env_check_needs_no_task(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "'my-lab'" in out and "areas A1" in out and "no task checked" in out
     assert cli.main(["env", "check", "--layout", str(path), "--task", "F A1"]) == 0
-    assert "task 'F A1': needs 1 area visits" in capsys.readouterr().out
+    assert "task 'F A1': needs 1 area visit on this layout" in capsys.readouterr().out
     assert cli.main(["env", "check", "--layout", str(path), "--task", "phi1"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "task:" in err[0] and "'A2', 'A3'" in err[0]

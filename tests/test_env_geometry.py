@@ -192,6 +192,18 @@ def test_unrolled_and_reduced_ray_casts_are_identical():
     np.testing.assert_allclose(np.asarray(j_u), np.asarray(j_r), rtol=1e-6, atol=1e-6)
 
 
+def test_a_layout_of_round_pillars_only_casts_without_unrolling():
+    """No boxes at all (a lab of round pillars): the reduced cast, which D²SPO's features take, used to
+    take the minimum of an empty array ("zero-size array to reduction"); it equals the unrolled one."""
+    pillars = Geometry(jnp.zeros((0, 2)), jnp.zeros((0, 2)), jnp.zeros(2), jnp.full(2, 5.0),
+                       jnp.array([[2.0, 2.5], [3.5, 1.0]]), jnp.array([0.3, 0.2]))
+    pose = jnp.array([1.0, 2.5, 0.0])
+    reduced = sensors.lidar(pose, pillars, jnp.ones(2, bool), K, H, unroll=False)
+    np.testing.assert_array_equal(np.asarray(reduced), np.asarray(sensors.lidar(pose, pillars, jnp.ones(2, bool), K, H,
+                                                                                unroll=True)))
+    assert float(reduced[0]) == pytest.approx(0.7, abs=1e-5)  # the ray ahead meets the pillar at x = 1.7
+
+
 def test_cbf_input_is_the_scan_and_the_nearest_sensed_obstacle():
     """x = b(z, O_s): the lidar ranges, then the clearance to the sensed boxes and the walls,
     clipped at H (numpy reference); no ray reads less than it; the observation gives the same x."""

@@ -40,7 +40,7 @@ from d2spo.envs import EnvConfig, layouts, make_env
 from d2spo.envs.compiled_task import default_task
 from d2spo.envs.dynamics import load_dynamics
 from d2spo.envs.nav import checked_layout
-from d2spo.envs.preflight import check_feasible
+from d2spo.envs.preflight import check_feasible, preflight
 from d2spo.errors import ConfigError, D2SPOWarning, LTLSyntaxError, NaNError, TaskWarning, UserError
 from d2spo.evaluate import EvalConfig, evaluate_run, write_evaluation
 from d2spo.fields import check_choice, check_fields
@@ -261,8 +261,10 @@ class EnvCheckCmd:
             print("no task checked (--task NAME_OR_FORMULA checks one)")
             return 0
         env, params = make_env(EnvConfig(layout=self.layout, preset=self.preset), task=self.task)
-        print(f"task {self.task!r}: needs {int(params.aut.distance[int(params.aut.initial)])} area visits on this "
-              f"layout; observation size {env.observation_size}")
+        preflight(env, params, repr(self.task))  # what `d2spo train` checks before it starts, but the barrier's margin
+        n = int(params.aut.distance[int(params.aut.initial)])
+        print(f"task {self.task!r}: needs {n} area visit{'s' * (n != 1)} on this layout; observation size "
+              f"{env.observation_size}")
         return 0
 
 

@@ -174,10 +174,25 @@ def preflight(env, params, name: str, margin: float = 0.0, episode_time: bool = 
         check_feasible(task, name)
     if margin > cfg.robot_radius:
         check_margin(task, margin, name)
+    if task.recurrence:
+        check_lap(task, cfg.robot_radius, name)
     if episode_time and task.recurrence:
         check_cycle(task, int(params.max_steps), cfg.dt, cfg.v_max * cfg.v_gain, name)
     elif episode_time:
         check_time(task, int(params.max_steps), cfg.dt, cfg.v_max * cfg.v_gain, name)
+
+
+def check_lap(task: CompiledTask, robot_radius: float, name: str) -> None:
+    """ConfigError when a recurrence's second accepting visit can follow its first within the robot's
+    diameter (``GF dock``: leave the dock and enter it again): its visits would count jitter at an
+    area's edge, not laps, and its route-optimal count nearly one per step."""
+    first = task.route_length
+    lap = task.visits_length(2) - first
+    if math.isfinite(first) and lap < 2 * robot_radius:
+        raise ConfigError("task", f"{name}: on layout {task.layout.name!r} an accepting visit can follow the "
+                          f"last after {lap:.2f} m (leaving an area and entering it again), so its visits would "
+                          "count moves at an area's edge, not laps; give two areas to alternate between, e.g. "
+                          "'GF a & GF b', or a goal to reach once, 'F a'")
 
 
 def check_cycle(task: CompiledTask, max_steps: int, dt: float, v_max: float, name: str) -> None:

@@ -79,7 +79,7 @@ def lidar_cs(
     hi = geom.box_hi - xy
     m = lo.shape[0]
     box_mask = sensed_mask if geom.disk_center is None else sensed_mask[:m]
-    if m <= UNROLL_MAX if unroll is None else unroll:  # one [K]-chain per obstacle (vectorises under vmap)
+    if m == 0 or (m <= UNROLL_MAX if unroll is None else unroll):  # one [K]-chain per obstacle (vectorises under vmap)
         t = jnp.minimum(t_wall, H)
         for i in range(m):
             t = jnp.minimum(t, _box_range(lo[i], hi[i], inv_x, inv_y, box_mask[i], H))
@@ -88,7 +88,7 @@ def lidar_cs(
         t = jnp.minimum(jnp.min(t_box, axis=0), jnp.minimum(t_wall, H))
     if geom.disk_center is not None:  # disks: the ray-circle quadratic
         rel, r, disk_mask = geom.disk_center - xy, geom.disk_radius, sensed_mask[m:]  # centres relative to the robot
-        if geom.n_disks <= UNROLL_MAX if unroll is None else unroll:
+        if geom.n_disks == 0 or (geom.n_disks <= UNROLL_MAX if unroll is None else unroll):
             for j in range(geom.n_disks):
                 t = jnp.minimum(t, _disk_range(rel[j, 0], rel[j, 1], r[j], dx, dy, disk_mask[j], H))
         else:
