@@ -70,6 +70,18 @@ def test_bad_layout_json_names_the_field(tmp_path, change, field):
     assert field_of(e) == field
 
 
+def test_an_area_no_formula_could_name_is_refused(tmp_path):
+    """A name that is no proposition (``dock-west``) needs a label: without one the area could never be
+    named in a task, and a task on its label would silently use the other areas of that label."""
+    data = json.loads(json.dumps(TINY))
+    data["areas"][0] = {k: v for k, v in data["areas"][0].items() if k != "label"} | {"name": "dock-west"}
+    with pytest.raises(ConfigError, match=r'not a proposition name .* has no "label": add one') as e:
+        layouts.load(write(tmp_path, data))
+    assert field_of(e) == "layout.areas[0]"
+    data["areas"][0]["label"] = "dock"
+    assert layouts.load(write(tmp_path, data)).areas[0].label == "dock"
+
+
 def test_a_misspelt_key_is_named_with_the_key_it_is_closest_to(tmp_path):
     data = json.loads(json.dumps(TINY))
     data["areas"][1]["lable"] = "dock"

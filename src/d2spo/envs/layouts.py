@@ -111,6 +111,9 @@ def from_json(data: dict, default_name: str = "custom") -> Layout:
         label = a.get("label")
         if "label" in a and not is_proposition(label):  # given, even as the name: it must be a proposition
             raise ConfigError(f"{g}.label", f"{label!r} is not a proposition name ({PROPOSITION_RULE})")
+        if "label" not in a and not is_proposition(area_name):  # else no formula could name the area
+            raise ConfigError(g, f"the name {area_name!r} is not a proposition name ({PROPOSITION_RULE}) and the area "
+                              'has no "label": add one (e.g. "label": "dock") for formulas to name it by')
         areas.append(
             Area(area_name, _vector(_get(a, "center", g), 2, f"{g}.center"),
                  _number(_get(a, "radius", g), f"{g}.radius", positive=True), label)
