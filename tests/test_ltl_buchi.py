@@ -390,3 +390,24 @@ def test_the_buchi_suite_is_exact_or_refused(name):
             to_dba(text)
         return
     check_exact(text, count=400)
+
+
+def test_a_patrol_too_large_for_the_monitor_is_built_as_a_dba(monkeypatch):
+    """The monitor's satisfiability check gives up on patrols of 9 or more areas (MAX_TABLEAU_STEPS),
+    where ``to_dba`` still builds one state per area; ``task_automaton`` then takes the DBA. Here the
+    bound is made tiny so that a 3-area patrol stands in for a 9-area one. A formula neither can
+    build is still refused with the monitor's reason."""
+    import sys
+
+    from d2spo.ltl.automaton import AutomatonTooLarge
+    from d2spo.ltl.buchi_task import is_recurrence, task_automaton
+
+    tr = sys.modules["d2spo.ltl.translate"]  # the module (d2spo.ltl.translate is also the function's name)
+
+    monkeypatch.setattr(tr, "MAX_TABLEAU_STEPS", 50)
+    with pytest.raises(AutomatonTooLarge):
+        tr.translate("GF a & GF b & GF c")
+    task = task_automaton("GF a & GF b & GF c")
+    assert task.n_states == 3 and is_recurrence(task)
+    with pytest.raises(AutomatonTooLarge, match="MAX_TABLEAU_STEPS=50"):
+        task_automaton("F (a & F (b & F c)) & F G a")  # no DBA either: the monitor's reason is kept

@@ -18,8 +18,8 @@ from dataclasses import dataclass
 
 import jax.numpy as jnp
 
-from d2spo.ltl.automaton import Automaton, AutomatonArrays, _dot_escape, letters_to_guard
-from d2spo.ltl.buchi import BuchiAutomaton, letters_to_marked, to_dba
+from d2spo.ltl.automaton import Automaton, AutomatonArrays, AutomatonTooLarge, _dot_escape, letters_to_guard
+from d2spo.ltl.buchi import BuchiAutomaton, NoDeterministicBuchi, letters_to_marked, to_dba
 from d2spo.ltl.formula import Formula
 from d2spo.ltl.translate import NeverCompletedWarning, translate
 
@@ -118,7 +118,13 @@ def task_automaton(formula: Formula | str) -> Automaton:
     ``buchi_task(to_dba(formula))``. Raises ``NoDeterministicBuchi`` for a formula with neither."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", NeverCompletedWarning)
-        monitor = translate(formula)
+        try:
+            monitor = translate(formula)
+        except AutomatonTooLarge as too_large:  # the monitor's satisfiability check; a DBA may still be had
+            try:  # (a patrol of 9 or more areas: GF of twelve takes about 2 s this way)
+                return buchi_task(to_dba(formula))
+            except (AutomatonTooLarge, NoDeterministicBuchi):
+                raise too_large from None
     if monitor.accepting:
         return monitor
     return buchi_task(to_dba(formula))
