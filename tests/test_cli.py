@@ -60,6 +60,13 @@ def test_usage_errors_exit_2_with_one_line(args, capsys):
     assert "Traceback" not in err
 
 
+def test_a_never_part_alone_is_refused_with_a_goal_the_formula_does_not_name(capsys):
+    assert cli.main(["env", "check", "--task", "G !A4"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "G !A4 asks for nothing to reach" in err[0] and "'never' part alone" in err[0], err
+    assert "e.g. 'F A1' (with a never part: 'G !x & F A1')" in err[0]
+
+
 def _docs_layout_example() -> str:
     """The example layout of docs/layouts.md, verbatim (the first ```json block)."""
     from pathlib import Path

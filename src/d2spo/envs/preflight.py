@@ -35,8 +35,11 @@ def check_letters(task: CompiledTask, what: str) -> None:
     task in the message. What ``make_env`` checks for every task."""
     arrays = task.arrays
     if bool(arrays.accepting[int(arrays.initial)]):
-        raise ConfigError("task", f"{what} holds before the robot moves (its automaton starts accepting): there is "
-                          "nothing to learn; give a task the robot must act for, e.g. 'F A1'")
+        others = [label for label in task.layout.labels if label not in task.automaton.aps]
+        goal = (others or list(task.layout.labels) or ["A1"])[0]  # an area the formula does not name, if any
+        raise ConfigError("task", f"{what} asks for nothing to reach: its automaton accepts before the robot moves "
+                          "(a formula already true, or a 'never' part alone), so there is nothing to learn; add a "
+                          f"goal, e.g. 'F {goal}' (with a never part: 'G !x & F {goal}')")
     if int(arrays.distance[int(arrays.initial)]) >= UNREACHABLE:
         layout = task.layout
         missing = sorted(set(task.automaton.aps) - set(layout.labels))
