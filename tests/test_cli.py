@@ -67,6 +67,15 @@ def test_a_never_part_alone_is_refused_with_a_goal_the_formula_does_not_name(cap
     assert "e.g. 'F A1' (with a never part: 'G !x & F A1')" in err[0]
 
 
+def test_ltl_on_a_layout_warns_of_propositions_that_label_no_area(capsys):
+    """`d2spo ltl 'F a4' --layout paper` printed the automaton with no word that a4 labels no area."""
+    assert cli.main(["ltl", "F a4", "--layout", "paper"]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "propositions with no area, always false: ['a4']" in err[0], err
+    assert "did you mean A4 for a4?" in err[0]
+    assert cli.main(["ltl", "F A4", "--layout", "paper"]) == 0 and not capsys.readouterr().err.strip()
+
+
 def _docs_layout_example() -> str:
     """The example layout of docs/layouts.md, verbatim (the first ```json block)."""
     from pathlib import Path

@@ -40,7 +40,7 @@ from d2spo.envs import EnvConfig, layouts, make_env
 from d2spo.envs.compiled_task import default_task
 from d2spo.envs.dynamics import load_dynamics
 from d2spo.envs.nav import checked_layout
-from d2spo.envs.preflight import check_feasible, preflight
+from d2spo.envs.preflight import check_feasible, missing_labels, preflight
 from d2spo.errors import ConfigError, D2SPOWarning, LTLSyntaxError, NaNError, TaskWarning, UserError
 from d2spo.evaluate import EvalConfig, evaluate_run, write_evaluation
 from d2spo.fields import check_choice, check_fields
@@ -101,6 +101,8 @@ class LtlCmd:
             lay = layouts.load(self.layout)
             feasible = layouts.feasible_letters(lay, aut.aps, self.label_mode)
             letters = f"the letters layout {lay.name!r} can produce"
+            if missing_labels(aut.aps, lay):
+                warnings.warn(f"layout {lay.name!r}: {missing_labels(aut.aps, lay)}", TaskWarning, stacklevel=2)
         else:  # disjoint areas, as on every built-in layout: the robot is in at most one area
             feasible = [1 << i for i in range(len(aut.aps))] + ([0] if self.label_mode == "step" else [])
             letters = ("one area at a time (disjoint areas; --layout NAME for a layout's, "
@@ -117,8 +119,8 @@ class LtlCmd:
 
             task = default_task(aut, self.layout, self.label_mode)
             state_fields_figure(task, self.plot)
-            check_feasible(task, repr(self.formula))  # after the picture, which shows why
             print(f"wrote {self.plot}")
+            check_feasible(task, repr(self.formula))  # after the picture, which shows why
         return 0
 
 

@@ -44,17 +44,25 @@ def check_letters(task: CompiledTask, what: str) -> None:
         layout = task.layout
         missing = sorted(set(task.automaton.aps) - set(layout.labels))
         hint = ""
-        if missing:  # with the labels there are, and the one each was likely meant to be (`Dock`: dock)
-            meant = [f"{label} for {p}" for p in missing if (label := _label_meant(p, layout.labels))]
-            guess = f"; did you mean {', '.join(meant)}?" if meant else ""
-            hint = (f" (propositions with no area, always false: {missing}; its labels: "
-                    f"{', '.join(layout.labels) or 'none'}{guess})")
+        if missing:
+            hint = f" ({missing_labels(task.automaton.aps, layout)})"
         close = close_task_names(what)  # `--task patrol22`: a misspelt name, read as a proposition
         if close:
             hint += f" (not a task name: did you mean {', '.join(close)}?)"
         done = "make one accepting visit" if task.recurrence else "be completed"  # a patrol never completes
         raise ConfigError("task", f"{what} cannot {done} in layout {layout.name!r}{hint}: no sequence of the "
                           "letters it can produce (areas entered alone, or together where they overlap) does it")
+
+
+def missing_labels(aps, layout) -> str:
+    """Words on the propositions of ``aps`` that label no area of ``layout`` (empty when none): with the
+    labels there are, and the one each was likely meant to be (`Dock`: dock)."""
+    missing = sorted(set(aps) - set(layout.labels))
+    if not missing:
+        return ""
+    meant = [f"{label} for {p}" for p in missing if (label := _label_meant(p, layout.labels))]
+    guess = f"; did you mean {', '.join(meant)}?" if meant else ""
+    return f"propositions with no area, always false: {missing}; its labels: {', '.join(layout.labels) or 'none'}{guess}"
 
 
 def _label_meant(prop: str, labels: tuple[str, ...]) -> str | None:
