@@ -153,6 +153,7 @@ def test_round_trip(tree):
         ("[ a", 1, "unknown character '['"),
         ("a <- b", 3, "unknown character '<'"),
         ("A1 & Ä", 6, "unknown character 'Ä'"),
+        ("F dock-west", 7, "'dock-west' is no proposition name: a formula names an area by its label"),
         ("(a & (b | c)", 13, "')' to close the '(' at column 1"),
     ],
 )

@@ -19,6 +19,7 @@ greedily, so ``XA1`` is the proposition ``XA1`` while ``X A1`` and ``X(A1)`` are
 
 from __future__ import annotations
 
+import re
 from typing import NamedTuple
 
 from d2spo.errors import LTLSyntaxError
@@ -89,6 +90,11 @@ def _tokenize(text: str) -> list[_Token]:
                 break
         else:
             expected = f"a proposition, constant, operator or parenthesis, found unknown character {c!r}"
+            if c in "-." and tokens and tokens[-1].kind == "name" and tokens[-1].column + len(tokens[-1].text) == i + 1:
+                # `F dock-west`: an area's name, which a formula names by its label (docs/layouts.md)
+                word = re.match(r"[\w.-]+", text[tokens[-1].column - 1:]).group()
+                expected += (f" ({word!r} is no proposition name: a formula names an area by its label, of "
+                             "letters, digits and _)")
             raise LTLSyntaxError(text, i + 1, expected)
     tokens.append(_Token("end", "", len(text) + 1))
     return tokens
