@@ -73,24 +73,11 @@ _SHARED_PROGRAMS = {
 }
 
 
-# The costliest groups first (their test time over both workers, cold: `python bench/suite_profile.py`,
-# bench/RESULTS.md "2026-12-01, a later session"): xdist hands the groups out in collection order, so
-# the long ones start while the other worker can still take the short ones, rather than one ending the
-# run alone (test_zero_shot.py, 52 s, came last alphabetically; the two workers' totals differed by 22 s).
-_LONGEST_FIRST = ("fig5-run", "tiny-run", "small-reproduce", "test_zero_shot.py", "tiny-d2spo", "test_algo_sac_lag.py",
-                  "test_buchi_env.py", "test_env_generalist.py", "test_algo_td3_lag.py", "test_env_nav.py",
-                  "test_algo_cpo.py", "test_algo_rcrl.py")
-
-
 @pytest.hookimpl(tryfirst=True)  # before xdist's hook reads the group into each test's id
 def pytest_collection_modifyitems(config, items):
-    groups = {}
     for item in items:
         name = Path(str(item.fspath)).name
-        groups[item] = _SHARED_PROGRAMS.get(name, name)
-        item.add_marker(pytest.mark.xdist_group(groups[item]))
-    rank = {group: k for k, group in enumerate(_LONGEST_FIRST)}
-    items.sort(key=lambda item: rank.get(groups[item], len(rank)))  # stable: files and tests keep their order
+        item.add_marker(pytest.mark.xdist_group(_SHARED_PROGRAMS.get(name, name)))
 
 
 @pytest.fixture(autouse=True)
