@@ -8,6 +8,8 @@ import warnings
 
 import jax.numpy as jnp
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from d2spo.errors import LTLSyntaxError, UserError
 from d2spo.ltl import (
@@ -297,6 +299,21 @@ def test_letters_and_guards():
     assert letters_to_guard([0, 1, 2, 3], ("a", "b")) == "true"
     assert letters_to_guard([], ("a", "b")) == "false"
     assert letters_to_guard([1, 2], ("a", "b")) == "(!a & b) | (a & !b)"
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(9, 11), st.data())
+def test_guards_over_many_propositions_are_exact(n, data):
+    """Beyond EXACT_GUARD_APS propositions the guard's cubes are grown greedily: their union is exactly
+    the letters asked for, whatever they are."""
+    from d2spo.ltl.automaton import _greedy_cubes
+
+    want = set(data.draw(st.lists(st.integers(0, (1 << n) - 1), min_size=1, max_size=300)))
+    if data.draw(st.booleans()):  # a guard of one proposition's letters and a few more, as patrols have
+        want |= {a for a in range(1 << n) if a & 1}
+    cubes = _greedy_cubes(want, n)
+    covered = {a for a in range(1 << n) for care, value in cubes if a & care == value}
+    assert covered == want
 
 
 def test_automaton_checks_its_invariants():

@@ -286,6 +286,8 @@ def letters_to_guard(letters: Iterable[int], aps: tuple[str, ...]) -> str:
         return "false"
     if len(want) == 1 << n:
         return "true"
+    if n > EXACT_GUARD_APS:
+        return _cubes_text(_greedy_cubes(want, n), aps)
     # A cube is (care mask, value): the letters a with a & care == value (Quine-McCluskey).
     primes: list[tuple[int, int]] = []
     level = {((1 << n) - 1, a) for a in want}
@@ -315,12 +317,50 @@ def letters_to_guard(letters: Iterable[int], aps: tuple[str, ...]) -> str:
         chosen.append(best)
         left -= members(best)
 
+    return _cubes_text(chosen, aps)
+
+
+EXACT_GUARD_APS = 8
+"""Up to this many propositions ``letters_to_guard`` takes every prime implicant (Quine-McCluskey); beyond,
+their number grows as 3^n (a patrol of twelve areas: about 40 s for its printout), and each cube is
+grown greedily instead (``_greedy_cubes``): as exact, sometimes longer."""
+
+
+def _greedy_cubes(want: set[int], n: int) -> list[tuple[int, int]]:
+    """Cubes (care mask, value) whose union is exactly ``want``: from each letter not yet covered, a cube
+    grown by freeing one proposition at a time while every letter it holds is wanted."""
+    chosen: list[tuple[int, int]] = []
+    left = set(want)
+    while left:
+        care, value = (1 << n) - 1, min(left)
+        for i in range(n):
+            bit = 1 << i
+            free = care & ~bit
+            # the cube with proposition i free holds value's letters with bit i either way
+            if all(((value & free) | x) in want for x in _subsets(~free & ((1 << n) - 1))):
+                care, value = free, value & free
+        chosen.append((care, value))
+        left -= {a for a in left if a & care == value}
+    return chosen
+
+
+def _subsets(mask: int):
+    """Every submask of ``mask``."""
+    sub = mask
+    while True:
+        yield sub
+        if sub == 0:
+            return
+        sub = (sub - 1) & mask
+
+
+def _cubes_text(cubes, aps: tuple[str, ...]) -> str:
     def cube_text(cube: tuple[int, int]) -> str:
         care, value = cube
         lits = [(name if value >> i & 1 else f"!{name}") for i, name in enumerate(aps) if care >> i & 1]
         return " & ".join(lits) if lits else "true"
 
-    texts = sorted(cube_text(c) for c in chosen)
+    texts = sorted(cube_text(c) for c in cubes)
     if len(texts) == 1:
         return texts[0]
     return " | ".join(f"({t})" if " & " in t else t for t in texts)
