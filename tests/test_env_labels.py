@@ -262,6 +262,8 @@ def test_env_check_and_show_accept_the_office(tmp_path, capsys):
                                          "kitchen; did you mean desk for Desk?)"),
     (["--task", "F (desk & F kitchn)"], "always false: ['kitchn']; its labels: desk, kitchen; did you mean kitchen "
                                         "for kitchn?)"),
+    # operators run into a label: one proposition to the parser
+    (["--task", "GFdesk"], "always false: ['GFdesk']; its labels: desk, kitchen; did you mean G F desk for GFdesk?)"),
     (["--task", "F desk | F lounge"], "proposition 'lounge' names no area of layout 'office' (no area has that label; "
                                       "its labels: desk, kitchen)"),
 ])

@@ -66,8 +66,13 @@ def missing_labels(aps, layout) -> str:
 
 
 def _label_meant(prop: str, labels: tuple[str, ...]) -> str | None:
-    """The label ``prop`` was likely meant to be: the one it equals but for case, else the closest."""
+    """The label ``prop`` was likely meant to be: the one it equals but for case; operators run into a
+    label (``GFdock``: ``G F dock``, one proposition to the parser); else the closest."""
     same = [lab for lab in labels if lab.lower() == prop.lower()]
+    if not same:
+        ops = len(prop) - len(prop.lstrip("GFX"))
+        if 0 < ops < len(prop) and prop[ops:] in labels:
+            return " ".join(prop[:ops]) + " " + prop[ops:]
     return (same or difflib.get_close_matches(prop, labels, n=1, cutoff=0.6) or [None])[0]
 
 
