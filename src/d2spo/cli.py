@@ -101,8 +101,8 @@ class LtlCmd:
             lay = layouts.load(self.layout)
             feasible = layouts.feasible_letters(lay, aut.aps, self.label_mode)
             letters = f"the letters layout {lay.name!r} can produce"
-            if missing_labels(aut.aps, lay):
-                warnings.warn(f"layout {lay.name!r}: {missing_labels(aut.aps, lay)}", TaskWarning, stacklevel=2)
+            if missing := missing_labels(aut.aps, lay):
+                warnings.warn(f"layout {lay.name!r}: {missing}", TaskWarning, stacklevel=2)
         else:  # disjoint areas, as on every built-in layout: the robot is in at most one area
             feasible = [1 << i for i in range(len(aut.aps))] + ([0] if self.label_mode == "step" else [])
             letters = ("one area at a time (disjoint areas; --layout NAME for a layout's, "

@@ -187,14 +187,7 @@ class BuchiAutomaton:
     def edges(self) -> list[tuple[int, int, bool, str]]:
         """(source, target, accepting, guard) per group of letters with the same target and
         acceptance; the guard holds exactly for those letters."""
-        out = []
-        for q, row in enumerate(self.delta):
-            groups: dict[tuple[int, bool], list[int]] = {}
-            for a, t in enumerate(row):
-                groups.setdefault((t, self.accepting[q][a]), []).append(a)
-            for (t, acc), letters in groups.items():
-                out.append((q, t, acc, letters_to_guard(letters, self.aps)))
-        return out
+        return marked_edges(self.delta, self.accepting, self.aps)
 
     def to_dot(self) -> str:
         """Graphviz source: doublecircle = accepting sink, grey = rejecting sink, accepting
@@ -329,3 +322,17 @@ def _names(f: Formula, aps: tuple[str, ...], delta: list[list[int]], dead: set[i
         seen[text] = seen.get(text, 0) + 1
         names.append(text if seen[text] == 1 else f"{text} #{seen[text]}")
     return names
+
+
+def marked_edges(delta, marks, aps: tuple[str, ...]) -> list[tuple[int, int, bool, str]]:
+    """(source, target, mark, guard) per group of letters of a state with the same target and mark
+    (``marks[q][letter]``: a transition's acceptance, or a Büchi task's visits); the guard holds
+    exactly for those letters."""
+    out = []
+    for q, row in enumerate(delta):
+        groups: dict[tuple[int, bool], list[int]] = {}
+        for a, t in enumerate(row):
+            groups.setdefault((t, bool(marks[q][a])), []).append(a)
+        for (t, mark), letters in groups.items():
+            out.append((q, t, mark, letters_to_guard(letters, aps)))
+    return out

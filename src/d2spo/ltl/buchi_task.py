@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import jax.numpy as jnp
 
 from d2spo.ltl.automaton import Automaton, AutomatonArrays, AutomatonTooLarge, _dot_escape, letters_to_guard
-from d2spo.ltl.buchi import BuchiAutomaton, NoDeterministicBuchi, letters_to_marked, to_dba
+from d2spo.ltl.buchi import BuchiAutomaton, NoDeterministicBuchi, letters_to_marked, marked_edges, to_dba
 from d2spo.ltl.formula import Formula
 from d2spo.ltl.translate import NeverCompletedWarning, translate
 
@@ -75,16 +75,9 @@ class BuchiTask(Automaton):
     def _dot_edges(self) -> list[str]:
         """``Automaton.to_dot``'s edges, with the letters of an accepting visit on an edge of their own,
         drawn bold and marked with a dot (as ``BuchiAutomaton.to_dot`` draws accepting transitions)."""
-        lines = []
-        for q, row in enumerate(self.delta):
-            groups: dict[tuple[int, bool], list[int]] = {}
-            for letter, t in enumerate(row):
-                groups.setdefault((t, self.visits[q][letter]), []).append(letter)
-            for (t, visit), letters in groups.items():
-                guard = _dot_escape(letters_to_guard(letters, self.aps))
-                lines.append(f'  {q} -> {t} [label="{guard} ●", style=bold];' if visit
-                             else f'  {q} -> {t} [label="{guard}"];')
-        return lines
+        return [f'  {q} -> {t} [label="{_dot_escape(guard)} ●", style=bold];' if visit
+                else f'  {q} -> {t} [label="{_dot_escape(guard)}"];'
+                for q, t, visit, guard in marked_edges(self.delta, self.visits, self.aps)]
 
     def arrays(self, feasible_letters: Collection[int] | None = None,
                distance: list[int | None] | None = None) -> AutomatonArrays:

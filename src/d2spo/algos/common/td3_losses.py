@@ -196,13 +196,15 @@ def td3_actor_loss(
         jerk = jnp.sum(change**2, axis=-1)
         per_sample = per_sample + smoothness * jerk
         metrics["values/actor_jerk"] = jnp.mean(jerk)
+    # the actor's output before its tanh, for the terms that read it (one forward pass for both)
+    z = actor_apply(actor_params, obs, pre_tanh=True) if saturation > 0 or speed_search > 0 else None
     if saturation > 0:
-        excess = jnp.maximum(jnp.abs(actor_apply(actor_params, obs, pre_tanh=True)) - saturation_bound, 0.0)
+        excess = jnp.maximum(jnp.abs(z) - saturation_bound, 0.0)
         beyond = jnp.sum(excess**2, axis=-1)
         per_sample = per_sample + saturation * beyond
         metrics["values/actor_saturation"] = jnp.mean(beyond)
     if speed_search > 0:
-        search = _speed_search(actor_params, critic_params, obs, actor_apply, critic_apply, execute_fn, q1, speed_low)
+        search = _speed_search(z[..., 0], proposal, critic_params, obs, critic_apply, execute_fn, q1, speed_low)
         per_sample = per_sample + speed_search * search
         metrics["values/actor_speed_search"] = jnp.mean(search > 0)
     if penalty_fn is not None:
@@ -220,11 +222,11 @@ SPEED_SEARCH_MARGIN = 0.05
 """How much more Q1 a candidate speed must promise than the proposal before the actor is pulled."""
 
 
-def _speed_search(actor_params, critic_params, obs, actor_apply, critic_apply, execute_fn, q1, speed_low):
-    """Per sample, ``(z_0 - atanh(t))²`` towards the best candidate speed where it beats the proposal
-    by ``SPEED_SEARCH_MARGIN`` in Q1, else 0 (``td3_actor_loss``'s ``speed_search``)."""
-    z0 = actor_apply(actor_params, obs, pre_tanh=True)[..., 0]
-    proposal = jax.lax.stop_gradient(actor_apply(actor_params, obs))
+def _speed_search(z0, proposal, critic_params, obs, critic_apply, execute_fn, q1, speed_low):
+    """Per sample, ``(z0 - atanh(t))²`` towards the best candidate speed where it beats the proposal
+    by ``SPEED_SEARCH_MARGIN`` in Q1, else 0 (``td3_actor_loss``'s ``speed_search``; z0 the speed's
+    output before the tanh)."""
+    proposal = jax.lax.stop_gradient(proposal)
     speeds = jnp.linspace(speed_low, 1.0, SPEED_SEARCH_POINTS)
 
     def q_at(v):
