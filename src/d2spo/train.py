@@ -25,6 +25,7 @@ from d2spo.algos.generalist import Redraw
 from d2spo.checkpoint import Checkpoints, fingerprint, has_checkpoint, run_fingerprint
 from d2spo.config import TrainConfig, config_to_dict
 from d2spo.errors import ConfigError, RunDirWarning
+from d2spo.pipelined import Pipelined
 from d2spo.record import ProgressFn, RunRecord
 from d2spo.rollout import acting_on
 from d2spo.run import (
@@ -140,9 +141,16 @@ class _ParamsArgument:
 
 def learner_program(learner, name: str, vmapped: bool = False, donate: bool = False):
     """The jitted ``learner.<name>`` (``init`` or ``chunk``), vmapped over seeds if asked, donating
-    its argument if asked. Learners with ``params_as_argument`` (the generalist) get their env
+    its argument if asked. A pipelined D²SPO learner's ``chunk`` is ``pipelined.Pipelined``. Learners with ``params_as_argument`` (the generalist) get their env
     params as an argument (``_ParamsArgument``); the others keep them as constants, as before.
     An ``init`` that pre-trains (``learner.long_init``) gets ``_xla.long_running_options()``."""
+    if name == "chunk" and getattr(learner, "pipelined", False):  # D²SPO's --d2spo.pipeline: d2spo/pipelined.py
+        def pipelined():
+            return Pipelined(lambda part, d: learner_program(learner, part, vmapped, d), donate)
+
+        if getattr(learner, "params_as_argument", False):  # a fresh wrapper: ``params`` is its own
+            return pipelined()
+        return memo.per_object(learner, ("pipelined", vmapped, donate), pipelined)
     options = long_running_options() if name == "init" and getattr(learner, "long_init", False) else None
     if getattr(learner, "params_as_argument", False):
         return _ParamsArgument(learner, name, vmapped, donate, options)

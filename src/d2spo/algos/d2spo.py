@@ -18,6 +18,7 @@ The learner never calls the env's dynamics: f_n is fitted to observed (s, u, s')
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -26,16 +27,19 @@ import jax
 import jax.numpy as jnp
 from flax import serialization, struct
 
+from d2spo import replay
 from d2spo.algos.base import ChunkLog, episode_log, params_finite
 from d2spo.algos.offpolicy import explore_and_store
 from d2spo.algos.one_layout import OneLayout
 from d2spo.algos.td3 import (
+    TD3_METRICS,
     TD3Agent,
     TD3Carry,
     TD3Config,
     TD3Learner,
     explore,
     learn_from_buffer,
+    td3_update,
 )
 from d2spo.envs import sensors
 from d2spo.envs.sensors import Sensed
@@ -75,11 +79,13 @@ class D2SPOConfig:
     """Weight of ||π(z) - π_Ω(x, π(z))||² in the actor loss."""
     synthetic_box_half: tuple[float, float] = (0.15, 0.45)
     """Half-sizes (m) of the cautious start's boxes."""
+    pipeline: bool | None = None
+    """TD3's updates one chunk behind, beside the rollout; None: on, off for --generalist."""
 
     def __post_init__(self) -> None:
-        check_fields(self, "d2spo", nullable=("actor_through_safety",), count=("update_every",),
+        check_fields(self, "d2spo", nullable=("actor_through_safety", "pipeline"), count=("update_every",),
                      non_negative=("proposal_weight",),
-                     flag=("pretrain", "kinematic_prior", "runtime_filter", "actor_through_safety"))
+                     flag=("pretrain", "kinematic_prior", "runtime_filter", "actor_through_safety", "pipeline"))
         lo_hi = self.synthetic_box_half
         if not (isinstance(lo_hi, tuple) and len(lo_hi) == 2 and all(isinstance(v, (int, float)) for v in lo_hi)
                 and 0 < lo_hi[0] <= lo_hi[1] < math.inf):
@@ -116,6 +122,25 @@ class D2SPOCarry:
     @property
     def episodes(self) -> jax.Array:
         return self.td3.episodes
+
+
+@struct.dataclass
+class TD3Work:
+    """A pipelined chunk's TD3 updates, fixed before its rollout starts (``D2SPOLearner.td3_batches``)."""
+
+    agent: TD3Agent
+    """The actor and critics to update (a copy: the rollout acts with the original)."""
+    safety: SafetyState
+    """π_Ω for the actor loss (a copy)."""
+    batches: Any
+    """Minibatches [chunk_steps, updates_per_step, batch_size, ...] from the buffer before the rollout."""
+    keys: jax.Array
+    """One key per update [chunk_steps, updates_per_step]."""
+    ready: jax.Array
+    """bool [chunk_steps]: whether the fused chunk's step would update (``learning_starts``)."""
+
+
+_TD3_STREAM = 0x7D3  # td3_batches' keys: fold_in(carry key, this), a stream the rollout's splits never give
 
 
 # A checkpoint holds the carry as one flat dict (flax msgpack), in the order of the fields the carry
@@ -159,6 +184,12 @@ class D2SPOLearner(TD3Learner):
         self.n_features = env.n_rays + 1
         self.layouts = layouts(env, params, self.d2)
         self._safety_metrics = None  # shapes of UPDATE(Ω, Θ)'s metrics, traced once (``_iteration``)
+
+    @property
+    def pipelined(self) -> bool:
+        """Whether the run loop runs ``rollout`` and ``td3_chunk`` side by side (``train.learner_program``,
+        d2spo/pipelined.py) instead of ``chunk``: ``d2spo.pipeline``, None counting as on."""
+        return self.d2.pipeline is not False
 
     @property
     def params_as_argument(self) -> bool:
@@ -271,9 +302,10 @@ class D2SPOLearner(TD3Learner):
         return u
 
     # -- one vectorised step -------------------------------------------------------------
-    def _step(self, c: D2SPOCarry):
+    def _step(self, c: D2SPOCarry, learn: bool = True):
         """One vectorised step without UPDATE(Ω, Θ): (carry, log, the step's key for the update). The
-        log holds the update's metrics as NaN (their shapes traced once per learner)."""
+        log holds the update's metrics as NaN (their shapes traced once per learner). ``learn``
+        False: no TD3 update (lines 12-15 run in ``td3_chunk``, one chunk behind: ``rollout``)."""
         def act(k, random_phase):
             u_rl = explore(self.nets, c.agent, c.obs, k["act"], random_phase,
                            self.cfg.noise_at(c.td3.episodes, self.total_episodes), self.cfg.exploration_noise_space)
@@ -286,12 +318,12 @@ class D2SPOLearner(TD3Learner):
         tr = sd.Transition(pose=info["pose"], next_pose=info["next_pose"], context=self.context(info),
                            obs=c.obs, action=action, u_rl=u_rl)
         data, data_stats = sd.update_datasets(c.data, step.keys["data"], tr, features_fn=self.features_for_grad, cfg=self.cbf_cfg)
-        execute_fn = None
-        if self.d2.actor_through_safety is not False:  # None: on (TrainConfig resolves it per learner)
-            def execute_fn(o, u):  # π_Ω with this step's safety parameters, differentiable in u
-                return safe_action(self.safety_nets, c.safety, self.x_of_obs(o), u)
-        agent, metrics = learn_from_buffer(self.nets, c.agent, step.carry.buffer, step.keys["update"], step.carry.steps,
-                                           self.num_envs, self.cfg, execute_fn, self.d2.proposal_weight)
+        if learn:
+            agent, metrics = learn_from_buffer(self.nets, c.agent, step.carry.buffer, step.keys["update"],
+                                               step.carry.steps, self.num_envs, self.cfg, self._execute_fn(c.safety),
+                                               self.d2.proposal_weight)
+        else:
+            agent, metrics = c.agent, {k: jnp.float32(jnp.nan) for k in TD3_METRICS}
         c = D2SPOCarry(step.carry.replace(agent=agent), c.safety, data)
         if self._safety_metrics is None:
             self._safety_metrics = jax.eval_shape(self._safety_update, c, step.keys["safety"])[1]
@@ -299,6 +331,16 @@ class D2SPOLearner(TD3Learner):
         metrics["safety/override"] = jnp.mean(jnp.linalg.norm(action - u_rl, axis=-1))
         metrics["charts/label_radius"] = jnp.mean(step.params.label_radius)
         return c, episode_log(step.done, info, metrics), step.keys["safety"]
+
+    def _execute_fn(self, safety: SafetyState):
+        """π_Ω with ``safety``'s parameters, differentiable in u, for TD3's actor loss; None when the
+        actor loss does not go through it (``actor_through_safety``)."""
+        if self.d2.actor_through_safety is False:  # None: on (TrainConfig resolves it per learner)
+            return None
+
+        def execute_fn(o, u):
+            return safe_action(self.safety_nets, safety, self.x_of_obs(o), u)
+        return execute_fn
 
     def _safety_update(self, c: D2SPOCarry, k_safe: jax.Array):
         """UPDATE(Ω, Θ) after a step, on its datasets, with its RL proposal (the updated actor plus
@@ -326,6 +368,55 @@ class D2SPOLearner(TD3Learner):
         return c.replace(safety=safety), log._replace(metrics=metrics)
 
     def chunk(self, carry: D2SPOCarry) -> tuple[D2SPOCarry, ChunkLog]:
+        """``chunk_steps`` vectorised steps of Algorithm 1, lines 6-17, as one program."""
+        return self._chunk(carry, learn=True)
+
+    # -- the pipelined chunk (``pipeline``): TD3's updates one chunk behind, in a second program ----
+    # ``train.Pipelined`` runs ``td3_batches``, then ``rollout`` and ``td3_chunk`` side by side in two
+    # threads: XLA:CPU runs one program's operations one after another, so a single fused chunk keeps
+    # one core busy (bench/concurrency.py); two programs take both. Chunk k's rollout acts with the
+    # actor θ_{k-1} and trains (Ω, Θ) as before; its TD3 updates, as many as in the fused chunk and
+    # gated on the step count the same way, are drawn from the buffer as chunk k-1 left it, with π_Ω
+    # as it was then. The run is as deterministic as the fused one (every input is fixed before the
+    # two start), only the actor that acts lags by one chunk.
+    def rollout(self, carry: D2SPOCarry) -> tuple[D2SPOCarry, ChunkLog]:
+        """The chunk without TD3's updates (the actor fixed): lines 6-11 and 16-17."""
+        return self._chunk(carry, learn=False)
+
+    def td3_batches(self, carry: D2SPOCarry) -> TD3Work:
+        """The next ``td3_chunk``'s inputs, from ``carry`` before its rollout: copies of the actor and
+        π_Ω, and every minibatch drawn from the buffer now (the rollout then owns the carry)."""
+        n, u = self.chunk_steps, self.cfg.updates_per_step
+        keys = jax.random.split(jax.random.fold_in(carry.td3.key, _TD3_STREAM), (n, u, 2))
+        batches = jax.vmap(jax.vmap(lambda k: replay.sample(carry.buffer, k, self.cfg.batch_size)))(keys[:, :, 0])
+        steps = carry.steps + 1 + jnp.arange(n)  # the step count each slot's fused update would have seen
+        ready = (steps * self.num_envs >= self.cfg.learning_starts) & (carry.buffer.size >= self.cfg.batch_size)
+        copy = functools.partial(jax.tree_util.tree_map, jnp.copy)
+        return TD3Work(copy(carry.agent), copy(carry.safety), batches, keys[:, :, 1], ready)
+
+    def td3_chunk(self, work: TD3Work) -> tuple[TD3Agent, dict, jax.Array]:
+        """Lines 12-15 for a whole chunk: (actor and critics, per-step metrics, whether all are finite)."""
+        execute_fn = self._execute_fn(work.safety)
+
+        def slot(agent, x):
+            batches, keys, ready = x
+
+            def learn(agent):
+                def one(agent, bk):
+                    return td3_update(self.nets, agent, bk[0], bk[1], self.cfg, execute_fn, self.d2.proposal_weight)
+
+                agent, m = jax.lax.scan(one, agent, (batches, keys))
+                return agent, {k: jnp.nanmean(m[k]) for k in TD3_METRICS}
+
+            def wait(agent):
+                return agent, {k: jnp.float32(jnp.nan) for k in TD3_METRICS}
+
+            return jax.lax.cond(ready, learn, wait, agent)
+
+        agent, metrics = jax.lax.scan(slot, work.agent, (work.batches, work.keys, work.ready))
+        return agent, metrics, params_finite(agent)
+
+    def _chunk(self, carry: D2SPOCarry, learn: bool) -> tuple[D2SPOCarry, ChunkLog]:
         every = self.d2.update_every
         if self.chunk_steps % every == 0:
             # Every chunk starts in phase: a scan over blocks of ``update_every`` steps, after the last
@@ -334,14 +425,14 @@ class D2SPOLearner(TD3Learner):
             # cost the chunk ~60 ms, 3x its own time, and this layout takes 20% off a chunk (bench/RESULTS.md).
             # The step is traced once (the scan's body), not once more for the block's last step.
             def block(c, _):
-                c, (log, keys) = jax.lax.scan(lambda c, _: self._step_out(c), c, None, length=every)
+                c, (log, keys) = jax.lax.scan(lambda c, _: self._step_out(c, learn), c, None, length=every)
                 return self._with_update(c, log, keys[-1])
 
             carry, log = jax.lax.scan(block, carry, None, length=self.chunk_steps // every)
             log = jax.tree_util.tree_map(lambda a: a.reshape((self.chunk_steps,) + a.shape[2:]), log)
         else:  # the schedule from the step count: a branch
             def one(c, _):
-                c, log, k_safe = self._step(c)
+                c, log, k_safe = self._step(c, learn)
                 due = c.steps % every == 0
                 return jax.lax.cond(due, lambda: self._with_update(c, log, k_safe), lambda: (c, log))
 
@@ -349,8 +440,8 @@ class D2SPOLearner(TD3Learner):
         finite = params_finite(carry.agent) & params_finite((carry.safety.cbf, carry.safety.policy, carry.safety.nominal))
         return carry, log._replace(nonfinite=jnp.any(log.nonfinite) | ~finite)
 
-    def _step_out(self, c: D2SPOCarry):
-        c, log, k_safe = self._step(c)
+    def _step_out(self, c: D2SPOCarry, learn: bool = True):
+        c, log, k_safe = self._step(c, learn)
         return c, (log, k_safe)
 
     # -- evaluation ----------------------------------------------------------------------

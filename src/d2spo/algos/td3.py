@@ -256,6 +256,10 @@ class TD3Carry:
     """Episodes finished so far (I_ep of the annealed radius)."""
 
 
+TD3_METRICS = ("losses/qf", "values/q", "losses/actor")
+"""The metrics of ``td3_update`` (NaN for a step without updates)."""
+
+
 def learn_from_buffer(nets, agent, buffer, key, steps, num_envs, cfg: TD3Config, execute_fn=None,
                       proposal_weight: float = 0.0):
     """``updates_per_step`` TD3 updates once ``learning_starts`` transitions are stored."""
@@ -270,8 +274,7 @@ def learn_from_buffer(nets, agent, buffer, key, steps, num_envs, cfg: TD3Config,
         return agent, {k: jnp.nanmean(v) for k, v in m.items()}
 
     def wait(agent):
-        nan = jnp.float32(jnp.nan)
-        return agent, {"losses/qf": nan, "values/q": nan, "losses/actor": nan}
+        return agent, {k: jnp.float32(jnp.nan) for k in TD3_METRICS}
 
     ready = steps * num_envs >= cfg.learning_starts
     return jax.lax.cond(ready, learn, wait, agent)

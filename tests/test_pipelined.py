@@ -1,0 +1,123 @@
+"""D²SPO's pipelined chunk (d2spo/pipelined.py): the rollout and TD3's updates as two programs run
+side by side, one chunk apart, deterministic and resumable as the fused chunk is."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from _tiny import TINY_CBF
+
+from d2spo.config import TrainConfig
+from d2spo.envs import EnvConfig
+from d2spo.pipelined import Pipelined
+from d2spo.run import build
+from d2spo.train import learner_program, train_seeds
+
+
+def small(pipeline: bool | None = True, **kw) -> TrainConfig:
+    """Tiny networks, 2 envs, chunks of 8 steps, TD3 updating from the 40th transition on: the
+    pipelined chunk's gate opens mid-chunk, in the run's third chunk."""
+    cfg = TrainConfig(algo="d2spo", task="relaxed", episodes=12, num_envs=2, chunk_steps=8, checkpoint_every=4,
+                      eval_episodes=0, env=EnvConfig(layout="relaxed", max_steps=10), cbf=TINY_CBF)
+    cfg = dataclasses.replace(cfg, d2spo=dataclasses.replace(cfg.d2spo, pretrain=False, update_every=4, pipeline=pipeline),
+                              td3=dataclasses.replace(cfg.td3, buffer_size=256, hidden=(8,), batch_size=8,
+                                                      learning_starts=40), **kw)
+    return cfg.check()
+
+
+def _same(a, b) -> bool:
+    return all(np.array_equal(np.asarray(x), np.asarray(y), equal_nan=True)
+               for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b), strict=True))
+
+
+def test_the_pipeline_is_off_for_the_generalist():
+    assert TrainConfig(generalist=True).check().d2spo.pipeline is False
+    off = small(pipeline=False)
+    _, _, learner = build(off)
+    assert not isinstance(learner_program(learner, "chunk", donate=True), Pipelined)
+
+
+def test_a_pipelined_chunk_is_its_two_programs_run_one_after_the_other():
+    """Threads change nothing: ``Pipelined`` equals td3_batches, then rollout and td3_chunk called in
+    turn; the rollout acts with the actor it was given and leaves it as it was; the TD3 updates, as
+    many per chunk as the fused chunk makes, land in the carry, their metrics in the log."""
+    _, _, learner = build(small())
+    chunk = learner_program(learner, "chunk")
+    assert isinstance(chunk, Pipelined)
+    carry = learner_program(learner, "init")(jax.random.PRNGKey(0))
+    for _ in range(3):  # past learning_starts: 2 envs x 8 steps per chunk, 40 transitions
+        carry, log = chunk(carry)
+    batches, rollout, learn = (jax.jit(getattr(learner, n)) for n in ("td3_batches", "rollout", "td3_chunk"))
+    work = batches(carry)
+    assert bool(jnp.all(work.ready)) and work.keys.shape == (8, 1, *jax.random.PRNGKey(0).shape)
+    rolled, rlog = rollout(carry)
+    assert _same(rolled.agent, carry.agent)
+    agent, metrics, finite = learn(work)
+    assert bool(finite) and not _same(agent, carry.agent)
+    assert int(agent.updates) == int(carry.agent.updates) + 8  # one per vectorised step
+    assert np.isnan(np.asarray(rlog.metrics["losses/qf"])).all()
+    piped, plog = chunk(carry)
+    assert _same(piped.agent, agent) and _same(piped.safety, rolled.safety) and _same(piped.buffer, rolled.buffer)
+    assert np.array_equal(np.asarray(plog.metrics["losses/qf"]), np.asarray(metrics["losses/qf"]))
+    assert np.isfinite(np.asarray(plog.metrics["losses/qf"])).all()
+
+
+def test_the_pipeline_makes_the_fused_chunks_updates_only_later():
+    """Over a run, as many TD3 updates as the fused chunk (the gate on ``learning_starts`` per step);
+    the first run from the same key differs only once the updates start."""
+    cfg = small()
+    _, _, learner = build(cfg)
+    fused = jax.jit(learner.chunk)
+    piped = learner_program(learner, "chunk")
+    a = b = learner_program(learner, "init")(jax.random.PRNGKey(3))
+    updates = []
+    for _ in range(4):
+        a, _ = fused(a)
+        b, _ = piped(b)
+        updates.append((int(a.agent.updates), int(b.agent.updates)))
+    # 40 transitions = step 20: the fused chunk updates from its third chunk's step 20 on (steps 20..32),
+    # the pipeline makes the same count, chunk by chunk, from the buffer one chunk earlier
+    assert updates == [(0, 0), (0, 0), (5, 5), (13, 13)]
+
+
+def _episodes(path):
+    with open(path / "episodes.csv") as f:
+        return list(csv.reader(f))
+
+
+def test_pipelined_seeds_in_one_group_resume_exactly(tmp_path):
+    cfgs = [small(seed=s) for s in (0, 1)]
+    a = [tmp_path / "a" / f"s{s}" for s in (0, 1)]
+    b = [tmp_path / "b" / f"s{s}" for s in (0, 1)]
+    done = train_seeds(cfgs, a)
+    assert [s["episodes"] for s in done] == [12, 12]
+    assert train_seeds(cfgs, b, stop_after_chunks=3) is None
+    assert 1 < len(_episodes(b[0])) < 13
+    train_seeds(cfgs, b)
+    for x, y in zip(a, b):
+        assert _episodes(x) == _episodes(y)
+    assert _episodes(a[0]) != _episodes(a[1])
+
+
+def test_nonfinite_td3_updates_stop_the_run(tmp_path, monkeypatch):
+    """A NaN in the TD3 program (the other thread) stops the run as the fused chunk's does."""
+    import d2spo.algos.d2spo as d2mod
+    from d2spo.algos.base import params_finite
+    from d2spo.errors import NaNError
+    from d2spo.train import train
+
+    real = d2mod.D2SPOLearner.td3_chunk
+
+    def poisoned(self, work):
+        agent, metrics, _ = real(self, work)
+        agent = agent.replace(critic=jax.tree_util.tree_map(lambda x: x * jnp.nan, agent.critic))
+        return agent, metrics, params_finite(agent)
+
+    monkeypatch.setattr(d2mod.D2SPOLearner, "td3_chunk", poisoned)
+    with pytest.raises(NaNError, match="non-finite parameters"):
+        train(small(), tmp_path / "run")
