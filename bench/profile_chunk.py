@@ -7,8 +7,9 @@ vectorised step is compiled alone as a ``lax.scan`` over ``--steps`` calls on th
 and timed (best of ``--repeats``, compile excluded): the env step, acting (π_rl and π_Ω), the replay
 write, the safety datasets' update, one TD3 update (critic, and the delayed actor through π_Ω), and
 one UPDATE(Ω, Θ) of Algorithm 1 (nominal model and Eq. (9) steps, divided by ``update_every`` as it
-runs once per that many steps). The whole chunk is timed too; the pieces need not sum to it exactly
-(XLA fuses across them in the chunk). The last line is one JSON object {piece: ms per vectorised step}.
+runs once per that many steps). The whole chunk is timed too, fused and pipelined (the rollout
+and TD3's updates in two threads, ``--d2spo.pipeline``); the pieces need not sum to the fused one
+exactly (XLA fuses across them in the chunk). The last line is one JSON object {piece: ms per vectorised step}.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ import jax.numpy as jnp
 from d2spo import replay
 from d2spo.algos.td3 import explore, learn_from_buffer
 from d2spo.config import TrainConfig, config_from_dict, config_to_dict
+from d2spo.pipelined import Pipelined
 from d2spo.replay import Transition
 from d2spo.run import build
 from d2spo.safety import datasets as sd
@@ -152,6 +154,9 @@ def main() -> None:
     result = {}
     whole = _best(lambda c: chunk(jax.tree_util.tree_map(jnp.copy, c))[1].done, carry, a.repeats)
     result["whole chunk"] = whole * 1e3 / cfg.chunk_steps
+    # --d2spo.pipeline: the rollout and TD3's updates as two programs in two threads (d2spo/pipelined.py)
+    piped = Pipelined(lambda name, donate: jax.jit(getattr(L, name)), donate=False)
+    result["pipelined chunk (rollout | TD3)"] = _best(lambda c: piped(c)[1].done, carry, a.repeats) * 1e3 / cfg.chunk_steps
     for name, (fn, arg, weight) in ({} if a.whole_only else pieces).items():
         result[name] = _best(fn, arg, a.repeats) * scale * weight
     print(f"config: {cfg.task} on {cfg.layout}, {cfg.num_envs} envs, overrides {a.set or 'none'}")

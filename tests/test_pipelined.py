@@ -19,7 +19,7 @@ from d2spo.run import build
 from d2spo.train import learner_program, train_seeds
 
 
-def small(pipeline: bool | None = True, **kw) -> TrainConfig:
+def small(pipeline: bool = True, **kw) -> TrainConfig:
     """Tiny networks, 2 envs, chunks of 8 steps, TD3 updating from the 40th transition on: the
     pipelined chunk's gate opens mid-chunk, in the run's third chunk."""
     cfg = TrainConfig(algo="d2spo", task="relaxed", episodes=12, num_envs=2, chunk_steps=8, checkpoint_every=4,
@@ -35,17 +35,18 @@ def _same(a, b) -> bool:
                for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b), strict=True))
 
 
-def test_the_pipeline_is_off_for_the_generalist():
-    assert TrainConfig(generalist=True).check().d2spo.pipeline is False
-    off = small(pipeline=False)
-    _, _, learner = build(off)
+def test_the_pipeline_is_an_option_off_by_default():
+    assert TrainConfig().check().d2spo.pipeline is False
+    _, _, learner = build(small(pipeline=False))
     assert not isinstance(learner_program(learner, "chunk", donate=True), Pipelined)
+    assert learner_program(learner, "chunk", donate=True) is learner_program(learner, "chunk", donate=True)
 
 
 def test_a_pipelined_chunk_is_its_two_programs_run_one_after_the_other():
     """Threads change nothing: ``Pipelined`` equals td3_batches, then rollout and td3_chunk called in
-    turn; the rollout acts with the actor it was given and leaves it as it was; the TD3 updates, as
-    many per chunk as the fused chunk makes, land in the carry, their metrics in the log."""
+    turn; the rollout acts with the actor it was given and leaves it as it was, and shows π_Ω that
+    actor in one more UPDATE(Ω, Θ) first; the TD3 updates, as many per chunk as the fused chunk
+    makes, land in the carry, their metrics in the log."""
     _, _, learner = build(small())
     chunk = learner_program(learner, "chunk")
     assert isinstance(chunk, Pipelined)
@@ -57,6 +58,10 @@ def test_a_pipelined_chunk_is_its_two_programs_run_one_after_the_other():
     assert bool(jnp.all(work.ready)) and work.keys.shape == (8, 1, *jax.random.PRNGKey(0).shape)
     rolled, rlog = rollout(carry)
     assert _same(rolled.agent, carry.agent)
+    # UPDATE(Ω, Θ) every 4 of the 8 steps, and once more before the first: 3 against the fused chunk's 2
+    fused, _ = jax.jit(learner.chunk)(carry)
+    steps = [int(c.safety.policy_opt[0].count) - int(carry.safety.policy_opt[0].count) for c in (rolled, fused)]
+    assert steps[0] * 2 == steps[1] * 3 and steps[1] > 0, steps
     agent, metrics, finite = learn(work)
     assert bool(finite) and not _same(agent, carry.agent)
     assert int(agent.updates) == int(carry.agent.updates) + 8  # one per vectorised step

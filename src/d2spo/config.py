@@ -196,8 +196,6 @@ class TrainConfig:
                               f"{self.generalist_world}:{VALIDATION_SEED} on are the validation set")
         if self.d2spo.actor_through_safety is None:  # on for one layout, off for the generalist
             object.__setattr__(self, "d2spo", dataclasses.replace(self.d2spo, actor_through_safety=not self.generalist))
-        if self.d2spo.pipeline is None:  # off until Tables II-III are measured with it
-            object.__setattr__(self, "d2spo", dataclasses.replace(self.d2spo, pipeline=False))
         self._resolve_update_steps()
         if self.td3.forward_only is None:  # on for the generalist, off for one layout
             td3 = copy.copy(self.td3)  # checked when it was made: only the None is filled in
@@ -303,7 +301,6 @@ FORMER_DEFAULTS: dict[tuple[str, ...], Any] = {
     ("cbf", "updates_per_iter"): 10,  # every config.json names it; 10 was the default until 2026-11-30
     ("cbf", "nominal_updates_per_iter"): 10,
     ("env", "distance_obs"): "capped",  # a generalist saw every distance beyond 20 m as 20 m until 2026-11-27
-    ("d2spo", "pipeline"): False,  # TD3's updates ran inside D²SPO's one fused chunk until 2026-12-01
 }
 """Settings whose default has changed, with the value a config.json that does not mention them was
 trained with (the field did not exist yet, and its old behaviour is this value)."""

@@ -7,7 +7,9 @@ Per vectorised step (lines 6–16 of Algorithm 1):
    optionally the runtime filter corrects u under the learned barrier and nominal model;
 3. every env steps with u; (z, u, r, z') goes into TD3's replay buffer (line 9);
 4. (z, z', O_s) goes into T, P_exp and X_L (line 11, ``safety.datasets.update_datasets``);
-5. TD3 updates critics and, delayed, actor and targets (lines 12–15).
+5. TD3 updates critics and, delayed, actor and targets (lines 12–15). With ``pipeline`` (an
+   option, off by default) these updates run one chunk behind, in a second program beside the
+   rollout (``rollout``, ``td3_batches``, ``td3_chunk``; d2spo/pipelined.py).
 
 Every ``update_every`` steps, (Θ, Ω) take ``cbf.updates_per_iter`` steps on Eq. (9) and f_n is
 refitted on T (line 17). Before the first env step, h, π_Ω and f_n are pre-trained on synthetic
@@ -79,11 +81,11 @@ class D2SPOConfig:
     """Weight of ||π(z) - π_Ω(x, π(z))||² in the actor loss."""
     synthetic_box_half: tuple[float, float] = (0.15, 0.45)
     """Half-sizes (m) of the cautious start's boxes."""
-    pipeline: bool | None = None
-    """TD3's updates one chunk behind, beside the rollout; None: on, off for --generalist."""
+    pipeline: bool = False
+    """TD3's updates one chunk behind, in a second program beside the rollout (faster, not the paper's order)."""
 
     def __post_init__(self) -> None:
-        check_fields(self, "d2spo", nullable=("actor_through_safety", "pipeline"), count=("update_every",),
+        check_fields(self, "d2spo", nullable=("actor_through_safety",), count=("update_every",),
                      non_negative=("proposal_weight",),
                      flag=("pretrain", "kinematic_prior", "runtime_filter", "actor_through_safety", "pipeline"))
         lo_hi = self.synthetic_box_half
@@ -141,6 +143,7 @@ class TD3Work:
 
 
 _TD3_STREAM = 0x7D3  # td3_batches' keys: fold_in(carry key, this), a stream the rollout's splits never give
+_SAFETY_STREAM = 0x7D4  # the pipelined rollout's first UPDATE(Ω, Θ)
 
 
 # A checkpoint holds the carry as one flat dict (flax msgpack), in the order of the fields the carry
@@ -188,8 +191,8 @@ class D2SPOLearner(TD3Learner):
     @property
     def pipelined(self) -> bool:
         """Whether the run loop runs ``rollout`` and ``td3_chunk`` side by side (``train.learner_program``,
-        d2spo/pipelined.py) instead of ``chunk``: ``d2spo.pipeline``, None counting as on."""
-        return self.d2.pipeline is not False
+        d2spo/pipelined.py) instead of ``chunk``: ``d2spo.pipeline``."""
+        return bool(self.d2.pipeline)
 
     @property
     def params_as_argument(self) -> bool:
@@ -375,13 +378,18 @@ class D2SPOLearner(TD3Learner):
     # ``train.Pipelined`` runs ``td3_batches``, then ``rollout`` and ``td3_chunk`` side by side in two
     # threads: XLA:CPU runs one program's operations one after another, so a single fused chunk keeps
     # one core busy (bench/concurrency.py); two programs take both. Chunk k's rollout acts with the
-    # actor θ_{k-1} and trains (Ω, Θ) as before; its TD3 updates, as many as in the fused chunk and
+    # actor θ_{k-1} and trains (Ω, Θ) as before, once more at its start; its TD3 updates, as many as in the fused chunk and
     # gated on the step count the same way, are drawn from the buffer as chunk k-1 left it, with π_Ω
     # as it was then. The run is as deterministic as the fused one (every input is fixed before the
     # two start), only the actor that acts lags by one chunk.
     def rollout(self, carry: D2SPOCarry) -> tuple[D2SPOCarry, ChunkLog]:
-        """The chunk without TD3's updates (the actor fixed): lines 6-11 and 16-17."""
-        return self._chunk(carry, learn=False)
+        """The chunk without TD3's updates (the actor fixed): lines 6-11 and 16-17, after one more
+        UPDATE(Ω, Θ) that shows π_Ω the actor it will act with. That actor moved by a whole chunk's
+        TD3 updates at once (by one update per step in the fused chunk); without this update π_Ω
+        met it untrained, and ϕ1's training collided in bursts of 10-20 episodes at chunk starts
+        (14, 20, 17 collisions in seeds 0-2's first 1300-2300 episodes, against 2, 6, 4 with it)."""
+        safety, _ = self._safety_update(carry, jax.random.fold_in(carry.td3.key, _SAFETY_STREAM))
+        return self._chunk(carry.replace(safety=safety), learn=False)
 
     def td3_batches(self, carry: D2SPOCarry) -> TD3Work:
         """The next ``td3_chunk``'s inputs, from ``carry`` before its rollout: copies of the actor and
