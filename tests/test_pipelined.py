@@ -42,52 +42,70 @@ def test_the_pipeline_is_an_option_off_by_default():
     assert learner_program(learner, "chunk", donate=True) is learner_program(learner, "chunk", donate=True)
 
 
-def test_a_pipelined_chunk_is_its_two_programs_run_one_after_the_other():
+@pytest.fixture(scope="module")
+def warm():
+    """The small learner, its pipelined chunk (not donating) and a carry three chunks in: past
+    ``learning_starts`` (2 envs x 8 steps per chunk, 40 transitions)."""
+    _, _, learner = build(small())
+    chunk = learner_program(learner, "chunk")
+    carry = learner_program(learner, "init")(jax.random.PRNGKey(0))
+    for _ in range(3):
+        carry, _ = chunk(carry)
+    return learner, chunk, carry
+
+
+def test_a_pipelined_chunk_is_its_two_programs_run_one_after_the_other(warm):
     """Threads change nothing: ``Pipelined`` equals td3_batches, then rollout and td3_chunk called in
     turn; the rollout acts with the actor it was given and leaves it as it was, and shows π_Ω that
     actor in one more UPDATE(Ω, Θ) first; the TD3 updates, as many per chunk as the fused chunk
     makes, land in the carry, their metrics in the log."""
-    _, _, learner = build(small())
-    chunk = learner_program(learner, "chunk")
+    learner, chunk, carry = warm
     assert isinstance(chunk, Pipelined)
-    carry = learner_program(learner, "init")(jax.random.PRNGKey(0))
-    for _ in range(3):  # past learning_starts: 2 envs x 8 steps per chunk, 40 transitions
-        carry, log = chunk(carry)
-    batches, rollout, learn = (jax.jit(getattr(learner, n)) for n in ("td3_batches", "rollout", "td3_chunk"))
-    work = batches(carry)
+    work = chunk.batches(carry)
     assert bool(jnp.all(work.ready)) and work.keys.shape == (8, 1, *jax.random.PRNGKey(0).shape)
-    rolled, rlog = rollout(carry)
+    rolled, rlog = chunk.rollout(carry)
     assert _same(rolled.agent, carry.agent)
-    # UPDATE(Ω, Θ) every 4 of the 8 steps, and once more before the first: 3 against the fused chunk's 2
-    fused, _ = jax.jit(learner.chunk)(carry)
-    steps = [int(c.safety.policy_opt[0].count) - int(carry.safety.policy_opt[0].count) for c in (rolled, fused)]
-    assert steps[0] * 2 == steps[1] * 3 and steps[1] > 0, steps
-    agent, metrics, finite = learn(work)
+    # UPDATE(Ω, Θ) after every 4th of the 8 steps, and once before the first: 3 (the fused chunk: 2)
+    adam_steps = int(rolled.safety.policy_opt[0].count) - int(carry.safety.policy_opt[0].count)
+    assert adam_steps == 3 * learner.cbf_cfg.updates_per_iter, adam_steps
+    agent, metrics, finite = chunk.learn(work)
     assert bool(finite) and not _same(agent, carry.agent)
     assert int(agent.updates) == int(carry.agent.updates) + 8  # one per vectorised step
     assert np.isnan(np.asarray(rlog.metrics["losses/qf"])).all()
     piped, plog = chunk(carry)
     assert _same(piped.agent, agent) and _same(piped.safety, rolled.safety) and _same(piped.buffer, rolled.buffer)
     assert np.array_equal(np.asarray(plog.metrics["losses/qf"]), np.asarray(metrics["losses/qf"]))
-    assert np.isfinite(np.asarray(plog.metrics["losses/qf"])).all()
+    assert np.isfinite(np.asarray(plog.metrics["losses/qf"])).all() and not bool(plog.nonfinite)
 
 
-def test_the_pipeline_makes_the_fused_chunks_updates_only_later():
-    """Over a run, as many TD3 updates as the fused chunk (the gate on ``learning_starts`` per step);
-    the first run from the same key differs only once the updates start."""
-    cfg = small()
-    _, _, learner = build(cfg)
-    fused = jax.jit(learner.chunk)
-    piped = learner_program(learner, "chunk")
-    a = b = learner_program(learner, "init")(jax.random.PRNGKey(3))
+def test_a_nonfinite_td3_program_marks_the_chunks_log(warm):
+    """A NaN in the TD3 program (the other thread) sets the log's ``nonfinite``, which stops a run
+    (``record.NaNGuard``) as the fused chunk's does."""
+    from d2spo.algos.base import params_finite
+
+    learner, chunk, carry = warm
+
+    def poisoned(work):
+        agent, metrics, _ = chunk.learn(work)
+        agent = agent.replace(critic=jax.tree_util.tree_map(lambda x: x * jnp.nan, agent.critic))
+        return agent, metrics, params_finite(agent)
+
+    parts = {"td3_batches": chunk.batches, "rollout": chunk.rollout, "td3_chunk": poisoned}
+    _, log = Pipelined(lambda name, donate: parts[name], donate=False)(carry)
+    assert bool(log.nonfinite)
+
+
+def test_the_pipeline_makes_the_fused_chunks_updates_one_chunk_later(warm):
+    """As many TD3 updates per chunk as the fused chunk makes: one per vectorised step t once
+    t x num_envs >= learning_starts (40 transitions: t >= 20, so 5 in the third chunk's steps 17-24
+    and 8 in each after), drawn from the buffer one chunk earlier."""
+    learner, chunk, _ = warm
+    carry = learner_program(learner, "init")(jax.random.PRNGKey(3))
     updates = []
     for _ in range(4):
-        a, _ = fused(a)
-        b, _ = piped(b)
-        updates.append((int(a.agent.updates), int(b.agent.updates)))
-    # 40 transitions = step 20: the fused chunk updates from its third chunk's step 20 on (steps 20..32),
-    # the pipeline makes the same count, chunk by chunk, from the buffer one chunk earlier
-    assert updates == [(0, 0), (0, 0), (5, 5), (13, 13)]
+        carry, _ = chunk(carry)
+        updates.append(int(carry.agent.updates))
+    assert updates == [0, 0, 5, 13]
 
 
 def _episodes(path):
@@ -107,22 +125,3 @@ def test_pipelined_seeds_in_one_group_resume_exactly(tmp_path):
     for x, y in zip(a, b):
         assert _episodes(x) == _episodes(y)
     assert _episodes(a[0]) != _episodes(a[1])
-
-
-def test_nonfinite_td3_updates_stop_the_run(tmp_path, monkeypatch):
-    """A NaN in the TD3 program (the other thread) stops the run as the fused chunk's does."""
-    import d2spo.algos.d2spo as d2mod
-    from d2spo.algos.base import params_finite
-    from d2spo.errors import NaNError
-    from d2spo.train import train
-
-    real = d2mod.D2SPOLearner.td3_chunk
-
-    def poisoned(self, work):
-        agent, metrics, _ = real(self, work)
-        agent = agent.replace(critic=jax.tree_util.tree_map(lambda x: x * jnp.nan, agent.critic))
-        return agent, metrics, params_finite(agent)
-
-    monkeypatch.setattr(d2mod.D2SPOLearner, "td3_chunk", poisoned)
-    with pytest.raises(NaNError, match="non-finite parameters"):
-        train(small(), tmp_path / "run")
