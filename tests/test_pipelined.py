@@ -16,7 +16,7 @@ from d2spo.config import TrainConfig
 from d2spo.envs import EnvConfig
 from d2spo.pipelined import Pipelined
 from d2spo.run import build
-from d2spo.train import learner_program, train_seeds
+from d2spo.train import learner_program, train
 
 
 def small(pipeline: bool = True, **kw) -> TrainConfig:
@@ -113,15 +113,14 @@ def _episodes(path):
         return list(csv.reader(f))
 
 
-def test_pipelined_seeds_in_one_group_resume_exactly(tmp_path):
-    cfgs = [small(seed=s) for s in (0, 1)]
-    a = [tmp_path / "a" / f"s{s}" for s in (0, 1)]
-    b = [tmp_path / "b" / f"s{s}" for s in (0, 1)]
-    done = train_seeds(cfgs, a)
-    assert [s["episodes"] for s in done] == [12, 12]
-    assert train_seeds(cfgs, b, stop_after_chunks=3) is None
-    assert 1 < len(_episodes(b[0])) < 13
-    train_seeds(cfgs, b)
-    for x, y in zip(a, b):
-        assert _episodes(x) == _episodes(y)
-    assert _episodes(a[0]) != _episodes(a[1])
+def test_a_pipelined_run_resumes_exactly(tmp_path, warm):
+    """Interrupted after three chunks and resumed, a pipelined run writes the episodes.csv of an
+    uninterrupted one (its checkpoints hold the whole carry: the rollout's and TD3's parts)."""
+    cfg = small()
+    assert train(cfg, tmp_path / "a")["episodes"] == 12
+    assert train(cfg, tmp_path / "b", stop_after_chunks=3) is None
+    assert 1 < len(_episodes(tmp_path / "b")) < 13
+    train(cfg, tmp_path / "b", resume=True)
+    assert _episodes(tmp_path / "a") == _episodes(tmp_path / "b")
+    train(dataclasses.replace(cfg, seed=1), tmp_path / "c")
+    assert _episodes(tmp_path / "a") != _episodes(tmp_path / "c")  # another seed, another run

@@ -82,7 +82,7 @@ class D2SPOConfig:
     synthetic_box_half: tuple[float, float] = (0.15, 0.45)
     """Half-sizes (m) of the cautious start's boxes."""
     pipeline: bool = False
-    """TD3's updates one chunk behind, in a second program beside the rollout (faster, not the paper's order)."""
+    """Experimental: TD3's updates one chunk behind, beside the rollout (faster; collides more)."""
 
     def __post_init__(self) -> None:
         check_fields(self, "d2spo", nullable=("actor_through_safety",), count=("update_every",),
