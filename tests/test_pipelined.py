@@ -56,18 +56,18 @@ def warm():
 
 def test_a_pipelined_chunk_is_its_two_programs_run_one_after_the_other(warm):
     """Threads change nothing: ``Pipelined`` equals td3_batches, then rollout and td3_chunk called in
-    turn; the rollout acts with the actor it was given and leaves it as it was, and shows π_Ω that
-    actor in one more UPDATE(Ω, Θ) first; the TD3 updates, as many per chunk as the fused chunk
-    makes, land in the carry, their metrics in the log."""
+    turn; the rollout acts with the actor it was given and leaves it as it was, with UPDATE(Ω, Θ) as
+    often as the fused chunk; the TD3 updates, as many per chunk as the fused chunk makes, land in
+    the carry, their metrics in the log."""
     learner, chunk, carry = warm
     assert isinstance(chunk, Pipelined)
     work = chunk.batches(carry)
     assert bool(jnp.all(work.ready)) and work.keys.shape == (8, 1, *jax.random.PRNGKey(0).shape)
     rolled, rlog = chunk.rollout(carry)
     assert _same(rolled.agent, carry.agent)
-    # UPDATE(Ω, Θ) after every 4th of the 8 steps, and once before the first: 3 (the fused chunk: 2)
+    # UPDATE(Ω, Θ) after every 4th of the 8 steps, as in the fused chunk: 2
     adam_steps = int(rolled.safety.policy_opt[0].count) - int(carry.safety.policy_opt[0].count)
-    assert adam_steps == 3 * learner.cbf_cfg.updates_per_iter, adam_steps
+    assert adam_steps == 2 * learner.cbf_cfg.updates_per_iter, adam_steps
     agent, metrics, finite = chunk.learn(work)
     assert bool(finite) and not _same(agent, carry.agent)
     assert int(agent.updates) == int(carry.agent.updates) + 8  # one per vectorised step

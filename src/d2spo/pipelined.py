@@ -9,8 +9,7 @@ are too small for it to split over threads: the fused chunk keeps one core busy 
 1. ``td3_batches(carry)``: every minibatch of the chunk's TD3 updates, drawn now from the buffer as
    the previous chunk left it, with copies of the actor, the critics and π_Ω (small, synchronous);
 2. at once, in two threads: ``rollout(carry)`` (Algorithm 1's lines 6-11 and 16-17 with the actor
-   fixed, after one more UPDATE(Ω, Θ) that shows π_Ω that actor) and ``td3_chunk(work)`` (lines
-   12-15, as many updates as the fused chunk makes);
+   fixed) and ``td3_chunk(work)`` (lines 12-15, as many updates as the fused chunk makes);
 3. the carry takes the updated actor and critics; the log takes TD3's metrics.
 
 Every input of both programs is fixed before they start, so a run is as deterministic as the fused

@@ -143,7 +143,6 @@ class TD3Work:
 
 
 _TD3_STREAM = 0x7D3  # td3_batches' keys: fold_in(carry key, this), a stream the rollout's splits never give
-_SAFETY_STREAM = 0x7D4  # the pipelined rollout's first UPDATE(Ω, Θ)
 
 
 # A checkpoint holds the carry as one flat dict (flax msgpack), in the order of the fields the carry
@@ -378,18 +377,15 @@ class D2SPOLearner(TD3Learner):
     # ``train.Pipelined`` runs ``td3_batches``, then ``rollout`` and ``td3_chunk`` side by side in two
     # threads: XLA:CPU runs one program's operations one after another, so a single fused chunk keeps
     # one core busy (bench/concurrency.py); two programs take both. Chunk k's rollout acts with the
-    # actor θ_{k-1} and trains (Ω, Θ) as before, once more at its start; its TD3 updates, as many as in the fused chunk and
+    # actor θ_{k-1} and trains (Ω, Θ) as before; its TD3 updates, as many as in the fused chunk and
     # gated on the step count the same way, are drawn from the buffer as chunk k-1 left it, with π_Ω
     # as it was then. The run is as deterministic as the fused one (every input is fixed before the
     # two start), only the actor that acts lags by one chunk.
     def rollout(self, carry: D2SPOCarry) -> tuple[D2SPOCarry, ChunkLog]:
-        """The chunk without TD3's updates (the actor fixed): lines 6-11 and 16-17, after one more
-        UPDATE(Ω, Θ) that shows π_Ω the actor it will act with. That actor moved by a whole chunk's
-        TD3 updates at once (by one update per step in the fused chunk); without this update π_Ω
-        met it untrained, and ϕ1's training collided in bursts of 10-20 episodes at chunk starts
-        (14, 20, 17 collisions in seeds 0-2's first 1300-2300 episodes, against 2, 6, 4 with it)."""
-        safety, _ = self._safety_update(carry, jax.random.fold_in(carry.td3.key, _SAFETY_STREAM))
-        return self._chunk(carry.replace(safety=safety), learn=False)
+        """The chunk without TD3's updates (the actor fixed): lines 6-11 and 16-17. (Starting it with one
+        more UPDATE(Ω, Θ), to show π_Ω the actor it acts with, was tried and undone: ϕ1 with --fast
+        then did not learn; bench/RESULTS.md, "2026-12-01, evening".)"""
+        return self._chunk(carry, learn=False)
 
     def td3_batches(self, carry: D2SPOCarry) -> TD3Work:
         """The next ``td3_chunk``'s inputs, from ``carry`` before its rollout: copies of the actor and
