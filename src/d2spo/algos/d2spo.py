@@ -374,7 +374,7 @@ class D2SPOLearner(TD3Learner):
         return self._chunk(carry, learn=True)
 
     # -- the pipelined chunk (``pipeline``): TD3's updates one chunk behind, in a second program ----
-    # ``train.Pipelined`` runs ``td3_batches``, then ``rollout`` and ``td3_chunk`` side by side in two
+    # ``pipelined.Pipelined`` runs ``td3_batches``, then ``rollout`` and ``td3_chunk`` side by side in two
     # threads: XLA:CPU runs one program's operations one after another, so a single fused chunk keeps
     # one core busy (bench/concurrency.py); two programs take both. Chunk k's rollout acts with the
     # actor θ_{k-1} and trains (Ω, Θ) as before; its TD3 updates, as many as in the fused chunk and
