@@ -1,5 +1,6 @@
 """D²SPO's pipelined chunk (``--d2spo.pipeline``): the rollout and TD3's updates as two programs
-run side by side, so that a 2-core CPU keeps both cores busy.
+run side by side, so that a 2-core CPU keeps both cores busy. The programs are the learner's
+(``algos.d2spo_pipeline.PipelinedChunks``); this runs them.
 
 XLA:CPU runs the operations of one program one after another, and a D²SPO step's matrix products
 are too small for it to split over threads: the fused chunk keeps one core busy while TD3's update
@@ -18,7 +19,6 @@ one and resumes the same way; only the actor that acts lags one chunk behind.
 
 from __future__ import annotations
 
-import threading
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable
 
@@ -35,8 +35,7 @@ class Pipelined:
         self.batches = program("td3_batches", False)
         self.rollout = program("rollout", donate)
         self.learn = program("td3_chunk", False)
-        self._pool: ThreadPoolExecutor | None = None
-        self._lock = threading.Lock()
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="d2spo-td3")  # its thread starts at the first submit
 
     @property
     def params(self):
@@ -47,15 +46,9 @@ class Pipelined:
         for p in (self.batches, self.rollout, self.learn):
             p.params = value
 
-    def _executor(self) -> ThreadPoolExecutor:
-        with self._lock:
-            if self._pool is None:
-                self._pool = ThreadPoolExecutor(1, thread_name_prefix="d2spo-td3")
-            return self._pool
-
     def __call__(self, carry):
         work = jax.block_until_ready(self.batches(carry))  # read before the rollout takes the buffer
-        future = self._executor().submit(lambda: jax.block_until_ready(self.learn(work)))
+        future = self._pool.submit(lambda: jax.block_until_ready(self.learn(work)))
         try:
             carry, log = jax.block_until_ready(self.rollout(carry))
         finally:
@@ -75,7 +68,7 @@ class _Lowered:
         pipe = self.pipe
         pipe.batches.lower(self.carry).compile()
         work = jax.eval_shape(pipe.batches, self.carry)
-        future = pipe._executor().submit(lambda: pipe.learn.lower(work).compile())
+        future = pipe._pool.submit(lambda: pipe.learn.lower(work).compile())
         try:
             pipe.rollout.lower(self.carry).compile()
         finally:

@@ -141,8 +141,9 @@ class _ParamsArgument:
 
 def learner_program(learner, name: str, vmapped: bool = False, donate: bool = False):
     """The jitted ``learner.<name>`` (``init`` or ``chunk``), vmapped over seeds if asked, donating
-    its argument if asked. A pipelined D²SPO learner's ``chunk`` is ``pipelined.Pipelined``. Learners with ``params_as_argument`` (the generalist) get their env
-    params as an argument (``_ParamsArgument``); the others keep them as constants, as before.
+    its argument if asked; a pipelined D²SPO learner's ``chunk`` is a ``pipelined.Pipelined`` of three.
+    Learners with ``params_as_argument`` (the generalist) get their env params as an argument
+    (``_ParamsArgument``); the others keep them as constants, as before.
     An ``init`` that pre-trains (``learner.long_init``) gets ``_xla.long_running_options()``."""
     if name == "chunk" and getattr(learner, "pipelined", False):  # D²SPO's --d2spo.pipeline: d2spo/pipelined.py
         def pipelined():

@@ -20,7 +20,6 @@ The learner never calls the env's dynamics: f_n is fitted to observed (s, u, s')
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -29,19 +28,18 @@ import jax
 import jax.numpy as jnp
 from flax import serialization, struct
 
-from d2spo import replay
 from d2spo.algos.base import ChunkLog, episode_log, params_finite
+from d2spo.algos.d2spo_pipeline import PipelinedChunks
 from d2spo.algos.offpolicy import explore_and_store
 from d2spo.algos.one_layout import OneLayout
 from d2spo.algos.td3 import (
-    TD3_METRICS,
     TD3Agent,
     TD3Carry,
     TD3Config,
     TD3Learner,
     explore,
     learn_from_buffer,
-    td3_update,
+    no_updates,
 )
 from d2spo.envs import sensors
 from d2spo.envs.sensors import Sensed
@@ -126,25 +124,6 @@ class D2SPOCarry:
         return self.td3.episodes
 
 
-@struct.dataclass
-class TD3Work:
-    """A pipelined chunk's TD3 updates, fixed before its rollout starts (``D2SPOLearner.td3_batches``)."""
-
-    agent: TD3Agent
-    """The actor and critics to update (a copy: the rollout acts with the original)."""
-    safety: SafetyState
-    """π_Ω for the actor loss (a copy)."""
-    batches: Any
-    """Minibatches [chunk_steps, updates_per_step, batch_size, ...] from the buffer before the rollout."""
-    keys: jax.Array
-    """One key per update [chunk_steps, updates_per_step]."""
-    ready: jax.Array
-    """bool [chunk_steps]: whether the fused chunk's step would update (``learning_starts``)."""
-
-
-_TD3_STREAM = 0x7D3  # td3_batches' keys: fold_in(carry key, this), a stream the rollout's splits never give
-
-
 # A checkpoint holds the carry as one flat dict (flax msgpack), in the order of the fields the carry
 # had before it held a TD3Carry, so that checkpoints stay byte for byte what they were and still load.
 _STATE_ORDER = ("key", "env_state", "obs", "agent", "buffer", "safety", "data", "steps", "episodes")
@@ -167,8 +146,9 @@ def _carry_from_state_dict(c: D2SPOCarry, state: dict) -> D2SPOCarry:
 serialization.register_serialization_state(D2SPOCarry, _carry_state_dict, _carry_from_state_dict, override=True)
 
 
-class D2SPOLearner(TD3Learner):
-    """``--algo d2spo`` (and ``--algo sl``: the same without the progress reward)."""
+class D2SPOLearner(PipelinedChunks, TD3Learner):
+    """``--algo d2spo`` (and ``--algo sl``: the same without the progress reward). ``PipelinedChunks``
+    gives the ``rollout``, ``td3_batches`` and ``td3_chunk`` of ``--d2spo.pipeline``."""
 
     def __init__(self, env, params, cfg: TD3Config, cbf: CBFConfig, anneal: AnnealConfig, num_envs: int,
                  chunk_steps: int, total_episodes: int, d2spo: D2SPOConfig | None = None, layouts=OneLayout):
@@ -307,7 +287,8 @@ class D2SPOLearner(TD3Learner):
     def _step(self, c: D2SPOCarry, learn: bool = True):
         """One vectorised step without UPDATE(Ω, Θ): (carry, log, the step's key for the update). The
         log holds the update's metrics as NaN (their shapes traced once per learner). ``learn``
-        False: no TD3 update (lines 12-15 run in ``td3_chunk``, one chunk behind: ``rollout``)."""
+        False: no TD3 update (lines 12-15 run in ``td3_chunk``, one chunk behind: ``rollout``,
+        d2spo/pipelined.py)."""
         def act(k, random_phase):
             u_rl = explore(self.nets, c.agent, c.obs, k["act"], random_phase,
                            self.cfg.noise_at(c.td3.episodes, self.total_episodes), self.cfg.exploration_noise_space)
@@ -325,7 +306,7 @@ class D2SPOLearner(TD3Learner):
                                                step.carry.steps, self.num_envs, self.cfg, self._execute_fn(c.safety),
                                                self.d2.proposal_weight)
         else:
-            agent, metrics = c.agent, {k: jnp.float32(jnp.nan) for k in TD3_METRICS}
+            agent, metrics = c.agent, no_updates()
         c = D2SPOCarry(step.carry.replace(agent=agent), c.safety, data)
         if self._safety_metrics is None:
             self._safety_metrics = jax.eval_shape(self._safety_update, c, step.keys["safety"])[1]
@@ -372,53 +353,6 @@ class D2SPOLearner(TD3Learner):
     def chunk(self, carry: D2SPOCarry) -> tuple[D2SPOCarry, ChunkLog]:
         """``chunk_steps`` vectorised steps of Algorithm 1, lines 6-17, as one program."""
         return self._chunk(carry, learn=True)
-
-    # -- the pipelined chunk (``pipeline``): TD3's updates one chunk behind, in a second program ----
-    # ``pipelined.Pipelined`` runs ``td3_batches``, then ``rollout`` and ``td3_chunk`` side by side in two
-    # threads: XLA:CPU runs one program's operations one after another, so a single fused chunk keeps
-    # one core busy (bench/concurrency.py); two programs take both. Chunk k's rollout acts with the
-    # actor θ_{k-1} and trains (Ω, Θ) as before; its TD3 updates, as many as in the fused chunk and
-    # gated on the step count the same way, are drawn from the buffer as chunk k-1 left it, with π_Ω
-    # as it was then. The run is as deterministic as the fused one (every input is fixed before the
-    # two start), only the actor that acts lags by one chunk.
-    def rollout(self, carry: D2SPOCarry) -> tuple[D2SPOCarry, ChunkLog]:
-        """The chunk without TD3's updates (the actor fixed): lines 6-11 and 16-17. (Starting it with one
-        more UPDATE(Ω, Θ), to show π_Ω the actor it acts with, was tried and undone: ϕ1 with --fast
-        then did not learn; bench/RESULTS.md, "2026-12-01, evening".)"""
-        return self._chunk(carry, learn=False)
-
-    def td3_batches(self, carry: D2SPOCarry) -> TD3Work:
-        """The next ``td3_chunk``'s inputs, from ``carry`` before its rollout: copies of the actor and
-        π_Ω, and every minibatch drawn from the buffer now (the rollout then owns the carry)."""
-        n, u = self.chunk_steps, self.cfg.updates_per_step
-        keys = jax.random.split(jax.random.fold_in(carry.td3.key, _TD3_STREAM), (n, u, 2))
-        batches = jax.vmap(jax.vmap(lambda k: replay.sample(carry.buffer, k, self.cfg.batch_size)))(keys[:, :, 0])
-        steps = carry.steps + 1 + jnp.arange(n)  # the step count each slot's fused update would have seen
-        ready = (steps * self.num_envs >= self.cfg.learning_starts) & (carry.buffer.size >= self.cfg.batch_size)
-        copy = functools.partial(jax.tree_util.tree_map, jnp.copy)
-        return TD3Work(copy(carry.agent), copy(carry.safety), batches, keys[:, :, 1], ready)
-
-    def td3_chunk(self, work: TD3Work) -> tuple[TD3Agent, dict, jax.Array]:
-        """Lines 12-15 for a whole chunk: (actor and critics, per-step metrics, whether all are finite)."""
-        execute_fn = self._execute_fn(work.safety)
-
-        def slot(agent, x):
-            batches, keys, ready = x
-
-            def learn(agent):
-                def one(agent, bk):
-                    return td3_update(self.nets, agent, bk[0], bk[1], self.cfg, execute_fn, self.d2.proposal_weight)
-
-                agent, m = jax.lax.scan(one, agent, (batches, keys))
-                return agent, {k: jnp.nanmean(m[k]) for k in TD3_METRICS}
-
-            def wait(agent):
-                return agent, {k: jnp.float32(jnp.nan) for k in TD3_METRICS}
-
-            return jax.lax.cond(ready, learn, wait, agent)
-
-        agent, metrics = jax.lax.scan(slot, work.agent, (work.batches, work.keys, work.ready))
-        return agent, metrics, params_finite(agent)
 
     def _chunk(self, carry: D2SPOCarry, learn: bool) -> tuple[D2SPOCarry, ChunkLog]:
         every = self.d2.update_every

@@ -260,6 +260,27 @@ TD3_METRICS = ("losses/qf", "values/q", "losses/actor")
 """The metrics of ``td3_update`` (NaN for a step without updates)."""
 
 
+def no_updates() -> dict:
+    """The metrics of a vectorised step that made no TD3 update: NaN each."""
+    return {k: jnp.float32(jnp.nan) for k in TD3_METRICS}
+
+
+def ready_to_learn(steps, num_envs: int, cfg: TD3Config):
+    """Whether a vectorised step's updates run: once ``learning_starts`` transitions are stored by
+    ``steps`` vectorised steps of ``num_envs`` envs."""
+    return steps * num_envs >= cfg.learning_starts
+
+
+def updates_on(nets, agent, batches, keys, cfg: TD3Config, execute_fn=None, proposal_weight: float = 0.0):
+    """TD3 updates on the minibatches ``batches`` [U, ...], one key of ``keys`` [U] each: (agent, each
+    metric's NaN-mean over the U)."""
+    def one(agent, bk):
+        return td3_update(nets, agent, bk[0], bk[1], cfg, execute_fn, proposal_weight)
+
+    agent, m = jax.lax.scan(one, agent, (batches, keys))
+    return agent, {k: jnp.nanmean(v) for k, v in m.items()}
+
+
 def learn_from_buffer(nets, agent, buffer, key, steps, num_envs, cfg: TD3Config, execute_fn=None,
                       proposal_weight: float = 0.0):
     """``updates_per_step`` TD3 updates once ``learning_starts`` transitions are stored."""
@@ -273,11 +294,7 @@ def learn_from_buffer(nets, agent, buffer, key, steps, num_envs, cfg: TD3Config,
         agent, m = jax.lax.scan(one, agent, jax.random.split(key, cfg.updates_per_step))
         return agent, {k: jnp.nanmean(v) for k, v in m.items()}
 
-    def wait(agent):
-        return agent, {k: jnp.float32(jnp.nan) for k in TD3_METRICS}
-
-    ready = steps * num_envs >= cfg.learning_starts
-    return jax.lax.cond(ready, learn, wait, agent)
+    return jax.lax.cond(ready_to_learn(steps, num_envs, cfg), learn, lambda agent: (agent, no_updates()), agent)
 
 
 class TD3Learner:
