@@ -38,7 +38,8 @@ import d2spo  # noqa: E402, F401  (sets XLA flags before the first computation s
 from d2spo import compile_cache, memo  # noqa: E402
 
 _CACHE = Path(os.environ.get("D2SPO_TEST_JAX_CACHE", Path(__file__).resolve().parent.parent / ".pytest_cache" / "jax"))
-jax.config.update("jax_compilation_cache_dir", str(_CACHE))
+# its folder for this process's CPUs, as the commands' (d2spo/compile_cache.py, entries_dir)
+jax.config.update("jax_compilation_cache_dir", str(compile_cache.entries_dir(_CACHE)))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 compile_cache.portable_keys()  # the keys the commands use, so that child commands share the entries
 # `d2spo` commands the tests start in child processes (tests/test_reproduce.py's Ray backend, the

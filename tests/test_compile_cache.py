@@ -105,6 +105,46 @@ def test_a_cache_copied_or_moved_elsewhere_still_hits(tmp_path):
     assert [p.name for p in _entries(tmp_path / "b")] == names  # all hits: nothing compiled, nothing new
 
 
+def test_entries_are_kept_per_number_of_usable_cpus(monkeypatch, tmp_path):
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0})
+    assert compile_cache.entries_dir(tmp_path) == tmp_path / "cpus-1"
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1, 5})
+    assert compile_cache.entries_dir(tmp_path) == tmp_path / "cpus-3"
+
+
+# Prints the folder the cache uses, then a hash of what XLA compiled for a large elementwise op.
+_PARTITIONS = r"""
+import hashlib, jax, jax.numpy as jnp
+from d2spo import compile_cache
+print(compile_cache.enable())
+text = jax.jit(lambda x: jnp.tanh(x) * 2.0).lower(jnp.ones((4096, 256))).compile().as_text()
+print("outer_dimension_partitions" in text, hashlib.sha256(text.encode()).hexdigest())
+"""
+
+
+def test_a_process_on_fewer_cpus_compiles_another_program_and_uses_its_own_entries(tmp_path):
+    """XLA:CPU splits large operations into one part per usable CPU, and JAX's key does not hold
+    that number: a process confined to one CPU (``taskset -c 0``) compiles another program, so its
+    entries go to another folder instead of serving processes that may use every CPU."""
+    cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
+    if len(cpus) < 2:
+        pytest.skip("needs a process that may run on two CPUs or more")
+    env = {k: v for k, v in os.environ.items() if not k.startswith("JAX_")}
+    env[compile_cache.ENV_VAR] = str(tmp_path)
+
+    def run(one_cpu: bool) -> list[str]:
+        pin = (lambda: os.sched_setaffinity(0, {cpus[0]})) if one_cpu else None
+        done = subprocess.run([sys.executable, "-c", _PARTITIONS], env=env, capture_output=True, text=True,
+                              timeout=120, preexec_fn=pin)
+        assert done.returncode == 0, done.stderr
+        return done.stdout.split()
+
+    one, every = run(True), run(False)
+    assert one[0] == str(tmp_path / "cpus-1") and every[0] == str(tmp_path / f"cpus-{len(cpus)}")
+    assert one[1] == "False" and every[1] == "True"  # the premise: XLA partitions for the CPUs it sees
+    assert one[2] != every[2]
+
+
 def test_the_cache_can_be_turned_off(tmp_path):
     off = _run("off")
     assert off.returncode == 0, off.stderr

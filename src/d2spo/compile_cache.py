@@ -20,6 +20,13 @@ JAX never writes over an existing entry, so it would otherwise be a miss and a w
 later command); a cache directory that cannot be made turns the cache off with one warning. The
 keys hold no path of the cache's on a CPU-only install (``portable_keys``): a cache moved or copied
 elsewhere still serves every program.
+
+Entries live in a folder of the cache per number of CPUs the process may run on (``cpus-2``, ...:
+``entries_dir``). XLA:CPU splits a program's large operations into as many parallel parts as it
+sees CPUs (``outer_dimension_partitions``), which can change results in the last bits, and JAX's key
+does not hold that number: without the folders a program compiled under ``taskset -c 0`` served
+later 2-CPU runs of the same seed, whose course then depended on what the cache had seen
+(tests/test_compile_cache.py; bench/RESULTS.md, "2026-12-01, night").
 """
 
 from __future__ import annotations
@@ -37,7 +44,7 @@ ENV_VAR = "D2SPO_COMPILE_CACHE"
 """The environment variable that moves (a directory) or disables (``off``) the cache."""
 OFF = frozenset({"off", "0", "false", "no", "none"})
 MAX_BYTES = 4 * 1024**3
-"""Size cap of the cache directory: the least recently used entries are deleted beyond it."""
+"""Size cap of each ``cpus-N`` folder of the cache: the least recently used entries are deleted beyond it."""
 MIN_COMPILE_SECONDS = 0.5
 """Programs that compile faster than this are not worth a disk entry."""
 
@@ -52,15 +59,29 @@ def cache_dir(environ: dict | None = None) -> Path | None:
     return Path(base) / "d2spo" / "jax"
 
 
+def usable_cpus() -> int:
+    """The number of CPUs this process may run on (its affinity mask): what XLA:CPU compiles for."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # not Linux
+        return os.cpu_count() or 1
+
+
+def entries_dir(root: Path) -> Path:
+    """The folder of ``root`` that holds the entries compiled for this process's CPUs."""
+    return root / f"cpus-{usable_cpus()}"
+
+
 def enable(environ: dict | None = None) -> Path | None:
-    """Point JAX's persistent compilation cache at ``cache_dir()``; returns the directory in use
+    """Point JAX's persistent compilation cache at ``entries_dir(cache_dir())``; returns that folder
     (None: off). A directory JAX was already given is kept. Call before the first compilation."""
     current = jax.config.jax_compilation_cache_dir
     if current:
         return Path(current)
-    path = cache_dir(environ)
-    if path is None:
+    root = cache_dir(environ)
+    if root is None:
         return None
+    path = entries_dir(root)
     try:
         path.mkdir(parents=True, exist_ok=True)
         if not os.access(path, os.W_OK | os.X_OK):
