@@ -2,7 +2,7 @@
 
     python bench/buchi_exactness.py [--formulas 60] [--words 200] [--seed 0]
 
-The evaluator is the tests' (``tests/test_ltl_buchi.py``: ``holds``, the fixpoints of LTL on a
+The evaluator is the tests' (``tests/_ltl_reference.py``: ``holds``, the fixpoints of LTL on a
 lasso u·v^ω, written without any automaton). Checked: every hand-written formula of those tests,
 the Büchi suite (``ltl.tasks.BUCHI_SUITE``) and ``--formulas`` random formulas of depth <= 3 over
 p, q, r (a formula without a DBA must be refused with a witness the evaluator confirms), each on
@@ -18,7 +18,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 
-from test_ltl_buchi import BINARY, NAMED, STATES, UNARY, encode, holds, refutes_dba  # noqa: E402
+from _ltl_reference import BINARY, UNARY, encode, holds, refutes_dba  # noqa: E402
+from test_ltl_buchi import NAMED, STATES  # noqa: E402
 
 from d2spo.ltl import NoDeterministicBuchi, to_dba  # noqa: E402
 from d2spo.ltl.formula import FALSE, TRUE, Formula, Prop  # noqa: E402

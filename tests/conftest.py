@@ -71,6 +71,7 @@ _SHARED_PROGRAMS = {
     "test_fault_battery.py": "small-reproduce",
     "test_certify_run.py": "tiny-d2spo",  # _tiny.tiny_cfg
     "test_export.py": "tiny-d2spo",
+    "test_export_cli.py": "tiny-d2spo",  # the session fixture tiny_export, below
 }
 
 
@@ -102,3 +103,13 @@ def run_reference(tmp_path_factory):
     from _run_faults import reference_run
 
     return reference_run(tmp_path_factory)
+
+
+@pytest.fixture(scope="session")
+def tiny_export(tmp_path_factory):
+    """The tiny ϕ1 run on ``paper`` and its export that tests/test_export.py and test_export_cli.py
+    share (tests/_export_runs.py): one per worker, as the two files are one xdist group."""
+    from _export_runs import _tiny_run
+    from _tiny import tiny_cfg
+
+    return _tiny_run(tmp_path_factory.mktemp("export"), tiny_cfg())

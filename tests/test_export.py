@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import runpy
 import subprocess
 import sys
 from pathlib import Path
@@ -16,14 +15,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _export_runs import OFFICE, _has, _tiny_run
 from _tiny import tiny_cfg, write_run
 
-from d2spo import cli
 from d2spo.algos import make_learner
 from d2spo.config import TrainConfig
 from d2spo.deploy import Policy
 from d2spo.envs import EnvConfig, dynamics, sensors
-from d2spo.errors import ArtefactError
 from d2spo.export import ExportConfig, export_run, write_export
 from d2spo.ltl.labelling import next_state
 from d2spo.run import build
@@ -33,47 +31,10 @@ from d2spo.train import learner_program
 ROOT = Path(__file__).resolve().parent.parent
 
 
-
-
-
-
-def _has(module: str) -> bool:
-    try:
-        __import__(module)
-    except ImportError:
-        return False
-    return True
-
-
-OFFICE = {"name": "office", "arena": [5.0, 4.0], "start": [0.6, 0.6, 0.0],
-          "obstacles": [{"center": [2.5, 2.0], "radius": 0.4}, {"center": [2.5, 0.5], "half_extents": [0.25, 0.25]},
-                        {"center": [1.7, 2.6], "radius": 0.3}],
-          "areas": [{"name": "desk-1", "label": "desk", "center": [4.2, 0.9], "radius": 0.35},
-                    {"name": "desk-2", "label": "desk", "center": [0.8, 3.3], "radius": 0.35},
-                    {"name": "kitchen", "center": [4.2, 3.2], "radius": 0.35}]}
-"""A layout with disk obstacles, a non-square arena and two areas sharing a label (docs/layouts.md)."""
-
-
-def _tiny_run(root: Path, cfg: TrainConfig):
-    """(run dir, export dir, cfg, learner, policy): an untrained tiny D²SPO run whose h is set by hand to
-    tanh(4 min(x)/H - 1), a barrier that crosses zero 0.3 m from obstacles (so the filter acts at part
-    of the arena), and its export (with ONNX where the onnx package is here)."""
-    _, _, learner = build(cfg)
-    carry = learner_program(learner, "init")(jax.random.PRNGKey(0))
-    p = jax.tree_util.tree_map(np.zeros_like, carry.safety.cbf)
-    p["params"]["Dense_0"]["kernel"][-1, 0] = 4.0  # the input's last entry is min(x)/H
-    p["params"]["Dense_0"]["bias"][0] = -1.0
-    p["params"]["Dense_1"]["kernel"][0, 0] = 1.0
-    carry = carry.replace(safety=carry.safety.replace(cbf=jax.tree_util.tree_map(jnp.asarray, p)))
-    write_run(root / "run", cfg, carry)
-    export_run(root / "run", root / "out", ExportConfig(onnx=_has("onnx")))
-    return root / "run", root / "out", cfg, learner, learner.policy(carry)
-
-
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
-    """``_tiny_run`` of ϕ1 on ``paper``."""
-    return _tiny_run(tmp_path_factory.mktemp("export"), tiny_cfg())
+def tiny(tiny_export):
+    """``_tiny_run`` of ϕ1 on ``paper``: tests/conftest.py's ``tiny_export``, built once per worker."""
+    return tiny_export
 
 
 @pytest.fixture(scope="module", params=["paper", "office"])
@@ -284,154 +245,3 @@ def test_default_sized_d2spo_policy_exports_under_1_mb(tmp_path):
     assert [layer["kernel"] for layer in m["networks"]["actor"]["layers"]] == ["actor.0.kernel", "actor.1.kernel",
                                                                                "actor.2.kernel"]
     assert np.load(tmp_path / "out" / "weights.npz")["actor.1.kernel"].shape == (128, 128)
-
-
-def test_the_example_drives_the_export_from_a_gymnasium_loop(tiny, capsys, monkeypatch):
-    monkeypatch.setattr(sys, "argv", ["deploy_gym_loop.py", str(tiny[1]), "--episodes", "2", "--filter", "on"])
-    runpy.run_path(str(ROOT / "examples" / "deploy_gym_loop.py"), run_name="__main__")
-    lines = capsys.readouterr().out.splitlines()
-    assert len(lines) == 3 and not any("differed" in ln for ln in lines)  # the tracker kept the env's state
-    assert json.loads(lines[-1])["episodes"] == 2 and json.loads(lines[-1])["runtime_filter"] == "on"
-
-
-def test_a_new_export_removes_the_files_only_the_one_it_replaces_had(tiny, tmp_path):
-    """An earlier export with --onnx left policy.onnx & co.; exporting again without --onnx must not
-    leave them beside the new manifest, where a robot stack reading policy.onnx would run the old run."""
-    import shutil
-
-    out = tmp_path / "again"
-    shutil.copytree(tiny[1], out)
-    manifest = json.loads((out / "manifest.json").read_text())
-    if not manifest["onnx"]:  # where the onnx package is missing, as an export with --onnx lists them
-        manifest["onnx"] = {"policy": {"file": "policy.onnx", "sha256": "0"}, "cbf": {"file": "cbf.onnx", "sha256": "0"}}
-        (out / "manifest.json").write_text(json.dumps(manifest))
-        for name in ("policy.onnx", "cbf.onnx"):
-            (out / name).write_bytes(b"old")
-    assert any(f.suffix == ".onnx" for f in out.iterdir())
-    (out / "notes.txt").write_text("mine")  # not listed by the export: left alone
-    export_run(tiny[0], out, ExportConfig(onnx=False))
-    assert sorted(f.name for f in out.iterdir()) == ["manifest.json", "notes.txt", "weights.npz"]
-
-
-def test_the_example_refuses_a_path_that_is_not_a_policy_in_one_line(tiny, tmp_path, capsys, monkeypatch):
-    for path in (tmp_path / "nope", tiny[1] / "manifest.json"):
-        monkeypatch.setattr(sys, "argv", ["deploy_gym_loop.py", str(path)])
-        with pytest.raises(SystemExit) as e:
-            runpy.run_path(str(ROOT / "examples" / "deploy_gym_loop.py"), run_name="__main__")
-        err = capsys.readouterr().err.strip().splitlines()
-        assert e.value.code == 2 and len(err) == 1 and "error:" in err[0], err
-
-
-def test_an_export_given_where_a_run_is_asked_for_is_named_as_an_export(tiny, capsys):
-    for command in (["eval", str(tiny[1])], ["export", str(tiny[1]), "--out", str(tiny[1].parent / "x")]):
-        assert cli.main(command) == 2
-        err = capsys.readouterr().err.strip().splitlines()
-        assert len(err) == 1 and "is an exported policy (`d2spo export`), not a run directory" in err[0], err
-
-
-def _one_error_line(capsys, args) -> str:
-    assert cli.main(args) == 2
-    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
-    assert len(err) == 1 and err[0].startswith("d2spo: error: "), err
-    return err[0]
-
-
-def test_export_command_and_bad_input(tiny, tmp_path, capsys):
-    run = tiny[0]
-    assert cli.main(["export", str(run), "--out", str(tmp_path / "cli"), "--runtime-filter", "True",
-                     "--filter-iters", "5"]) == 0
-    assert "runtime filter on by default" in capsys.readouterr().out
-    assert Policy.load(tmp_path / "cli").filter_on and Policy.load(tmp_path / "cli").runtime_filter.iters == 5
-    assert cli.main(["export", str(run), "--out", str(tmp_path / "cli")]) == 0  # an earlier export is replaced
-    assert not Policy.load(tmp_path / "cli").filter_on
-    assert "no such run directory" in _one_error_line(capsys, ["export", str(tmp_path / "nothing"), "--out",
-                                                               str(tmp_path / "o")])
-    write_run(tmp_path / "nockpt", tiny_cfg())
-    assert "no checkpoint" in _one_error_line(capsys, ["export", str(tmp_path / "nockpt"), "--out", str(tmp_path / "o")])
-    (tmp_path / "file").write_text("x")
-    assert "exists and is not a directory" in _one_error_line(capsys, ["export", str(run), "--out",
-                                                                       str(tmp_path / "file")])
-    assert "holds no exported policy" in _one_error_line(capsys, ["export", str(run), "--out", str(run)])
-    # a filter of no iterations would return the action as it is: refused, as eval and training refuse it
-    assert "filter_iters: must be a positive integer, got 0" in _one_error_line(
-        capsys, ["export", str(run), "--out", str(tmp_path / "o"), "--filter-iters", "0"])
-    write_run(tmp_path / "ppo", tiny_cfg("ppo-lag"))
-    assert "ppo-lag is not exported" in _one_error_line(capsys, ["export", str(tmp_path / "ppo"), "--out",
-                                                                 str(tmp_path / "o")])
-    write_run(tmp_path / "td3", tiny_cfg("td3"))
-    assert "only D²SPO has a runtime filter" in _one_error_line(capsys, ["export", str(tmp_path / "td3"), "--out",
-                                                                         str(tmp_path / "o"), "--filter-iters", "2"])
-    assert not (tmp_path / "o").exists()
-
-
-def test_a_damaged_or_foreign_export_is_refused(tiny, tmp_path):
-    with pytest.raises(ArtefactError, match="is a run directory, not an export; `d2spo export"):
-        Policy.load(tiny[0])
-    with pytest.raises(ArtefactError, match="no such directory"):
-        Policy.load(tmp_path / "nope")
-    with pytest.raises(ArtefactError, match=r"is a file; give the directory `d2spo export` wrote \("):
-        Policy.load(tiny[1] / "manifest.json")
-    (tmp_path / "empty").mkdir()
-    with pytest.raises(ArtefactError, match="no manifest.json"):
-        Policy.load(tmp_path / "empty")
-    import shutil
-
-    copy = tmp_path / "copy"
-    shutil.copytree(tiny[1], copy)
-    weights = copy / "weights.npz"
-    weights.write_bytes(weights.read_bytes()[:-10])
-    with pytest.raises(ArtefactError, match="damaged"):
-        Policy.load(copy)
-    manifest = json.loads((tiny[1] / "manifest.json").read_text())
-    (copy / "manifest.json").write_text(json.dumps({**manifest, "format_version": 99}))
-    with pytest.raises(ArtefactError, match="format version 99"):
-        Policy.load(copy)
-    shutil.copy(tiny[1] / "weights.npz", weights)
-    (copy / "manifest.json").write_text(json.dumps({k: v for k, v in manifest.items() if k != "automaton"}))
-    with pytest.raises(ArtefactError, match="damaged .KeyError"):
-        Policy.load(copy)
-
-
-@pytest.mark.parametrize("call, match", [
-    (lambda p, r, pose: p.act(r, (0.6, 0.6, float("nan")), 0), r"pose must be .*entries \[2\] are not finite"),
-    (lambda p, r, pose: p.act(r, (0.6, float("inf"), 0.0), 0), r"pose must be .*not finite"),
-    (lambda p, r, pose: p.act(r, (0.6, 0.6), 0), "pose must be .*got 2 values"),
-    (lambda p, r, pose: p.act(r, (50.0, 0.6, 0.0), 0), "outside the arena.*layout's frame, in metres"),
-    (lambda p, r, pose: p.act(r[:3], pose, 0), "ranges must be 16 lidar ranges.*got 3 values"),
-    (lambda p, r, pose: p.act(r.reshape(2, 8), pose, 0), "ranges must be 16 lidar ranges"),
-    (lambda p, r, pose: p.act(["1.0"] * 16, pose, 0), "ranges must be 16 lidar ranges"),
-    (lambda p, r, pose: p.act(None, pose, 0), "ranges must be 16 lidar ranges"),
-    (lambda p, r, pose: p.act(np.where(np.arange(16) == 3, -0.5, r), pose, 0), r"lidar ranges \[3\] are negative"),
-    (lambda p, r, pose: p.act(r, pose, 1.5), "q must be an integer automaton state"),
-    (lambda p, r, pose: p.act(r, pose, True), "q must be an integer automaton state"),
-    (lambda p, r, pose: p.act(r, pose, None), "q must be an integer automaton state"),
-    (lambda p, r, pose: p.act(r, pose, 0, filter="yes"), "filter must be True, False or None"),
-    (lambda p, r, pose: p.act_observation(np.full(p.observation_size, np.nan)), "obs must be .*not finite"),
-    (lambda p, r, pose: p.act_observation(np.zeros(10)), "obs must be an observation of .*got 10 values"),
-    (lambda p, r, pose: p.command([float("nan"), 0.0]), "action must be .*not finite"),
-    (lambda p, r, pose: p.command(0.5), "action must be .*got 1 value$"),
-    (lambda p, r, pose: p.filter(pose, [float("nan"), 0.0]), "u0 must be .*not finite"),
-    (lambda p, r, pose: p.filter(pose, [0.1]), "u0 must be .*got 1 value"),
-    (lambda p, r, pose: p.scan((float("nan"), 0.6, 0.0)), "pose must be"),
-    (lambda p, r, pose: p.task_tracker().update(0.6, 0.6), "update before reset"),
-    (lambda p, r, pose: p.task_tracker().reset(float("nan"), 0.6), "x must be a finite number"),
-    (lambda p, r, pose: p.task_tracker().reset(0.6, None), "y must be a finite number"),
-])
-def test_every_runtime_call_refuses_malformed_input_in_one_value_error(tiny, call, match):
-    """A robot's driver may hand the runtime a NaN pose, a scan of the wrong size or a float state:
-    each is one ValueError naming the argument, never a NaN action (the first case returned
-    [nan, nan] before) nor numpy's own message."""
-    policy = Policy.load(tiny[1])
-    pose = (0.6, 0.6, 0.0)
-    with pytest.raises(ValueError, match=match):
-        call(policy, policy.scan(pose), pose)
-
-
-def test_a_policy_without_a_filter_says_so_when_asked_to_filter(tiny):
-    """``policy.filter`` of an export without one (not D²SPO) is a ValueError, not 'NoneType' is not callable."""
-    from d2spo.deploy.policy import Policy as P
-
-    policy = P.load(tiny[1])
-    policy.runtime_filter = None
-    with pytest.raises(ValueError, match="no runtime filter"):
-        policy.filter((0.6, 0.6, 0.0), [0.1, 0.0])

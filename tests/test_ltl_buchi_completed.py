@@ -1,12 +1,12 @@
 """Where an episode of a Büchi task may end (``BuchiAutomaton.completed_states``: only a "never"
-part is left), checked both ways against tests/test_ltl_buchi.py's independent lasso evaluator."""
+part is left), checked both ways against tests/_ltl_reference.py's independent lasso evaluator."""
 
 from __future__ import annotations
 
 import pytest
+from _ltl_reference import formulas, holds, lassos
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from test_ltl_buchi import formulas, holds, lassos
 
 from d2spo.ltl import BuchiAutomaton, NoDeterministicBuchi, to_dba
 from d2spo.ltl.formula import Formula
