@@ -267,3 +267,17 @@ def test_the_report_names_the_cpu_model(tmp_path):
                     "model name\t: AMD EPYC\n\nprocessor\t: 1\nmodel name\t: another\n")
     assert cpu_model(str(info)) == "AMD EPYC (family 25, model 17)"
     assert cpu_model(str(tmp_path / "missing")) != ""
+
+
+def test_the_report_names_the_cpus_the_process_may_use(monkeypatch):
+    """XLA compiles for the CPUs the process may run on (d2spo/compile_cache.py): under ``taskset -c
+    0`` on a 2-core machine the line says 1 of 2."""
+    import os
+
+    from d2spo.report import machine
+
+    monkeypatch.setattr(os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1})
+    assert ", 2 CPU cores, jax " in machine()
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0})
+    assert ", 1 of 2 CPU cores usable, jax " in machine()

@@ -47,8 +47,13 @@ def cpu_model(cpuinfo: str = "/proc/cpuinfo") -> str:
 
 
 def machine() -> str:
+    """The machine in one line: the CPU type, the CPUs this process may use (XLA compiles for those:
+    d2spo/compile_cache.py), jax and its device, Python."""
+    from d2spo.compile_cache import usable_cpus
 
-    return (f"{platform.machine()}, {cpu_model()}, {os.cpu_count()} CPU cores, jax {jax.__version__} on "
+    usable, total = usable_cpus(), os.cpu_count()
+    cores = f"{total} CPU cores" if usable == total else f"{usable} of {total} CPU cores usable"
+    return (f"{platform.machine()}, {cpu_model()}, {cores}, jax {jax.__version__} on "
             f"{jax.devices()[0].platform}, Python {platform.python_version()}")
 
 
