@@ -131,6 +131,7 @@ def test_a_process_on_fewer_cpus_compiles_another_program_and_uses_its_own_entri
         pytest.skip("needs a process that may run on two CPUs or more")
     env = {k: v for k, v in os.environ.items() if not k.startswith("JAX_")}
     env[compile_cache.ENV_VAR] = str(tmp_path)
+    env["JAX_PLATFORMS"] = "cpu"  # XLA:CPU's partitioning, also where a GPU is installed
 
     def run(one_cpu: bool) -> list[str]:
         pin = (lambda: os.sched_setaffinity(0, {cpus[0]})) if one_cpu else None
