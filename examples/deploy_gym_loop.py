@@ -27,15 +27,17 @@ from d2spo.deploy import Policy
 from d2spo.errors import UserError
 
 
-def exported(path: Path) -> Path:
-    """An export directory: ``path`` itself, or for a run directory its export into a temporary one."""
+def load_policy(path: Path) -> Policy:
+    """The policy of an export directory, or of a run directory exported into a temporary directory
+    that is removed once the policy is loaded (it reads its weights into memory)."""
     if (path / "manifest.json").is_file():
-        return path
+        return Policy.load(path)
     from d2spo.export import export_run  # a run directory: export it first (this needs JAX; a robot does not)
 
-    out = Path(tempfile.mkdtemp(prefix="d2spo-export-")) / path.name
-    export_run(path, out)
-    return out
+    with tempfile.TemporaryDirectory(prefix="d2spo-export-") as tmp:
+        out = Path(tmp) / path.name
+        export_run(path, out)
+        return Policy.load(out)
 
 
 def main() -> None:
@@ -49,7 +51,7 @@ def main() -> None:
 
     # ROS 2: in the node's __init__: load the policy once and make the tracker of the task's state.
     try:
-        policy = Policy.load(exported(args.path))
+        policy = load_policy(args.path)
     except UserError as e:  # not an export nor a run, damaged, ...: one line, as the d2spo commands say it
         parser.exit(2, f"{parser.prog}: error: {e}\n")
     task = policy.task_tracker()

@@ -26,12 +26,27 @@ def tiny(tiny_export):
     return tiny_export
 
 
-def test_the_example_drives_the_export_from_a_gymnasium_loop(tiny, capsys, monkeypatch):
-    monkeypatch.setattr(sys, "argv", ["deploy_gym_loop.py", str(tiny[1]), "--episodes", "2", "--filter", "on"])
-    runpy.run_path(str(ROOT / "examples" / "deploy_gym_loop.py"), run_name="__main__")
-    lines = capsys.readouterr().out.splitlines()
-    assert len(lines) == 3 and not any("differed" in ln for ln in lines)  # the tracker kept the env's state
-    assert json.loads(lines[-1])["episodes"] == 2 and json.loads(lines[-1])["runtime_filter"] == "on"
+def _temporary_dirs_here(monkeypatch, tmp_path) -> Path:
+    """Point Python's temporary files at a fresh folder of ``tmp_path`` and return it."""
+    import tempfile
+
+    temp = tmp_path / "temp"
+    temp.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(temp))
+    return temp
+
+
+def test_the_example_drives_the_export_from_a_gymnasium_loop(tiny, capsys, monkeypatch, tmp_path):
+    """From an export, and from a run directory (exported into a temporary directory the example
+    removes once the policy is loaded: one was left in /tmp per run before)."""
+    temp = _temporary_dirs_here(monkeypatch, tmp_path)
+    for path in (tiny[1], tiny[0]):
+        monkeypatch.setattr(sys, "argv", ["deploy_gym_loop.py", str(path), "--episodes", "2", "--filter", "on"])
+        runpy.run_path(str(ROOT / "examples" / "deploy_gym_loop.py"), run_name="__main__")
+        lines = capsys.readouterr().out.splitlines()
+        assert len(lines) == 3 and not any("differed" in ln for ln in lines)  # the tracker kept the env's state
+        assert json.loads(lines[-1])["episodes"] == 2 and json.loads(lines[-1])["runtime_filter"] == "on"
+    assert list(temp.iterdir()) == []
 
 
 def test_a_new_export_removes_the_files_only_the_one_it_replaces_had(tiny, tmp_path):
@@ -54,12 +69,14 @@ def test_a_new_export_removes_the_files_only_the_one_it_replaces_had(tiny, tmp_p
 
 
 def test_the_example_refuses_a_path_that_is_not_a_policy_in_one_line(tiny, tmp_path, capsys, monkeypatch):
+    temp = _temporary_dirs_here(monkeypatch, tmp_path)
     for path in (tmp_path / "nope", tiny[1] / "manifest.json"):
         monkeypatch.setattr(sys, "argv", ["deploy_gym_loop.py", str(path)])
         with pytest.raises(SystemExit) as e:
             runpy.run_path(str(ROOT / "examples" / "deploy_gym_loop.py"), run_name="__main__")
         err = capsys.readouterr().err.strip().splitlines()
         assert e.value.code == 2 and len(err) == 1 and "error:" in err[0], err
+    assert list(temp.iterdir()) == []  # the temporary export directory of a failed export is removed too
 
 
 def test_an_export_given_where_a_run_is_asked_for_is_named_as_an_export(tiny, capsys):
