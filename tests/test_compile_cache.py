@@ -133,10 +133,10 @@ def test_a_process_on_fewer_cpus_compiles_another_program_and_uses_its_own_entri
     env[compile_cache.ENV_VAR] = str(tmp_path)
     env["JAX_PLATFORMS"] = "cpu"  # XLA:CPU's partitioning, also where a GPU is installed
 
-    def run(one_cpu: bool) -> list[str]:
-        pin = (lambda: os.sched_setaffinity(0, {cpus[0]})) if one_cpu else None
-        done = subprocess.run([sys.executable, "-c", _PARTITIONS], env=env, capture_output=True, text=True,
-                              timeout=120, preexec_fn=pin)
+    def run(one_cpu: bool) -> list[str]:  # confined before JAX starts, as `taskset -c N` would
+        pin = f"import os; os.sched_setaffinity(0, {{{cpus[0]}}})\n" if one_cpu else ""
+        done = subprocess.run([sys.executable, "-c", pin + _PARTITIONS], env=env, capture_output=True, text=True,
+                              timeout=120)
         assert done.returncode == 0, done.stderr
         return done.stdout.split()
 
