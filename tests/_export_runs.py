@@ -1,4 +1,4 @@
-"""The tiny exported runs of tests/test_export.py and tests/test_export_cli.py (``_tiny_run``; the
+"""The tiny exported runs of tests/test_export.py and tests/test_export_cli.py (``tiny_run``; the
 session fixture ``tiny_export`` of tests/conftest.py builds ϕ1's once per worker for both files)."""
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from d2spo.run import build
 from d2spo.train import learner_program
 
 
-def _has(module: str) -> bool:
+def has_module(module: str) -> bool:
     try:
         __import__(module)
     except ImportError:
@@ -33,7 +33,7 @@ OFFICE = {"name": "office", "arena": [5.0, 4.0], "start": [0.6, 0.6, 0.0],
 """A layout with disk obstacles, a non-square arena and two areas sharing a label (docs/layouts.md)."""
 
 
-def _tiny_run(root: Path, cfg: TrainConfig):
+def tiny_run(root: Path, cfg: TrainConfig):
     """(run dir, export dir, cfg, learner, policy): an untrained tiny D²SPO run whose h is set by hand to
     tanh(4 min(x)/H - 1), a barrier that crosses zero 0.3 m from obstacles (so the filter acts at part
     of the arena), and its export (with ONNX where the onnx package is here)."""
@@ -45,5 +45,5 @@ def _tiny_run(root: Path, cfg: TrainConfig):
     p["params"]["Dense_1"]["kernel"][0, 0] = 1.0
     carry = carry.replace(safety=carry.safety.replace(cbf=jax.tree_util.tree_map(jnp.asarray, p)))
     write_run(root / "run", cfg, carry)
-    export_run(root / "run", root / "out", ExportConfig(onnx=_has("onnx")))
+    export_run(root / "run", root / "out", ExportConfig(onnx=has_module("onnx")))
     return root / "run", root / "out", cfg, learner, learner.policy(carry)

@@ -109,7 +109,7 @@ def run_reference(tmp_path_factory):
 def tiny_export(tmp_path_factory):
     """The tiny ϕ1 run on ``paper`` and its export that tests/test_export.py and test_export_cli.py
     share (tests/_export_runs.py): one per worker, as the two files are one xdist group."""
-    from _export_runs import _tiny_run
+    from _export_runs import tiny_run
     from _tiny import tiny_cfg
 
-    return _tiny_run(tmp_path_factory.mktemp("export"), tiny_cfg())
+    return tiny_run(tmp_path_factory.mktemp("export"), tiny_cfg())

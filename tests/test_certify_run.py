@@ -11,9 +11,9 @@ import sys
 import jax
 import numpy as np
 import pytest
+from _cli import one_error_line
 from _tiny import tiny_cfg, write_run
 
-from d2spo import cli
 from d2spo.checkpoint import Checkpoints, run_fingerprint
 from d2spo.train import learner_program
 
@@ -69,33 +69,26 @@ def test_h_shifted_up_is_reported_violated_and_shifted_down_certified(untrained_
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
-def _one_error_line(capsys, args) -> str:
-    assert cli.main(args) == 2
-    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
-    assert len(err) == 1 and err[0].startswith("d2spo: error: "), err
-    return err[0]
-
-
 def test_bad_input_gets_one_line_and_exit_2(tmp_path, capsys, untrained_run):
-    assert "no such run directory" in _one_error_line(capsys, ["certify", str(tmp_path / "nothing")])
+    assert "no such run directory" in one_error_line(capsys, ["certify", str(tmp_path / "nothing")])
     write_run(tmp_path / "tlgrl", tiny_cfg("tlgrl"))
-    assert "no learned CBF" in _one_error_line(capsys, ["certify", str(tmp_path / "tlgrl")])
+    assert "no learned CBF" in one_error_line(capsys, ["certify", str(tmp_path / "tlgrl")])
     write_run(tmp_path / "generalist", dataclasses.replace(tiny_cfg(), generalist=True))  # was a KeyError
-    assert "a generalist reads a field bank" in _one_error_line(capsys, ["certify", str(tmp_path / "generalist")])
-    assert "a generalist reads a field bank" in _one_error_line(capsys, ["certify", str(tmp_path / "generalist"),
+    assert "a generalist reads a field bank" in one_error_line(capsys, ["certify", str(tmp_path / "generalist")])
+    assert "a generalist reads a field bank" in one_error_line(capsys, ["certify", str(tmp_path / "generalist"),
                                                                          "--repair", "--out", str(tmp_path / "g")])
     write_run(tmp_path / "nockpt", tiny_cfg())
-    assert "no checkpoint" in _one_error_line(capsys, ["certify", str(tmp_path / "nockpt")])
+    assert "no checkpoint" in one_error_line(capsys, ["certify", str(tmp_path / "nockpt")])
     foreign = tmp_path / "foreign"
     write_run(foreign, tiny_cfg(), carry={"something": np.zeros(3)})
-    assert "checkpoint" in _one_error_line(capsys, ["certify", str(foreign)])
-    assert "eps_safe" in _one_error_line(capsys, ["certify", str(untrained_run), "--eps-safe", "0"])
-    assert "eps_unsafe" in _one_error_line(capsys, ["certify", str(untrained_run), "--repair", "--eps-unsafe", "-1",
+    assert "checkpoint" in one_error_line(capsys, ["certify", str(foreign)])
+    assert "eps_safe" in one_error_line(capsys, ["certify", str(untrained_run), "--eps-safe", "0"])
+    assert "eps_unsafe" in one_error_line(capsys, ["certify", str(untrained_run), "--repair", "--eps-unsafe", "-1",
                                                     "--out", str(tmp_path / "r")])
     # the repair's flags without --repair would be ignored (no repaired run written): refused, before any work
-    assert _one_error_line(capsys, ["certify", str(untrained_run), "--out", str(tmp_path / "r")]).endswith(
+    assert one_error_line(capsys, ["certify", str(untrained_run), "--out", str(tmp_path / "r")]).endswith(
         "--out acts only with --repair; add --repair, or leave it out")
-    assert "--rounds, --calls act only with --repair" in _one_error_line(
+    assert "--rounds, --calls act only with --repair" in one_error_line(
         capsys, ["certify", str(untrained_run), "--rounds", "3", "--calls", "5"])
     assert not (tmp_path / "r").exists()
 

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from _export_runs import OFFICE, _has, _tiny_run
+from _export_runs import OFFICE, has_module, tiny_run
 from _tiny import tiny_cfg, write_run
 
 from d2spo.algos import make_learner
@@ -33,7 +33,7 @@ ROOT = Path(__file__).resolve().parent.parent
 
 @pytest.fixture(scope="module")
 def tiny(tiny_export):
-    """``_tiny_run`` of ϕ1 on ``paper``: tests/conftest.py's ``tiny_export``, built once per worker."""
+    """``tiny_run`` of ϕ1 on ``paper``: tests/conftest.py's ``tiny_export``, built once per worker."""
     return tiny_export
 
 
@@ -47,7 +47,7 @@ def case(request, tmp_path_factory):
     root = tmp_path_factory.mktemp("office")
     (root / "office.json").write_text(json.dumps(OFFICE))
     cfg = tiny_cfg(layout=str(root / "office.json"), task="F desk & F kitchen")
-    return _tiny_run(root, dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, reverse=False),
+    return tiny_run(root, dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, reverse=False),
                                                td3=dataclasses.replace(cfg.td3, forward_only=True)).check())
 
 
@@ -208,7 +208,7 @@ def test_task_tracker_follows_the_envs_automaton(case):
     assert len(set(got)) > 2 and tracker.completed == bool(params.aut.accepting[got[-1]])
 
 
-@pytest.mark.skipif(not (_has("onnx") and _has("onnxruntime")), reason="needs the extra d2spo[onnx]")
+@pytest.mark.skipif(not (has_module("onnx") and has_module("onnxruntime")), reason="needs the extra d2spo[onnx]")
 def test_onnx_graphs_run_as_the_numpy_networks(case, states):
     import onnxruntime
 
@@ -238,7 +238,7 @@ def test_default_sized_d2spo_policy_exports_under_1_mb(tmp_path):
     shapes = jax.eval_shape(lambda k: learner.policy(learner.init(k)), jax.random.PRNGKey(0))
     rng = np.random.default_rng(0)
     policy = jax.tree_util.tree_map(lambda t: rng.standard_normal(t.shape).astype(t.dtype), shapes)
-    m = write_export(tmp_path / "out", cfg, built, policy, {"run": None}, ExportConfig(onnx=_has("onnx")))
+    m = write_export(tmp_path / "out", cfg, built, policy, {"run": None}, ExportConfig(onnx=has_module("onnx")))
     total = sum(m["sizes"].values())
     print(f"default-sized export: {m['sizes']}, {total / 1024:.0f} KiB")
     assert total <= 1_000_000

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _cli import one_error_line
 from _tiny import tiny_cfg, write_run
 
 from d2spo import cli
@@ -86,13 +87,6 @@ def test_an_export_given_where_a_run_is_asked_for_is_named_as_an_export(tiny, ca
         assert len(err) == 1 and "is an exported policy (`d2spo export`), not a run directory" in err[0], err
 
 
-def _one_error_line(capsys, args) -> str:
-    assert cli.main(args) == 2
-    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
-    assert len(err) == 1 and err[0].startswith("d2spo: error: "), err
-    return err[0]
-
-
 def test_export_command_and_bad_input(tiny, tmp_path, capsys):
     run = tiny[0]
     assert cli.main(["export", str(run), "--out", str(tmp_path / "cli"), "--runtime-filter", "True",
@@ -101,22 +95,22 @@ def test_export_command_and_bad_input(tiny, tmp_path, capsys):
     assert Policy.load(tmp_path / "cli").filter_on and Policy.load(tmp_path / "cli").runtime_filter.iters == 5
     assert cli.main(["export", str(run), "--out", str(tmp_path / "cli")]) == 0  # an earlier export is replaced
     assert not Policy.load(tmp_path / "cli").filter_on
-    assert "no such run directory" in _one_error_line(capsys, ["export", str(tmp_path / "nothing"), "--out",
+    assert "no such run directory" in one_error_line(capsys, ["export", str(tmp_path / "nothing"), "--out",
                                                                str(tmp_path / "o")])
     write_run(tmp_path / "nockpt", tiny_cfg())
-    assert "no checkpoint" in _one_error_line(capsys, ["export", str(tmp_path / "nockpt"), "--out", str(tmp_path / "o")])
+    assert "no checkpoint" in one_error_line(capsys, ["export", str(tmp_path / "nockpt"), "--out", str(tmp_path / "o")])
     (tmp_path / "file").write_text("x")
-    assert "exists and is not a directory" in _one_error_line(capsys, ["export", str(run), "--out",
+    assert "exists and is not a directory" in one_error_line(capsys, ["export", str(run), "--out",
                                                                        str(tmp_path / "file")])
-    assert "holds no exported policy" in _one_error_line(capsys, ["export", str(run), "--out", str(run)])
+    assert "holds no exported policy" in one_error_line(capsys, ["export", str(run), "--out", str(run)])
     # a filter of no iterations would return the action as it is: refused, as eval and training refuse it
-    assert "filter_iters: must be a positive integer, got 0" in _one_error_line(
+    assert "filter_iters: must be a positive integer, got 0" in one_error_line(
         capsys, ["export", str(run), "--out", str(tmp_path / "o"), "--filter-iters", "0"])
     write_run(tmp_path / "ppo", tiny_cfg("ppo-lag"))
-    assert "ppo-lag is not exported" in _one_error_line(capsys, ["export", str(tmp_path / "ppo"), "--out",
+    assert "ppo-lag is not exported" in one_error_line(capsys, ["export", str(tmp_path / "ppo"), "--out",
                                                                  str(tmp_path / "o")])
     write_run(tmp_path / "td3", tiny_cfg("td3"))
-    assert "only D²SPO has a runtime filter" in _one_error_line(capsys, ["export", str(tmp_path / "td3"), "--out",
+    assert "only D²SPO has a runtime filter" in one_error_line(capsys, ["export", str(tmp_path / "td3"), "--out",
                                                                          str(tmp_path / "o"), "--filter-iters", "2"])
     assert not (tmp_path / "o").exists()
 

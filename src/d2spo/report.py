@@ -10,6 +10,7 @@ from pathlib import Path
 
 import jax
 
+from d2spo.compile_cache import usable_cpus
 from d2spo.errors import RunDirError, json_trouble
 from d2spo.inputs import read_regular
 from d2spo.targets import METHODS
@@ -49,8 +50,6 @@ def cpu_model(cpuinfo: str = "/proc/cpuinfo") -> str:
 def machine() -> str:
     """The machine in one line: the CPU type, the CPUs this process may use (XLA compiles for those:
     d2spo/compile_cache.py), jax and its device, Python."""
-    from d2spo.compile_cache import usable_cpus
-
     usable, total = usable_cpus(), os.cpu_count()
     cores = f"{total} CPU cores" if usable == total else f"{usable} of {total} CPU cores usable"
     return (f"{platform.machine()}, {cpu_model()}, {cores}, jax {jax.__version__} on "

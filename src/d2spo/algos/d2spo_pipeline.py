@@ -48,7 +48,8 @@ class PipelinedChunks:
     def rollout(self, carry) -> tuple[Any, ChunkLog]:
         """The chunk without TD3's updates (the actor fixed): lines 6-11 and 16-17. (Starting it with one
         more UPDATE(Ω, Θ), to show π_Ω the actor it acts with, was tried and undone: ϕ1 with --fast
-        then did not learn; bench/RESULTS.md, "2026-12-01, evening".)"""
+        then did not learn, and over ϕ1 seeds 0-4 it collided as often as without; bench/RESULTS.md,
+        "2026-12-01, evening" and "night".)"""
         return self._chunk(carry, learn=False)
 
     def td3_batches(self, carry) -> TD3Work:
