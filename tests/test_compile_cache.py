@@ -42,16 +42,19 @@ warnings.showwarning = show_warning
 path = compile_cache.enable()
 print("dir", path)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)  # cache even these small programs
-f = jax.jit(lambda x: jnp.sin(x) * 3.0 + jnp.cumsum(x))
+import os
+scale = float(os.environ.get("D2SPO_TEST_SCALE", "3.0"))  # another scale: another program, a new entry
+f = jax.jit(lambda x: jnp.sin(x) * scale + jnp.cumsum(x))
 g = jax.jit(lambda x: jnp.cos(x) - 2.0)
 x = jnp.arange(8.0)
 print("f", float(jnp.sum(f(x))), "g", float(jnp.sum(g(x))))
 """
 
 
-def _run(env_dir: str) -> subprocess.CompletedProcess:
+def _run(env_dir: str, scale: float = 3.0) -> subprocess.CompletedProcess:
     env = {k: v for k, v in os.environ.items() if not k.startswith("JAX_")}
     env[compile_cache.ENV_VAR] = env_dir
+    env["D2SPO_TEST_SCALE"] = str(scale)
     return subprocess.run([sys.executable, "-c", _PROGRAM], env=env, capture_output=True, text=True, timeout=120)
 
 
@@ -86,6 +89,22 @@ def test_a_damaged_entry_is_a_warning_and_a_fresh_compilation(tmp_path, damage):
     assert third.returncode == 0 and third.stdout.splitlines()[-1] == expected
     assert "warning" not in third.stderr, third.stderr
     assert len(_entries(tmp_path)) == len(entries)
+
+
+def test_an_entry_without_its_access_time_does_not_stop_new_entries(tmp_path):
+    """JAX's size-capped cache reads every entry's access-time file before it writes one; an entry
+    without it (a command killed between the two writes) made every later write fail with a warning,
+    so no new program was kept. The cache gives such an entry an access time as it opens."""
+    first = _run(str(tmp_path))
+    assert first.returncode == 0, first.stderr
+    old = _entries(tmp_path)
+    for e in old:
+        e.with_name(e.name.removesuffix("-cache") + "-atime").unlink()
+    second = _run(str(tmp_path), scale=5.0)  # f is a new program; g's entry is read
+    assert second.returncode == 0, second.stderr
+    assert "warning" not in second.stderr.lower(), second.stderr
+    assert len(_entries(tmp_path)) == len(old) + 1  # f at the new scale was written
+    assert all(e.with_name(e.name.removesuffix("-cache") + "-atime").is_file() for e in _entries(tmp_path))
 
 
 def test_a_cache_copied_or_moved_elsewhere_still_hits(tmp_path):

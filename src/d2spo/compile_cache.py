@@ -17,7 +17,8 @@ damaged entry is a miss: JAX warns and compiles afresh (``tests/test_compile_cac
 cannot be read for another reason, a missing package, is named so, not called damaged), and the
 damaged file is deleted so that the fresh compilation's entry takes its place (``_heal_reads``:
 JAX never writes over an existing entry, so it would otherwise be a miss and a warning in every
-later command); a cache directory that cannot be made turns the cache off with one warning. The
+later command); an entry without its access-time file gets one (``_mend_access_times``: else no
+later program could be written); a cache directory that cannot be made turns the cache off with one warning. The
 keys hold no path of the cache's on a CPU-only install (``portable_keys``): a cache moved or copied
 elsewhere still serves every program.
 
@@ -93,9 +94,26 @@ def enable(environ: dict | None = None) -> Path | None:
     jax.config.update("jax_compilation_cache_dir", str(path))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_SECONDS)
     jax.config.update("jax_compilation_cache_max_size", MAX_BYTES)
+    _mend_access_times(path)
     portable_keys()
     _heal_reads()
     return path
+
+
+def _mend_access_times(path: Path) -> None:
+    """Give every entry of ``path`` that lacks one an access-time file (its last change). With a size
+    cap (``MAX_BYTES``) JAX writes an entry, then its ``-atime`` file, and before every later write
+    reads the access time of every entry to find the least recently used; one entry without it (a
+    process killed between the two writes, or an entry written by a JAX without the cap: the test
+    suite's processes) made every later write in that folder fail, each with JAX's warning, so no
+    new program was kept again (jax._src.lru_cache, jax 0.10's file names)."""
+    for entry in path.glob("*-cache"):
+        atime = entry.with_name(entry.name.removesuffix("-cache") + "-atime")
+        try:
+            if not atime.exists():
+                atime.write_bytes(entry.stat().st_mtime_ns.to_bytes(8, "little"))
+        except OSError:  # the entry deleted meanwhile by another process's eviction: it needs none
+            pass
 
 
 def portable_keys() -> None:
