@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import os
 
 import jax
 import numpy as np
 
+from d2spo._xla import CHUNK_LEVEL
 from d2spo.rollout import make_rollout, rates
 from d2spo.run import build
 from d2spo.train import train
@@ -28,8 +30,18 @@ def assert_trains_without_nans_and_improves(cfg, run_dir) -> None:
     last 75 episodes (0.2 was the fall asked before the path direction joined the observation; the
     tests pick seeds whose first 75 collide often enough to show a fall against), and the final
     policy's evaluation return beats the untrained one's by 1 (``eval_untrained``, the same
-    episodes and compilation as the final evaluation)."""
-    summary = train(dataclasses.replace(cfg, eval_untrained=True), run_dir)  # raises NaNError on NaNs
+    episodes and compilation as the final evaluation). The chunk compiles at XLA's level 2, not the
+    suite's 0: it runs 10-20 times, and running it was most of these tests' time (d2spo/_xla.py,
+    chunk_options)."""
+    before = os.environ.get(CHUNK_LEVEL)
+    os.environ[CHUNK_LEVEL] = "2"
+    try:
+        summary = train(dataclasses.replace(cfg, eval_untrained=True), run_dir)  # raises NaNError on NaNs
+    finally:
+        if before is None:
+            del os.environ[CHUNK_LEVEL]
+        else:
+            os.environ[CHUNK_LEVEL] = before
     untrained = summary["eval_untrained"]
     with open(run_dir / "episodes.csv") as f:
         rows = np.array([[float(r[1]), float(r[3])] for r in list(csv.reader(f))[1:]])

@@ -10,8 +10,8 @@ from d2spo import reproduce as rp
 
 TINY_EPISODES = 24
 FIG5_EPISODES = 32
-"""The episodes of the short Fig. 5 run of tests/test_plots.py; tests/test_d2spo.py builds the same
-D²SPO learner (phi1 on `paper`), so that its compiled ``init`` is shared."""
+"""The episodes of a short Fig. 5 run: tests/test_plots.py renders Fig. 5 for it (from the short
+D²SPO run of tests/conftest.py), tests/test_d2spo.py builds its learner (phi1 on `paper`)."""
 _CONFIG = rp.RunSpec.config  # the real one, captured before any test patches it
 
 
@@ -22,12 +22,6 @@ def small_config(spec: rp.RunSpec):
     ppo = dataclasses.replace(c.ppo_lag, hidden=(16, 16), rollout_steps=50, n_minibatches=4, epochs=2)
     return dataclasses.replace(c, checkpoint_every=10, num_envs=4, chunk_steps=50, eval_episodes=4,
                                env=dataclasses.replace(c.env, max_steps=40), ppo_lag=ppo)
-
-
-def without_evaluation(monkeypatch) -> None:
-    """Make ``reproduce`` train its runs without the final evaluation (``eval_episodes=0``), for
-    tests that use a run's snapshots or checkpoint only; the learner's programs are unchanged."""
-    monkeypatch.setattr(rp.RunSpec, "config", lambda spec: dataclasses.replace(_CONFIG(spec), eval_episodes=0))
 
 
 def use_small_configs(monkeypatch) -> None:

@@ -62,7 +62,7 @@ settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 # are built once; files whose tests share compiled programs through the persistent cache (the same
 # config) are one group, so the second finds the first's program instead of compiling it again.
 _SHARED_PROGRAMS = {
-    "test_plots.py": "fig5-run",  # tests/test_d2spo.py builds the Fig. 5 learner (_reproduce.FIG5_EPISODES)
+    "test_plots.py": "fig5-run",  # the session fixture short_d2spo_run, below
     "test_d2spo.py": "fig5-run",
     "test_run_faults.py": "tiny-run",  # the shapes of test_train.tiny()
     "test_run_kills.py": "tiny-run",  # tests/_run_faults.py: its reference run, a session fixture
@@ -115,3 +115,47 @@ def tiny_export(tmp_path_factory):
     from _tiny import tiny_cfg
 
     return tiny_run(tmp_path_factory.mktemp("export"), tiny_cfg())
+
+
+SHORT_RUN_CALLS = {"distances": ("d2spo.ltl.automaton", "Automaton", "distances"),
+                   "route_length": ("d2spo.envs.routes", None, "route_length"),
+                   "reachable_states": ("d2spo.envs.routes", None, "reachable_states"),
+                   "state_fields": ("d2spo.envs.compiled_task", None, "state_fields")}
+"""What the short D²SPO run counts while it trains: how often it computes its task's distances,
+route and fields (tests/test_d2spo.py checks each is done once per run)."""
+
+
+@pytest.fixture(scope="session")
+def short_d2spo_run(tmp_path_factory):
+    """250 episodes of D²SPO on the `relaxed` layout, task F A1, with Fig. 5's policy snapshots:
+    tests/test_d2spo.py checks what it learnt, tests/test_plots.py draws Figs. 4-5 from it (the two
+    files are one xdist group, so it trains once). Returns the run directory, its summary and the
+    calls of ``SHORT_RUN_CALLS`` counted while it trained."""
+    import dataclasses
+    import importlib
+
+    from _counting import count_calls
+    from _reproduce import FIG5_EPISODES
+
+    from d2spo import reproduce as rp
+    from d2spo.algos.td3 import TD3Config
+    from d2spo.config import EnvConfig, TrainConfig
+    from d2spo.train import train
+
+    # max_steps unset: the step limit follows the route; D²SPO: its barrier's margin is checked too
+    (fig5,) = rp.runs_for("fig5", 1, FIG5_EPISODES)
+    cfg = TrainConfig(algo="d2spo", task="F A1", env=EnvConfig(layout="relaxed"), episodes=250, seed=0,
+                      eval_episodes=32, eval_untrained=True, snapshots=fig5.snapshots,
+                      td3=dataclasses.replace(TD3Config(), updates_per_step=2)).check()
+    out = tmp_path_factory.mktemp("short-d2spo") / "run"
+    with pytest.MonkeyPatch.context() as mp:
+        targets = {}
+        for name, (module, owner, attr) in SHORT_RUN_CALLS.items():
+            mod = importlib.import_module(module)
+            targets[name] = (getattr(mod, owner) if owner else mod, attr)
+        calls = count_calls(mp, targets)  # forgets this process's builds (d2spo.memo), so they are counted
+        summary = train(cfg, out)
+    # its builds and programs stay (d2spo.memo): the wrappers only counted, and the tests that read
+    # the run evaluate it with the same rollout program
+    return out, summary, dict(calls)
+

@@ -17,8 +17,7 @@ from d2spo.train import learner_program
 def test_cautious_start_makes_random_exploration_safe():
     """Before any env step, π_Ω (pre-trained on synthetic sensed data only) turns uniform random
     proposals, which crash in most episodes on the paper layout, into mostly safe ones."""
-    # the config of the Fig. 5 run of tests/test_plots.py (episodes set the annealing rate, which
-    # init compiles in): the two tests share one compiled init through the persistent cache
+    # the config of the paper's Fig. 5 run (episodes set the annealing rate, which init compiles in)
     cfg = TrainConfig(algo="d2spo", task="phi1", env=EnvConfig(layout="paper"), episodes=FIG5_EPISODES).check()
     env, params, learner = build(cfg)
     carry = learner_program(learner, "init")(jax.random.PRNGKey(0))
@@ -33,47 +32,31 @@ def test_cautious_start_makes_random_exploration_safe():
     assert float(jnp.linalg.norm(u - u_rl)) < 0.2
 
 
-def test_short_run_on_relaxed_learns_to_reach_a1_safely(tmp_path, monkeypatch):
+def test_short_run_on_relaxed_learns_to_reach_a1_safely(short_d2spo_run):
     """250 episodes of D²SPO on the `relaxed` layout, task F A1 (its first leg; the two-area task
-    needs thousands of episodes). The final policy must reach A1 far more often than the untrained
+    needs thousands of episodes; tests/conftest.py trains it, tests/test_plots.py draws Figs. 4-5
+    from it too). The final policy must reach A1 far more often than the untrained
     one and never collide; training itself stays mostly collision-free (seeds 0, 1, 2 under the
     suite's flags: final completion 1.0, collisions in 0-0.4% of the 250 episodes; 500 episodes
     were asked before, 2026-11-27). The run compiles its task
     onto the layout once (envs/compiled_task.py): one distance computation, route and set of fields."""
-    import dataclasses
-
-    from _counting import count_calls
-
-    from d2spo.algos.td3 import TD3Config
-    from d2spo.envs import compiled_task, routes
-    from d2spo.ltl.automaton import Automaton
-    from d2spo.train import train
-
-    calls = count_calls(monkeypatch, {"distances": (Automaton, "distances"), "route_length": (routes, "route_length"),
-                                      "reachable_states": (routes, "reachable_states"),
-                                      "state_fields": (compiled_task, "state_fields")})
-    # max_steps unset: the step limit follows the route; D²SPO: its barrier's margin is checked too
-    cfg = TrainConfig(algo="d2spo", task="F A1", env=EnvConfig(layout="relaxed"), episodes=250, seed=0,
-                      eval_episodes=32, eval_untrained=True,
-                      td3=dataclasses.replace(TD3Config(), updates_per_step=2)).check()
-    summary = train(cfg, tmp_path / "run")
+    run, summary, calls = short_d2spo_run
     # the grid search for the robot twice: make_env's feasibility check and the barrier's margin d
     assert calls == {"distances": 1, "route_length": 1, "reachable_states": 2, "state_fields": 1}
-    monkeypatch.undo()
     untrained = summary["eval_untrained"]
     assert untrained["completion_rate"] <= 0.1
     assert summary["eval"]["completion_rate"] >= 0.8
     assert summary["eval"]["safety_rate"] == 1.0
     import csv
 
-    with open(tmp_path / "run" / "episodes.csv") as f:
+    with open(run / "episodes.csv") as f:
         collided = [int(r["collided"]) for r in csv.DictReader(f)]
     assert len(collided) == 250 and sum(collided) / 250 <= 0.1
     # `d2spo eval --runtime-filter True --filter-alpha A --filter-iters N` on the same run
     from d2spo.errors import ConfigError
     from d2spo.evaluate import EvalConfig, evaluate_run
 
-    res = evaluate_run(tmp_path / "run", EvalConfig(episodes=16, runtime_filter=True, filter_alpha=1.5, filter_iters=5))
+    res = evaluate_run(run, EvalConfig(episodes=16, runtime_filter=True, filter_alpha=1.5, filter_iters=5))
     assert res["runtime_filter"] is True and res["filter_alpha"] == 1.5 and res["filter_iters"] == 5
     assert res["safety_rate"] == 1.0
     with pytest.raises(ConfigError):
@@ -82,7 +65,7 @@ def test_short_run_on_relaxed_learns_to_reach_a1_safely(tmp_path, monkeypatch):
     from d2spo.plots import draw_policy_figure
     from d2spo.run import load_policy
 
-    _, learner, policy, _ = load_policy(tmp_path / "run")
+    _, learner, policy, _ = load_policy(run)
     # as many episodes as the run's final evaluation: its compiled rollout serves (58.9 s -> 51.8 s)
     fig, rates = draw_policy_figure(learner, policy, learner.env, learner.params, episodes=32,
                                     suptitle="D²SPO: layout 'relaxed', task 'F A1'")

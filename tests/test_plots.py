@@ -7,7 +7,7 @@ import csv
 import shutil
 
 import numpy as np
-from _reproduce import FIG5_EPISODES, without_evaluation
+from _reproduce import FIG5_EPISODES
 from matplotlib.image import imread
 
 from d2spo import plots
@@ -53,15 +53,16 @@ def test_reward_curves_are_moving_averages_with_a_band_over_seeds(tmp_path):
     np.testing.assert_allclose(mean[0], np.mean(np.arange(10)) + 1.0)
 
 
-def test_figs_4_and_5_render_from_one_short_d2spo_run(tmp_path, monkeypatch):
-    """Fig. 5 from a run with policy snapshots, then Fig. 4 from the same run standing in for the
-    first physical layout's (the others are drawn as 'not run'): one training serves both. The
-    figures draw the snapshots and the final checkpoint, not the run's final evaluation: skipped."""
+def test_figs_4_and_5_render_from_one_short_d2spo_run(tmp_path, short_d2spo_run):
+    """Fig. 5 from a run with policy snapshots (tests/conftest.py's short D²SPO run, which
+    tests/test_d2spo.py checks), standing in for the Fig. 5 run, then Fig. 4 from the same run
+    standing in for the first physical layout's (the others are drawn as 'not run'): one training
+    serves both, and the figures draw the snapshots and the final checkpoint."""
     out = tmp_path / "r"
     (f5,) = rp.runs_for("fig5", 1, FIG5_EPISODES)
     assert f5.snapshots == (3, 16, 32)
-    without_evaluation(monkeypatch)
-    rp.train_one(f5, str(out))
+    run, _, _ = short_d2spo_run
+    shutil.copytree(run, rp.run_dir(out, f5))
     for n in f5.snapshots:
         assert (rp.run_dir(out, f5) / f"policy-{n}.msgpack").is_file()
     fig5 = rp.render("fig5", out, 1, FIG5_EPISODES)

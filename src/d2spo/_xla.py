@@ -39,11 +39,30 @@ def long_running_options() -> dict | None:
     level 0, and in 12.8 s and 3.0 s at level 3 (2-core AMD). The commands leave it unset: they
     compile everything at XLA's default level already.
     """
-    level = os.environ.get(LONG_RUNNING_LEVEL, "").strip()
+    return _level_options(LONG_RUNNING_LEVEL)
+
+
+CHUNK_LEVEL = "D2SPO_XLA_CHUNK_LEVEL"
+"""Environment variable: XLA's backend optimisation level for the learners' chunks, whatever level
+``XLA_FLAGS`` sets for the rest."""
+
+
+def chunk_options() -> dict | None:
+    """Compiler options for a learner's chunk: None (XLA's flags as they are) unless
+    ``$D2SPO_XLA_CHUNK_LEVEL`` names a level. The commands leave it unset. The test suite's learning
+    checks of the off-policy baselines (tests/_learning.py) set 2 while they train for 300
+    episodes: their chunks run 10-20 times each, and at the suite's level 0 running, not compiling,
+    was most of their time (RCRL's check 19.8 s at level 0, 11.4 s at level 2; cold cache, 2-core
+    AMD EPYC family 25, 2026-12-01)."""
+    return _level_options(CHUNK_LEVEL)
+
+
+def _level_options(variable: str) -> dict | None:
+    level = os.environ.get(variable, "").strip()
     if not level:
         return None
     if level not in ("0", "1", "2", "3"):
         from d2spo.errors import ConfigError
 
-        raise ConfigError(f"${LONG_RUNNING_LEVEL}", f"expected an XLA optimisation level 0-3, got {level!r}")
+        raise ConfigError(f"${variable}", f"expected an XLA optimisation level 0-3, got {level!r}")
     return {"xla_backend_optimization_level": int(level)}

@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 
 from d2spo import memo
-from d2spo._xla import long_running_options
+from d2spo._xla import chunk_options, long_running_options
 from d2spo.algos import runs_a_recurrence
 from d2spo.algos.generalist import Redraw
 from d2spo.checkpoint import Checkpoints, fingerprint, has_checkpoint, run_fingerprint
@@ -144,7 +144,8 @@ def learner_program(learner, name: str, vmapped: bool = False, donate: bool = Fa
     its argument if asked; a pipelined D²SPO learner's ``chunk`` is a ``pipelined.Pipelined`` of three.
     Learners with ``params_as_argument`` (the generalist) get their env params as an argument
     (``_ParamsArgument``); the others keep them as constants, as before.
-    An ``init`` that pre-trains (``learner.long_init``) gets ``_xla.long_running_options()``."""
+    An ``init`` that pre-trains (``learner.long_init``) gets ``_xla.long_running_options()``, a
+    ``chunk`` ``_xla.chunk_options()``."""
     if name == "chunk" and getattr(learner, "pipelined", False):  # D²SPO's --d2spo.pipeline: d2spo/pipelined.py
         def pipelined():
             return Pipelined(lambda part, d: learner_program(learner, part, vmapped, d), donate)
@@ -152,7 +153,11 @@ def learner_program(learner, name: str, vmapped: bool = False, donate: bool = Fa
         if getattr(learner, "params_as_argument", False):  # a fresh wrapper: ``params`` is its own
             return pipelined()
         return memo.per_object(learner, ("pipelined", vmapped, donate), pipelined)
-    options = long_running_options() if name == "init" and getattr(learner, "long_init", False) else None
+    options = None
+    if name == "init" and getattr(learner, "long_init", False):
+        options = long_running_options()
+    elif name == "chunk":
+        options = chunk_options()
     if getattr(learner, "params_as_argument", False):
         return _ParamsArgument(learner, name, vmapped, donate, options)
 
