@@ -41,8 +41,10 @@ _CACHE = Path(os.environ.get("D2SPO_TEST_JAX_CACHE", Path(__file__).resolve().pa
 # its folder for this process's CPUs, as the commands' (d2spo/compile_cache.py, entries_dir)
 jax.config.update("jax_compilation_cache_dir", str(compile_cache.entries_dir(_CACHE)))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
-# the commands' size cap, so that each entry gets the access-time file the child commands' JAX reads
+# the commands' size cap, so that each entry gets the access-time file the child commands' JAX
+# reads, and their mending of an entry left without one (a child killed or interrupted mid-write)
 jax.config.update("jax_compilation_cache_max_size", compile_cache.MAX_BYTES)
+compile_cache.keep_access_times()
 compile_cache.portable_keys()  # the keys the commands use, so that child commands share the entries
 # `d2spo` commands the tests start in child processes (tests/test_reproduce.py's Ray backend, the
 # command-line checks) use the same cache (d2spo/compile_cache.py), not the user's ~/.cache/d2spo.

@@ -107,6 +107,19 @@ def test_an_entry_without_its_access_time_does_not_stop_new_entries(tmp_path):
     assert all(e.with_name(e.name.removesuffix("-cache") + "-atime").is_file() for e in _entries(tmp_path))
 
 
+def test_an_entry_left_without_its_access_time_mid_session_is_mended_before_the_next_write(tmp_path):
+    """The same within one process: an entry another process left without its access time after this
+    one opened the cache (tests/conftest.py keeps the access times, as the commands do)."""
+    from jax._src.lru_cache import LRUCache
+
+    cache = LRUCache(str(tmp_path), max_size=1 << 20)
+    cache.put("a", b"first")
+    (tmp_path / "a-atime").unlink()
+    cache.put("b", b"second")  # JAX's eviction scan alone: FileNotFoundError for a-atime
+    assert cache.get("a") == b"first" and cache.get("b") == b"second"
+    assert (tmp_path / "a-atime").is_file()
+
+
 def test_a_cache_copied_or_moved_elsewhere_still_hits(tmp_path):
     """An entry's key holds no path of the cache's (JAX's GPU autotuning cache folder was in it): a
     copy under another path serves every program, so the run there writes no entry of its own."""

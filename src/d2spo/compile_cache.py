@@ -17,7 +17,7 @@ damaged entry is a miss: JAX warns and compiles afresh (``tests/test_compile_cac
 cannot be read for another reason, a missing package, is named so, not called damaged), and the
 damaged file is deleted so that the fresh compilation's entry takes its place (``_heal_reads``:
 JAX never writes over an existing entry, so it would otherwise be a miss and a warning in every
-later command); an entry without its access-time file gets one (``_mend_access_times``: else no
+later command); an entry without its access-time file gets one (``keep_access_times``: else no
 later program could be written); a cache directory that cannot be made turns the cache off with one warning. The
 keys hold no path of the cache's on a CPU-only install (``portable_keys``): a cache moved or copied
 elsewhere still serves every program.
@@ -94,19 +94,40 @@ def enable(environ: dict | None = None) -> Path | None:
     jax.config.update("jax_compilation_cache_dir", str(path))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_SECONDS)
     jax.config.update("jax_compilation_cache_max_size", MAX_BYTES)
-    _mend_access_times(path)
+    keep_access_times()
     portable_keys()
     _heal_reads()
     return path
 
 
+def keep_access_times() -> None:
+    """Give an entry without its access-time file one before JAX evicts. With a size cap
+    (``MAX_BYTES``) JAX writes an entry, then its ``-atime`` file, and before every later write
+    reads the access time of every entry of the folder to find the least recently used; one entry
+    without it (a process killed or interrupted between the two writes, or an entry written by a
+    JAX without the cap) made every later write in that folder fail, each with JAX's warning, so no
+    new program was kept again. Wraps JAX's eviction scan (``jax._src.lru_cache.LRUCache.
+    _evict_if_needed``, jax 0.10's; it runs under the cache's file lock) so that the missing files
+    are written first, with the entry's last change as its access time; where a JAX lacks it,
+    nothing is wrapped. The test suite calls it too."""
+    from jax._src import lru_cache
+
+    evict = getattr(getattr(lru_cache, "LRUCache", None), "_evict_if_needed", None)
+    if evict is None or getattr(evict, "_d2spo_mends", False):
+        return
+
+    def mending_evict(self, *args, **kwargs):
+        where = str(self.path)
+        if getattr(self, "eviction_enabled", False) and "://" not in where:  # a local folder
+            _mend_access_times(Path(where))
+        return evict(self, *args, **kwargs)
+
+    mending_evict._d2spo_mends = True
+    lru_cache.LRUCache._evict_if_needed = mending_evict
+
+
 def _mend_access_times(path: Path) -> None:
-    """Give every entry of ``path`` that lacks one an access-time file (its last change). With a size
-    cap (``MAX_BYTES``) JAX writes an entry, then its ``-atime`` file, and before every later write
-    reads the access time of every entry to find the least recently used; one entry without it (a
-    process killed between the two writes, or an entry written by a JAX without the cap: the test
-    suite's processes) made every later write in that folder fail, each with JAX's warning, so no
-    new program was kept again (jax._src.lru_cache, jax 0.10's file names)."""
+    """Write the missing ``-atime`` file of each entry of ``path`` (jax._src.lru_cache's file names)."""
     for entry in path.glob("*-cache"):
         atime = entry.with_name(entry.name.removesuffix("-cache") + "-atime")
         try:
