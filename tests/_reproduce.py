@@ -10,9 +10,23 @@ from d2spo import reproduce as rp
 
 TINY_EPISODES = 24
 FIG5_EPISODES = 32
-"""The episodes of a short Fig. 5 run: tests/test_plots.py renders Fig. 5 for it (from the short
-D²SPO run of tests/conftest.py), tests/test_d2spo.py builds its learner (phi1 on `paper`)."""
+"""The episodes of a short Fig. 5 run: tests/test_plots.py renders Fig. 5 for it, from the short
+D²SPO run (``short_run_config``), which takes its snapshots."""
 _CONFIG = rp.RunSpec.config  # the real one, captured before any test patches it
+
+
+def short_run_config():
+    """The short D²SPO run of the tests: 250 episodes on the `relaxed` layout, task F A1, with Fig.
+    5's policy snapshots. tests/conftest.py trains it (``short_d2spo_run``); tests/test_d2spo.py
+    builds the same learner to check its cautious start, so the worker that trains it has the
+    program compiled (d2spo.memo)."""
+    from d2spo.algos.td3 import TD3Config
+    from d2spo.config import EnvConfig, TrainConfig
+
+    (fig5,) = rp.runs_for("fig5", 1, FIG5_EPISODES)
+    return TrainConfig(algo="d2spo", task="F A1", env=EnvConfig(layout="relaxed"), episodes=250, seed=0,
+                       eval_episodes=32, eval_untrained=True, snapshots=fig5.snapshots,
+                       td3=dataclasses.replace(TD3Config(), updates_per_step=2)).check()
 
 
 def small_config(spec: rp.RunSpec):

@@ -133,22 +133,15 @@ def short_d2spo_run(tmp_path_factory):
     tests/test_d2spo.py checks what it learnt, tests/test_plots.py draws Figs. 4-5 from it (the two
     files are one xdist group, so it trains once). Returns the run directory, its summary and the
     calls of ``SHORT_RUN_CALLS`` counted while it trained."""
-    import dataclasses
     import importlib
 
     from _counting import count_calls
-    from _reproduce import FIG5_EPISODES
+    from _reproduce import short_run_config
 
-    from d2spo import reproduce as rp
-    from d2spo.algos.td3 import TD3Config
-    from d2spo.config import EnvConfig, TrainConfig
     from d2spo.train import train
 
     # max_steps unset: the step limit follows the route; D²SPO: its barrier's margin is checked too
-    (fig5,) = rp.runs_for("fig5", 1, FIG5_EPISODES)
-    cfg = TrainConfig(algo="d2spo", task="F A1", env=EnvConfig(layout="relaxed"), episodes=250, seed=0,
-                      eval_episodes=32, eval_untrained=True, snapshots=fig5.snapshots,
-                      td3=dataclasses.replace(TD3Config(), updates_per_step=2)).check()
+    cfg = short_run_config()
     out = tmp_path_factory.mktemp("short-d2spo") / "run"
     with pytest.MonkeyPatch.context() as mp:
         targets = {}

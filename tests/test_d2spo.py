@@ -5,31 +5,13 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import pytest
-from _reproduce import FIG5_EPISODES
+from _reproduce import short_run_config
 
 from d2spo.config import TrainConfig
 from d2spo.envs import EnvConfig
 from d2spo.rollout import random_proposal_safety
 from d2spo.run import build
 from d2spo.train import learner_program
-
-
-def test_cautious_start_makes_random_exploration_safe():
-    """Before any env step, π_Ω (pre-trained on synthetic sensed data only) turns uniform random
-    proposals, which crash in most episodes on the paper layout, into mostly safe ones."""
-    # the config of the paper's Fig. 5 run (episodes set the annealing rate, which init compiles in)
-    cfg = TrainConfig(algo="d2spo", task="phi1", env=EnvConfig(layout="paper"), episodes=FIG5_EPISODES).check()
-    env, params, learner = build(cfg)
-    carry = learner_program(learner, "init")(jax.random.PRNGKey(0))
-    raw = random_proposal_safety(learner, carry, env, params, shielded=False)
-    safe = random_proposal_safety(learner, carry, env, params, shielded=True)
-    assert raw < 0.6, raw
-    assert safe >= 0.9, (raw, safe)
-    # The override is a correction, not a new policy: far from obstacles π_Ω follows the proposal.
-    obs = jnp.zeros((1, env.observation_size)).at[:, env.observation_slices["lidar"]].set(1.0)
-    u_rl = jnp.array([[0.5, -0.3]])
-    u = learner.execute(carry.safety, obs, u_rl, jnp.zeros((1, 3)))
-    assert float(jnp.linalg.norm(u - u_rl)) < 0.2
 
 
 def test_short_run_on_relaxed_learns_to_reach_a1_safely(short_d2spo_run):
@@ -81,6 +63,25 @@ def test_short_run_on_relaxed_learns_to_reach_a1_safely(short_d2spo_run):
         ext = text.get_window_extent()
         assert box.x0 <= ext.x0 and ext.x1 <= box.x1 and box.y0 <= ext.y0 and ext.y1 <= box.y1, text.get_text()
     assert rates["safety_rate"] == 1.0
+
+
+def test_cautious_start_makes_random_exploration_safe():
+    """Before any env step, π_Ω (pre-trained on synthetic sensed data only) turns uniform random
+    proposals, which crash in most episodes, into mostly safe ones (2026-12-01: 34% of episodes
+    safe without it and 100% with it on `relaxed`; 33% and 100% for ϕ1 on `paper`). The learner is the short
+    run's: placed after that test, it finds the init program the run compiled (d2spo.memo)."""
+    # the short run's config (episodes set the annealing rate, which init compiles in)
+    env, params, learner = build(short_run_config())
+    carry = learner_program(learner, "init")(jax.random.PRNGKey(0))
+    raw = random_proposal_safety(learner, carry, env, params, shielded=False)
+    safe = random_proposal_safety(learner, carry, env, params, shielded=True)
+    assert raw < 0.6, raw
+    assert safe >= 0.9, (raw, safe)
+    # The override is a correction, not a new policy: far from obstacles π_Ω follows the proposal.
+    obs = jnp.zeros((1, env.observation_size)).at[:, env.observation_slices["lidar"]].set(1.0)
+    u_rl = jnp.array([[0.5, -0.3]])
+    u = learner.execute(carry.safety, obs, u_rl, jnp.zeros((1, 3)))
+    assert float(jnp.linalg.norm(u - u_rl)) < 0.2
 
 
 def test_eval_switches_the_runtime_filter_on_away_from_the_training_layout():
