@@ -11,16 +11,25 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from gymnax.environments import spaces
-from gymnax.wrappers.purerl import FlattenObservationWrapper, LogWrapper
 
 import d2spo
 from d2spo.envs import EnvConfig, make_env
-from d2spo.envs.gymnax_env import GymnaxNav
+
+
+def nav(**kw):
+    """``GymnaxNav.make(**kw)``. gymnax (and d2spo.envs.gymnax_env, which uses its ``Box`` where it is
+    installed) is imported by the tests that use it, not as the suite collects this file: it takes
+    about 3 s (seaborn, scipy.stats), which both workers paid before they ran a test."""
+    from d2spo.envs.gymnax_env import GymnaxNav
+
+    return GymnaxNav.make(**kw)
 
 
 def test_the_functional_envs_need_no_gymnasium_and_the_gymnasium_ones_say_what_to_install(monkeypatch):
     """gymnasium is optional (d2spo[gym]): d2spo.envs imports without it (or beside an older one)."""
+    # imported first, so that the module put back afterwards is the one with gymnax's Box (imported
+    # here, with gymnasium blocked, gymnax fails to import and the module keeps its own Box)
+    importlib.import_module("d2spo.envs.gymnax_env")
     for name in [n for n in sys.modules if n == "d2spo.envs" or n.startswith("d2spo.envs.")]:
         monkeypatch.delitem(sys.modules, name)  # monkeypatch puts the modules back afterwards
     before = d2spo.envs
@@ -37,7 +46,9 @@ def test_the_functional_envs_need_no_gymnasium_and_the_gymnasium_ones_say_what_t
 
 
 def test_gymnax_order_cost_in_info_and_the_functional_env_underneath():
-    env, params = GymnaxNav.make(task="relaxed", layout="relaxed", max_steps=4)
+    from gymnax.environments import spaces
+
+    env, params = nav(task="relaxed", layout="relaxed", max_steps=4)
     assert isinstance(env.observation_space(params), spaces.Box) and env.num_actions == 2
     obs, state = jax.jit(env.reset)(jax.random.key(0), params)
     _, ref_obs = make_env(EnvConfig(layout="relaxed", max_steps=4), "relaxed")[0].reset(jax.random.key(0), params)
@@ -55,7 +66,7 @@ def test_gymnax_order_cost_in_info_and_the_functional_env_underneath():
 def test_reset_and_step_are_jitted_as_gymnaxs_own_and_params_name_the_episode_limit(monkeypatch):
     """A Python loop over ``step`` traces the functional env once (gymnax's ``step`` is jitted);
     ``max_steps_in_episode`` is gymnax's name for the step limit."""
-    env, params = GymnaxNav.make(task="relaxed", layout="relaxed", max_steps=6)
+    env, params = nav(task="relaxed", layout="relaxed", max_steps=6)
     traces = []
     inner = env.env.step
     monkeypatch.setattr(env.env, "step", lambda *a: traces.append(1) or inner(*a))
@@ -67,7 +78,9 @@ def test_reset_and_step_are_jitted_as_gymnaxs_own_and_params_name_the_episode_li
 
 
 def test_vmap_and_scan_through_gymnax_wrappers():
-    base, params = GymnaxNav.make(task="F A1", layout="open", max_steps=10)
+    from gymnax.wrappers.purerl import FlattenObservationWrapper, LogWrapper
+
+    base, params = nav(task="F A1", layout="open", max_steps=10)
     env = LogWrapper(FlattenObservationWrapper(base))
     n = 3
     obs, state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(jax.random.key(0), n), params)
@@ -117,7 +130,9 @@ N_ENVS, N_STEPS, N_UPDATES, MAX_STEPS = 16, 64, 15, 80
 
 
 def test_purejaxrl_style_ppo_learns_F_A1_on_open():
-    base, params = GymnaxNav.make(task="F A1", layout="open", max_steps=MAX_STEPS)
+    from gymnax.wrappers.purerl import FlattenObservationWrapper, LogWrapper
+
+    base, params = nav(task="F A1", layout="open", max_steps=MAX_STEPS)
     env = LogWrapper(FlattenObservationWrapper(base))
     n_obs = env.observation_space(params).shape[0]
     tx = _ppo.optimizer()
