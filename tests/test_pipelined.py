@@ -44,14 +44,22 @@ def test_the_pipeline_is_an_option_off_by_default():
 
 @pytest.fixture(scope="module")
 def warm():
-    """The small learner, its pipelined chunk (not donating) and a carry three chunks in: past
-    ``learning_starts`` (2 envs x 8 steps per chunk, 40 transitions)."""
+    """The small learner, its pipelined chunk and a carry three chunks in: past ``learning_starts``
+    (2 envs x 8 steps per chunk, 40 transitions). The chunk donates its carry to the rollout, as
+    ``train`` runs it, so that the resume test below finds its programs compiled (d2spo.memo); the
+    tests give it copies (``fresh``) of a carry they read again."""
     _, _, learner = build(small())
-    chunk = learner_program(learner, "chunk")
+    chunk = learner_program(learner, "chunk", donate=True)
     carry = learner_program(learner, "init")(jax.random.PRNGKey(0))
     for _ in range(3):
         carry, _ = chunk(carry)
     return learner, chunk, carry
+
+
+@jax.jit
+def fresh(carry):
+    """A copy of ``carry`` for a program that donates (deletes) its argument."""
+    return jax.tree_util.tree_map(jnp.copy, carry)
 
 
 def test_a_pipelined_chunk_is_its_two_programs_run_one_after_the_other(warm):
@@ -63,7 +71,7 @@ def test_a_pipelined_chunk_is_its_two_programs_run_one_after_the_other(warm):
     assert isinstance(chunk, Pipelined)
     work = chunk.batches(carry)
     assert bool(jnp.all(work.ready)) and work.keys.shape == (8, 1, *jax.random.PRNGKey(0).shape)
-    rolled, rlog = chunk.rollout(carry)
+    rolled, rlog = chunk.rollout(fresh(carry))
     assert _same(rolled.agent, carry.agent)
     # UPDATE(Ω, Θ) after every 4th of the 8 steps, as in the fused chunk: 2
     adam_steps = int(rolled.safety.policy_opt[0].count) - int(carry.safety.policy_opt[0].count)
@@ -72,7 +80,7 @@ def test_a_pipelined_chunk_is_its_two_programs_run_one_after_the_other(warm):
     assert bool(finite) and not _same(agent, carry.agent)
     assert int(agent.updates) == int(carry.agent.updates) + 8  # one per vectorised step
     assert np.isnan(np.asarray(rlog.metrics["losses/qf"])).all()
-    piped, plog = chunk(carry)
+    piped, plog = chunk(fresh(carry))
     assert _same(piped.agent, agent) and _same(piped.safety, rolled.safety) and _same(piped.buffer, rolled.buffer)
     assert np.array_equal(np.asarray(plog.metrics["losses/qf"]), np.asarray(metrics["losses/qf"]))
     assert np.isfinite(np.asarray(plog.metrics["losses/qf"])).all() and not bool(plog.nonfinite)
@@ -91,7 +99,7 @@ def test_a_nonfinite_td3_program_marks_the_chunks_log(warm):
         return agent, metrics, params_finite(agent)
 
     parts = {"td3_batches": chunk.batches, "rollout": chunk.rollout, "td3_chunk": poisoned}
-    _, log = Pipelined(lambda name, donate: parts[name], donate=False)(carry)
+    _, log = Pipelined(lambda name, donate: parts[name], donate=False)(fresh(carry))
     assert bool(log.nonfinite)
 
 
