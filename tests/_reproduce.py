@@ -1,6 +1,7 @@
 """Small configs for the tests that run ``d2spo reproduce`` in-process: every such test trains the
 same small program (ppo-lag on `relaxed`, two seeds vmapped together), so XLA compiles it once per
-session and the persistent cache (tests/conftest.py) serves the others."""
+session and the persistent cache (tests/conftest.py) serves the others. Also the config of the short
+D²SPO run that Figs. 4-5's test draws from (``short_run_config``)."""
 
 from __future__ import annotations
 
