@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import csv
 import dataclasses
-import os
 
 import jax
 import numpy as np
+import pytest
 
 from d2spo._xla import CHUNK_LEVEL
 from d2spo.rollout import make_rollout, rates
@@ -33,15 +33,9 @@ def assert_trains_without_nans_and_improves(cfg, run_dir) -> None:
     episodes and compilation as the final evaluation). The chunk compiles at XLA's level 2, not the
     suite's 0: it runs 10-20 times, and running it was most of these tests' time (d2spo/_xla.py,
     chunk_options)."""
-    before = os.environ.get(CHUNK_LEVEL)
-    os.environ[CHUNK_LEVEL] = "2"
-    try:
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv(CHUNK_LEVEL, "2")
         summary = train(dataclasses.replace(cfg, eval_untrained=True), run_dir)  # raises NaNError on NaNs
-    finally:
-        if before is None:
-            del os.environ[CHUNK_LEVEL]
-        else:
-            os.environ[CHUNK_LEVEL] = before
     untrained = summary["eval_untrained"]
     with open(run_dir / "episodes.csv") as f:
         rows = np.array([[float(r[1]), float(r[3])] for r in list(csv.reader(f))[1:]])

@@ -34,7 +34,7 @@ def test_a_cache_jax_already_uses_is_kept():
 
 # A fresh interpreter: enable the cache from the environment, compile two programs, print results.
 _PROGRAM = r"""
-import sys, warnings
+import os, sys, warnings
 import jax, jax.numpy as jnp
 from d2spo import compile_cache
 from d2spo.console import show_warning
@@ -42,7 +42,6 @@ warnings.showwarning = show_warning
 path = compile_cache.enable()
 print("dir", path)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)  # cache even these small programs
-import os
 scale = float(os.environ.get("D2SPO_TEST_SCALE", "3.0"))  # another scale: another program, a new entry
 f = jax.jit(lambda x: jnp.sin(x) * scale + jnp.cumsum(x))
 g = jax.jit(lambda x: jnp.cos(x) - 2.0)
@@ -91,6 +90,11 @@ def test_a_damaged_entry_is_a_warning_and_a_fresh_compilation(tmp_path, damage):
     assert len(_entries(tmp_path)) == len(entries)
 
 
+def _access_time(entry: Path) -> Path:
+    """An entry's access-time file (JAX's names: KEY-cache, KEY-atime)."""
+    return entry.with_name(entry.name.removesuffix("-cache") + "-atime")
+
+
 def test_an_entry_without_its_access_time_does_not_stop_new_entries(tmp_path):
     """JAX's size-capped cache reads every entry's access-time file before it writes one; an entry
     without it (a command killed between the two writes) made every later write fail with a warning,
@@ -99,12 +103,12 @@ def test_an_entry_without_its_access_time_does_not_stop_new_entries(tmp_path):
     assert first.returncode == 0, first.stderr
     old = _entries(tmp_path)
     for e in old:
-        e.with_name(e.name.removesuffix("-cache") + "-atime").unlink()
+        _access_time(e).unlink()
     second = _run(str(tmp_path), scale=5.0)  # f is a new program; g's entry is read
     assert second.returncode == 0, second.stderr
     assert "warning" not in second.stderr.lower(), second.stderr
     assert len(_entries(tmp_path)) == len(old) + 1  # f at the new scale was written
-    assert all(e.with_name(e.name.removesuffix("-cache") + "-atime").is_file() for e in _entries(tmp_path))
+    assert all(_access_time(e).is_file() for e in _entries(tmp_path))
 
 
 def test_an_entry_left_without_its_access_time_mid_session_is_mended_before_the_next_write(tmp_path):
