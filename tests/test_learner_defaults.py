@@ -73,12 +73,16 @@ def test_the_generalists_actor_proposes_forward_motion_and_old_runs_keep_theirs(
 def test_the_exploration_noise_is_constant_unless_a_final_value_is_given():
     """``td3.exploration_noise_final``: None keeps TD3's constant noise (the same Python float, so the
     default program is traced as before); set, the noise falls on a straight line to it over the
-    run's episodes and stays there."""
+    run's episodes and stays there (``RunSchedule.per_episode``: one episode's share of the run)."""
     import jax.numpy as jnp
 
-    assert TD3Config().noise_at(jnp.int32(5000), 20000) == 0.2
+    from d2spo.algos.base import RunSchedule
+    from d2spo.ltl.anneal import AnnealConfig
+
+    per_episode = RunSchedule.for_run(AnnealConfig(), 20000).per_episode
+    assert TD3Config().noise_at(jnp.int32(5000), per_episode) == 0.2
     cfg = TD3Config(exploration_noise=0.2, exploration_noise_final=0.05)
-    at = [float(cfg.noise_at(jnp.int32(e), 20000)) for e in (0, 10000, 20000, 25000)]
+    at = [float(cfg.noise_at(jnp.int32(e), per_episode)) for e in (0, 10000, 20000, 25000)]
     assert at == pytest.approx([0.2, 0.125, 0.05, 0.05])
     with pytest.raises(ConfigError, match="exploration_noise_final"):
         TD3Config(exploration_noise_final=-0.1)

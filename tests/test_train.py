@@ -272,8 +272,8 @@ def test_the_learner_table_says_reward_annealing_sections_and_filter():
     assert {a for a in LEARNERS if LEARNERS[a].reward == "sparse"} == {"td3", "sl"}
     assert {a for a in LEARNERS if has_runtime_filter(a)} == {"d2spo", "sl"}
     # the registry, not the learner, switches the annealing off (td3 and tlgrl are one class)
-    assert not build(TrainConfig(algo="td3", num_envs=2))[2].anneal.cfg.enabled
-    assert build(TrainConfig(algo="tlgrl", num_envs=2))[2].anneal.cfg.enabled
+    assert not build(TrainConfig(algo="td3", num_envs=2))[2].schedule.cfg.enabled
+    assert build(TrainConfig(algo="tlgrl", num_envs=2))[2].schedule.cfg.enabled
 
 def test_seeds_vmapped_together_write_ordinary_runs_and_resume_exactly(tmp_path):
     from d2spo.train import train_seeds
@@ -394,3 +394,46 @@ def test_the_generalists_episodes_default_and_validation_seeds():
     old = config_to_dict(TrainConfig(generalist=True))
     del old["validation_layouts"]  # a generalist trained before validation kept its last policy
     assert config_from_dict(old).validation_layouts == 0
+
+
+def test_runs_that_differ_only_in_their_episode_count_are_one_program():
+    """What a run's length sets (the anneal rate k2, one episode's share of the run for the noise
+    decay: ``algos.base.RunSchedule``) reaches the programs as an argument, so that runs differing
+    only in ``--episodes`` lower to the same StableHLO and the second finds the first's compilation
+    in the cache. D²SPO on a patrol (both numbers read), the baselines' off- and on-policy loops (the
+    anneal); the numbers the argument carries give the bits the constants gave."""
+    import jax
+    import jax.numpy as jnp
+    from _tiny import tiny_cfg
+
+    from d2spo.algos.base import schedule_values, with_schedule
+    from d2spo.run import build
+    from d2spo.train import learner_program
+
+    def learner(episodes, algo="d2spo"):
+        if algo != "d2spo":  # the defaults, on the task and layout `relaxed`
+            return build(TrainConfig(algo=algo, task="relaxed", episodes=episodes, env=EnvConfig(layout="relaxed")).check())[2]
+        cfg = dataclasses.replace(tiny_cfg(), task="patrol2", episodes=episodes, env=EnvConfig(layout="paper"))
+        return build(cfg.check())[2]
+
+    short, long = learner(40), learner(400)
+    assert short.cfg.exploration_noise_final is not None and short.schedule.cfg.enabled
+    assert all(a != b for a, b in zip(schedule_values(short), schedule_values(long)))
+    key = jax.random.PRNGKey(0)
+    for name, arg in (("init", key), ("chunk", jax.eval_shape(short.init, key))):
+        assert learner_program(short, name).lower(arg).as_text() == learner_program(long, name).lower(arg).as_text()
+    for algo in ("td3-lag", "ppo-lag"):  # their schedules sit in the loop they share with other baselines
+        a, b = learner(40, algo), learner(400, algo)
+        assert schedule_values(a) != schedule_values(b)
+        assert learner_program(a, "init").lower(key).as_text() == learner_program(b, "init").lower(key).as_text()
+
+    episodes = jnp.arange(60, dtype=jnp.int32)  # past the 40 of `short`: its anneal and noise end
+
+    def numbers(schedule, episodes):  # the episode counts an argument, as in a chunk (not folded by XLA)
+        return jax.vmap(lambda e: (schedule.env_params(short.params, e).label_radius,
+                                   short.cfg.noise_at(e, schedule.per_episode)))(episodes)
+
+    as_argument = jax.jit(lambda v, e: numbers(with_schedule(short, v).schedule, e))(schedule_values(short), episodes)
+    as_constants = jax.jit(lambda e: numbers(short.schedule, e))(episodes)
+    for x, y in zip(as_argument, as_constants):
+        assert jnp.array_equal(x, y) and len(jnp.unique(x)) > 10

@@ -21,6 +21,7 @@ import jax.numpy as jnp
 from d2spo import memo
 from d2spo._xla import chunk_options, long_running_options
 from d2spo.algos import runs_a_recurrence
+from d2spo.algos.base import schedule_values, with_schedule
 from d2spo.algos.generalist import Redraw
 from d2spo.checkpoint import Checkpoints, fingerprint, has_checkpoint, run_fingerprint
 from d2spo.config import TrainConfig, config_to_dict
@@ -118,32 +119,38 @@ def _train_locked(cfg: TrainConfig, out: Path, built, resume: bool, progress: Pr
 
 
 
-class _ParamsArgument:
-    """A jitted learner method that takes the env params as an argument instead of folding them
-    into the program as constants: the generalist's are the field bank (128 MiB for 256 layouts),
-    which XLA took tens of minutes to compile as constants. ``lower`` as a jitted function has."""
+class _Program:
+    """A jitted learner method that takes what the run's length sets (``algos.base.RunSchedule``:
+    the anneal rate, the share of the run an episode is) as an argument, so that runs differing only
+    in ``--episodes`` are one program and share its compilation; and, for learners with
+    ``params_as_argument`` (the generalist), the env params too, instead of folding them into the
+    program as constants: the generalist's are the field bank (128 MiB for 256 layouts), which XLA
+    took tens of minutes to compile as constants. Called and lowered as a jitted function is."""
 
     def __init__(self, learner, name: str, vmapped: bool, donate: bool, options: dict | None):
-        def run(x, params):
-            fn = getattr(acting_on(learner, params), name)
+        params_argument = getattr(learner, "params_as_argument", False)
+
+        def run(x, schedule, params):
+            other = with_schedule(learner, schedule)
+            fn = getattr(acting_on(other, params) if params_argument else other, name)
             return (jax.vmap(fn) if vmapped else fn)(x)
 
-        self.params = learner.params  # a redraw replaces this wrapper's, never the learner's
-        self.fn = memo.per_object(learner, ("params-argument", name, vmapped, donate, _options_key(options)),
+        self.schedule = schedule_values(learner)
+        self.params = learner.params if params_argument else None  # a redraw replaces this wrapper's, never the learner's
+        self.fn = memo.per_object(learner, ("program", name, vmapped, donate, _options_key(options)),
                                   lambda: jax.jit(run, donate_argnums=(0,) if donate else (), compiler_options=options))
 
     def __call__(self, x):
-        return self.fn(x, self.params)
+        return self.fn(x, self.schedule, self.params)
 
     def lower(self, x):
-        return self.fn.lower(x, self.params)
+        return self.fn.lower(x, self.schedule, self.params)
 
 
 def learner_program(learner, name: str, vmapped: bool = False, donate: bool = False):
     """The jitted ``learner.<name>`` (``init`` or ``chunk``), vmapped over seeds if asked, donating
-    its argument if asked; a pipelined D²SPO learner's ``chunk`` is a ``pipelined.Pipelined`` of three.
-    Learners with ``params_as_argument`` (the generalist) get their env params as an argument
-    (``_ParamsArgument``); the others keep them as constants, as before.
+    its argument if asked (``_Program``: the run-length numbers, and the generalist's env params, are
+    arguments); a pipelined D²SPO learner's ``chunk`` is a ``pipelined.Pipelined`` of three.
     An ``init`` that pre-trains (``learner.long_init``) gets ``_xla.long_running_options()``, a
     ``chunk`` ``_xla.chunk_options()``."""
     if name == "chunk" and getattr(learner, "pipelined", False):  # D²SPO's --d2spo.pipeline: d2spo/pipelined.py
@@ -158,15 +165,11 @@ def learner_program(learner, name: str, vmapped: bool = False, donate: bool = Fa
         options = long_running_options()
     elif name == "chunk":
         options = chunk_options()
-    if getattr(learner, "params_as_argument", False):
-        return _ParamsArgument(learner, name, vmapped, donate, options)
-
-    def jitted():
-        fn = getattr(learner, name)
-        return jax.jit(jax.vmap(fn) if vmapped else fn, donate_argnums=0 if donate else (), compiler_options=options)
-
-    # one jitted function per learner and kind: traced and compiled once in this process (d2spo.memo)
-    return memo.per_object(learner, ("program", name, vmapped, donate, _options_key(options)), jitted)
+    if getattr(learner, "params_as_argument", False):  # a fresh wrapper: ``params`` is its own
+        return _Program(learner, name, vmapped, donate, options)
+    # one program per learner and kind: traced and compiled once in this process (d2spo.memo)
+    return memo.per_object(learner, ("wrapper", name, vmapped, donate, _options_key(options)),
+                           lambda: _Program(learner, name, vmapped, donate, options))
 
 
 def _options_key(options: dict | None) -> tuple | None:

@@ -8,11 +8,13 @@ inside one ``lax.scan`` (acting, stepping the env, storing, updating); the run l
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import copy
+from dataclasses import dataclass, replace
 from typing import Any, NamedTuple, Protocol
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from d2spo.ltl.anneal import AnnealConfig, annealed_params
 
@@ -79,19 +81,61 @@ class Learner(Protocol):
 
 
 @dataclass(frozen=True)
-class AnnealSchedule:
-    """The env params a learner trains on after ``episodes`` finished episodes: its layout's, with
-    the labelling radius annealed as in Sec. IV-C (``ltl.anneal``); k2 is fixed by the run's length."""
+class RunSchedule:
+    """What a learner's programs read of the run's length (``--episodes``): the env params it trains
+    on after ``episodes`` finished episodes, its layout's with the labelling radius annealed as in
+    Sec. IV-C (``ltl.anneal``, at the rate ``k2`` the run's length fixes), and the share of the run
+    one episode is (``per_episode``: TD3's noise decay, ``TD3Config.noise_at``).
+
+    ``k2`` and ``per_episode`` are float32 numbers. ``train.learner_program`` passes them to the
+    jitted programs as an argument (``schedule_values``, ``with_schedule``), so that runs differing
+    only in ``--episodes`` are one program and share its compilation (``d2spo.compile_cache``);
+    a learner's method traced alone folds them in as constants, which computes the same bits
+    (XLA turns the division by a constant into a product with its float32 reciprocal, as
+    ``per_episode`` is)."""
 
     cfg: AnnealConfig
-    k2: float
+    k2: Any
+    per_episode: Any
 
     @classmethod
-    def for_run(cls, cfg: AnnealConfig, total_episodes: int) -> AnnealSchedule:
-        return cls(cfg, cfg.rate(total_episodes))
+    def for_run(cls, cfg: AnnealConfig, total_episodes: int) -> RunSchedule:
+        return cls(cfg, np.float32(cfg.rate(total_episodes)), np.float32(1) / np.float32(max(1, total_episodes)))
 
     def env_params(self, params: Any, episodes: jax.Array) -> Any:
         return annealed_params(params, episodes, self.cfg, self.k2)
+
+    def values(self) -> tuple[Any, Any]:
+        return self.k2, self.per_episode
+
+    def at(self, values: tuple[Any, Any]) -> RunSchedule:
+        """This schedule reading ``values`` (``values()``'s pair, traced in a program)."""
+        return replace(self, k2=values[0], per_episode=values[1])
+
+
+_SCHEDULED_PARTS = ("loop", "rollouts")
+"""The attributes by which a learner holds a part with its own ``schedule`` (the baselines' shared
+off-policy loop and on-policy rollouts)."""
+
+
+def schedule_values(learner: Any) -> tuple[Any, Any]:
+    """The run-length numbers of ``learner`` (``RunSchedule.values``), found on it or on its part."""
+    for obj in (learner, *(getattr(learner, p) for p in _SCHEDULED_PARTS if hasattr(learner, p))):
+        if isinstance(getattr(obj, "schedule", None), RunSchedule):
+            return obj.schedule.values()
+    raise TypeError(f"{type(learner).__name__} holds no RunSchedule")
+
+
+def with_schedule(learner: Any, values: tuple[Any, Any]) -> Any:
+    """A shallow copy of ``learner`` (and of its part that holds the schedule) whose schedule reads
+    ``values``, which may be traced: what ``train.learner_program`` runs."""
+    other = copy.copy(learner)
+    if isinstance(getattr(learner, "schedule", None), RunSchedule):
+        other.schedule = learner.schedule.at(values)
+    for part in _SCHEDULED_PARTS:
+        if hasattr(learner, part):
+            setattr(other, part, with_schedule(getattr(learner, part), values))
+    return other
 
 
 def params_finite(tree: Any) -> jax.Array:

@@ -291,12 +291,12 @@ class D2SPOLearner(PipelinedChunks, TD3Learner):
         d2spo/pipelined.py)."""
         def act(k, random_phase):
             u_rl = explore(self.nets, c.agent, c.obs, k["act"], random_phase,
-                           self.cfg.noise_at(c.td3.episodes, self.total_episodes), self.cfg.exploration_noise_space)
+                           self.cfg.noise_at(c.td3.episodes, self.schedule.per_episode), self.cfg.exploration_noise_space)
             ctx = self.filter_context(c.env_state) if self.d2.runtime_filter else None
             return u_rl, self.execute(c.safety, c.obs, u_rl, c.env_state.pose, ctx)
 
         step = explore_and_store(c.td3, ("act", "env", "update", "data", "safety"), act, self.env, self.params,
-                                 self.anneal, self.num_envs, self.cfg.learning_starts)
+                                 self.schedule, self.num_envs, self.cfg.learning_starts)
         info, u_rl, action = step.info, step.proposal, step.action
         tr = sd.Transition(pose=info["pose"], next_pose=info["next_pose"], context=self.context(info),
                            obs=c.obs, action=action, u_rl=u_rl)
@@ -331,7 +331,7 @@ class D2SPOLearner(PipelinedChunks, TD3Learner):
         batch (metrics NaN)."""
         def u_rl_fn(o):  # the current RL proposal, with exploration noise, as π_Ω will see it
             u = self.nets.actor.apply(c.agent.actor, o)
-            std = self.cfg.noise_at(c.td3.episodes, self.total_episodes)
+            std = self.cfg.noise_at(c.td3.episodes, self.schedule.per_episode)
             noise = std * jax.random.normal(jax.random.fold_in(k_safe, 1), u.shape)
             return jnp.clip(u + noise, self.nets.actor.action_low(), 1.0)
 

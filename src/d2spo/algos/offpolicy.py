@@ -25,7 +25,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from d2spo import replay
-from d2spo.algos.base import AnnealSchedule, ChunkLog, episode_log, params_finite
+from d2spo.algos.base import ChunkLog, RunSchedule, episode_log, params_finite
 from d2spo.ltl.anneal import AnnealConfig
 from d2spo.replay import ReplayBuffer, Transition
 
@@ -49,7 +49,7 @@ class Stepped(NamedTuple):
     info: dict[str, jax.Array]
 
 
-def explore_and_store(c, keys: tuple[str, ...], act: Callable, env, params, anneal: AnnealSchedule, num_envs: int,
+def explore_and_store(c, keys: tuple[str, ...], act: Callable, env, params, schedule: RunSchedule, num_envs: int,
                       learning_starts: int) -> Stepped:
     """The opening of every off-policy learner's vectorised step, written once. ``c`` has ``key``,
     ``env_state``, ``obs``, ``buffer``, ``steps`` and ``episodes`` (``TD3Carry``, ``OffPolicyCarry``).
@@ -65,7 +65,7 @@ def explore_and_store(c, keys: tuple[str, ...], act: Callable, env, params, anne
     named = dict(zip(keys, split))
     random_phase = c.steps * num_envs < learning_starts
     proposal, action = act(named, random_phase)
-    params = anneal.env_params(params, c.episodes)
+    params = schedule.env_params(params, c.episodes)
     env_state, obs, reward, cost, done, info = env.step_batch(named["env"], c.env_state, action, params)
     buffer = replay.add_batch(c.buffer, Transition(c.obs, action, reward, cost, info["next_obs"],
                                                    info["terminated"].astype(jnp.float32)))
@@ -138,7 +138,7 @@ class OffPolicyLoop:
                  buffer_size: int, batch_size: int, learning_starts: int, updates_per_step: int,
                  cost_window: int | None = None):
         self.env, self.params = env, params
-        self.anneal = AnnealSchedule.for_run(anneal, total_episodes)
+        self.schedule = RunSchedule.for_run(anneal, total_episodes)
         self.num_envs, self.chunk_steps = num_envs, chunk_steps
         self.buffer_size, self.batch_size = buffer_size, batch_size
         self.learning_starts, self.updates_per_step = learning_starts, updates_per_step
@@ -146,7 +146,7 @@ class OffPolicyLoop:
 
     def init(self, key: jax.Array, agent: Any) -> OffPolicyCarry:
         k_env, key = jax.random.split(key)
-        env_state, obs = self.env.reset_batch(k_env, self.anneal.env_params(self.params, jnp.int32(0)), self.num_envs)
+        env_state, obs = self.env.reset_batch(k_env, self.schedule.env_params(self.params, jnp.int32(0)), self.num_envs)
         o = jax.ShapeDtypeStruct((self.env.observation_size,), jnp.float32)
         example = Transition(obs=o, action=jax.ShapeDtypeStruct((self.env.action_size,), jnp.float32),
                              reward=jnp.float32(0), cost=jnp.float32(0), next_obs=o, done=jnp.float32(0))
@@ -165,7 +165,7 @@ class OffPolicyLoop:
             action = jnp.where(warm_up, uniform, algo.behaviour(c.agent, c.obs, k["act"]))
             return action, action
 
-        s = explore_and_store(c, ("act", "uniform", "env", "update"), act, self.env, self.params, self.anneal,
+        s = explore_and_store(c, ("act", "uniform", "env", "update"), act, self.env, self.params, self.schedule,
                               self.num_envs, self.learning_starts)
         costs = None if c.costs is None else record_episodes(c.costs, s.done, s.info["ep_cost"])
         mean_cost = None if costs is None else mean_episode_cost(costs)

@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from d2spo.algos.base import AnnealSchedule, ChunkLog, episode_log
+from d2spo.algos.base import ChunkLog, RunSchedule, episode_log
 from d2spo.algos.common import gae as gae_lib
 from d2spo.algos.common import normalize
 from d2spo.algos.common.networks import (
@@ -128,12 +128,12 @@ class Rollouts:
         if rollout_steps < 1:
             raise ConfigError("rollout_steps", f"must be a positive integer, got {rollout_steps}")
         self.env, self.params, self.nets = env, params, nets
-        self.anneal = AnnealSchedule.for_run(anneal, total_episodes)
+        self.schedule = RunSchedule.for_run(anneal, total_episodes)
         self.num_envs, self.rollout_steps, self.normalize_obs = num_envs, rollout_steps, normalize_obs
 
     def init(self, key: jax.Array) -> RolloutState:
         k_env, key = jax.random.split(key)
-        env_state, obs = self.env.reset_batch(k_env, self.anneal.env_params(self.params, jnp.int32(0)), self.num_envs)
+        env_state, obs = self.env.reset_batch(k_env, self.schedule.env_params(self.params, jnp.int32(0)), self.num_envs)
         zero = jnp.zeros((), jnp.int32)
         return RolloutState(key, env_state, obs, RunningMeanStd.create((self.env.observation_size,)), zero, zero,
                             jnp.float32(0.0), jnp.float32(self.params.max_steps))
@@ -149,7 +149,7 @@ class Rollouts:
             obs = self.norm(s.obs_rms, s.obs)
             mean, log_std = self.nets.policy.apply(policy, obs)
             action = gaussian_sample(k_act, mean, log_std)
-            params = self.anneal.env_params(self.params, s.episodes)
+            params = self.schedule.env_params(self.params, s.episodes)
             env_state, next_obs, reward, cost, done, info = self.env.step_batch(k_env, s.env_state, action, params)
             row = Batch(obs, self.norm(s.obs_rms, info["next_obs"]), s.obs, action,
                         gaussian_log_prob(mean, log_std, action), mean, log_std, reward, cost,

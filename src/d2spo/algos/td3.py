@@ -22,7 +22,7 @@ import optax
 from flax import struct
 
 from d2spo import replay
-from d2spo.algos.base import AnnealSchedule, ChunkLog, episode_log, params_finite
+from d2spo.algos.base import ChunkLog, RunSchedule, episode_log, params_finite
 from d2spo.algos.common.networks import DeterministicActor, TwinQ, init_params
 from d2spo.algos.common.td3_losses import soft_update, td3_actor_loss, td3_critic_loss
 from d2spo.algos.offpolicy import explore_and_store
@@ -111,12 +111,13 @@ class TD3Config:
         ``forward_only``, else None (-1 everywhere)."""
         return (0.0,) + (-1.0,) * (action_size - 1) if self.forward_only else None
 
-    def noise_at(self, episodes: jax.Array, total_episodes: int) -> jax.Array | float:
-        """The exploration noise std after ``episodes`` of ``total_episodes`` finished episodes:
+    def noise_at(self, episodes: jax.Array, per_episode) -> jax.Array | float:
+        """The exploration noise std after ``episodes`` finished episodes of a run each of whose
+        episodes is ``per_episode`` of it (``RunSchedule.per_episode``, 1 / episodes in float32):
         ``exploration_noise``, or with ``exploration_noise_final`` the straight line between the two."""
         if self.exploration_noise_final is None:
             return self.exploration_noise
-        done = jnp.minimum(1.0, episodes.astype(jnp.float32) / max(1, total_episodes))
+        done = jnp.minimum(1.0, episodes.astype(jnp.float32) * per_episode)
         return self.exploration_noise + (self.exploration_noise_final - self.exploration_noise) * done
 
     def for_task(self, recurrence: bool) -> TD3Config:
@@ -303,8 +304,8 @@ class TD3Learner:
     def __init__(self, env, params, cfg: TD3Config, anneal: AnnealConfig, num_envs: int, chunk_steps: int,
                  total_episodes: int):
         self.env, self.params, self.cfg = env, params, cfg
-        self.anneal = AnnealSchedule.for_run(anneal, total_episodes)
-        self.num_envs, self.chunk_steps, self.total_episodes = num_envs, chunk_steps, total_episodes
+        self.schedule = RunSchedule.for_run(anneal, total_episodes)
+        self.num_envs, self.chunk_steps = num_envs, chunk_steps
         self.nets = make_nets(env.action_size, cfg)
 
     # -- shared with D2SPO --------------------------------------------------------------
@@ -316,7 +317,7 @@ class TD3Learner:
 
     def init(self, key: jax.Array) -> TD3Carry:
         k_env, k_agent, key = jax.random.split(key, 3)
-        env_state, obs = self.env.reset_batch(k_env, self.anneal.env_params(self.params, jnp.int32(0)), self.num_envs)
+        env_state, obs = self.env.reset_batch(k_env, self.schedule.env_params(self.params, jnp.int32(0)), self.num_envs)
         agent = init_agent(k_agent, self.nets, self.env.observation_size, self.env.action_size)
         zero = jnp.zeros((), jnp.int32)
         return TD3Carry(key, env_state, obs, agent, self.empty_buffer(), zero, zero)
@@ -329,10 +330,10 @@ class TD3Learner:
     def _iteration(self, c: TD3Carry):
         def act(k, random_phase):
             action = explore(self.nets, c.agent, c.obs, k["act"], random_phase,
-                             self.cfg.noise_at(c.episodes, self.total_episodes), self.cfg.exploration_noise_space)
+                             self.cfg.noise_at(c.episodes, self.schedule.per_episode), self.cfg.exploration_noise_space)
             return action, action
 
-        s = explore_and_store(c, ("act", "env", "update"), act, self.env, self.params, self.anneal, self.num_envs,
+        s = explore_and_store(c, ("act", "env", "update"), act, self.env, self.params, self.schedule, self.num_envs,
                               self.cfg.learning_starts)
         agent, metrics = learn_from_buffer(self.nets, c.agent, s.carry.buffer, s.keys["update"], s.carry.steps,
                                            self.num_envs, self.cfg)
