@@ -3,7 +3,7 @@
 # Trains each of the 9 learners and a small generalist for 48 episodes (seed 0), evaluates d2spo on its
 # layout and the generalist zero-shot on another task and three unseen layouts, and writes OUTDIR/FINGERPRINT:
 # per learner the SHA-256 (16 hex) of episodes.csv, of its checkpoints and of summary.json without
-# timings, and of the evaluations' printouts and JSON files (without timings and output paths; give
+# timings, and of the evaluations' printouts and JSON files (without timings, progress clocks and output paths; give
 # OUTDIRs of the same length, as the printout's centred title holds the path). Two source trees
 # give the same lines iff their results are byte-identical. Used to check refactors.
 set -e
@@ -32,7 +32,7 @@ def clean(d):
 print(json.dumps(clean(json.load(open('$algo/summary.json'))), sort_keys=True))" | sha256sum | cut -c1-16)"
 done > $OUT/FINGERPRINT
 for e in d2spo generalist; do  # the eval's printout and its JSON file, without timings
-  echo "eval-$e $(grep -v -i "second\|wall\| s\b\|wrote" eval-$e.txt | sed "s#$OUT##g" | tr -s ' ' | sha256sum | cut -c1-16) $(python3 -c "import json,glob
+  echo "eval-$e $(grep -v -i "second\|wall\| s\b\|wrote" eval-$e.txt | sed -E "s#$OUT##g; s/[0-9]+:[0-9]{2}:[0-9]{2}//g" | tr -s ' ' | sha256sum | cut -c1-16) $(python3 -c "import json,glob
 d=[json.load(open(p)) for p in sorted(glob.glob('$e/eval-*.json'))]
 print(json.dumps([{k: v for k, v in x.items() if 'second' not in k and 'wall' not in k and k != 'run'} for x in d], sort_keys=True))" | sha256sum | cut -c1-16)"
 done >> $OUT/FINGERPRINT
