@@ -35,6 +35,8 @@ def summary_table(summary: dict, title: str):
     if "wall_seconds_total" in summary:  # summaries written before compilation was timed lack it
         t.add_row("wall time, all (env, compiling, final eval)",
                   f"{summary['wall_seconds_total']:.0f} s (compiling {summary['compile_seconds']:.0f} s)")
+        if summary.get("compile_seconds_saved", 0.0) >= 0.5:  # programs loaded from the persistent cache
+            t.add_row("compile time the cache saved", f"{summary['compile_seconds_saved']:.0f} s")
     recurrence = "route_optimal_visits" in summary  # no episode completes it: scored by its visits
     t.add_row(f"safety rate (last {summary['window_episodes']})", pct(summary["safety_rate"]))
     if not recurrence:

@@ -237,7 +237,8 @@ class RunRecord:
 
     def finish(self, learner, carry, env, params, progress: ProgressFn | None = None, untrained=None) -> dict:
         """summary.json. Wall times: ``wall_seconds`` is the training loop alone (no compilation; the
-        steps per second use it), ``compile_seconds`` the compilation of the learner, and
+        steps per second use it), ``compile_seconds`` the compilation of the learner (with
+        ``compile_seconds_saved`` what the persistent cache saved of it, by JAX's reckoning), and
         ``wall_seconds_total`` everything ``train`` spent: building the env, compiling, training and
         the final evaluation, over every session of a resumed run."""
         cfg = self.cfg
@@ -248,6 +249,7 @@ class RunRecord:
             "layout": f"{cfg.generalist_world}:0..{cfg.generalist_layouts - 1}" if cfg.generalist else cfg.layout,
             "episodes": len(self.writer), "env_steps": self.meta["env_steps"], "wall_seconds": round(wall, 2),
             "compile_seconds": round(self.meta.get("compile_seconds", 0.0), 2),
+            "compile_seconds_saved": round(self.meta.get("compile_seconds_saved", 0.0), 2),
             "env_steps_per_second": round(self.meta["env_steps"] / max(wall, 1e-9), 1),
             "window": cfg.window, **window_rates(self.writer.rows, cfg.window),
             "device": jax.devices()[0].platform,

@@ -18,7 +18,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 
-from d2spo import memo
+from d2spo import compile_cache, memo
 from d2spo._xla import chunk_options, long_running_options
 from d2spo.algos import runs_a_recurrence
 from d2spo.algos.base import schedule_values, with_schedule
@@ -87,7 +87,7 @@ def _train_locked(cfg: TrainConfig, out: Path, built, resume: bool, progress: Pr
             return read_json(out / "summary.json", "the run's summary")
         carry = jax.tree_util.tree_map(jnp.asarray, carry)
     with wandb_run(cfg, out, continuing=meta is not None) as wandb:  # None without --wandb
-        t_compile = _compiling([progress], [meta], cfg)
+        started = _compiling([progress], [meta], cfg)
         if not (resume and meta is not None):
             if resume:
                 warnings.warn(f"{out}: no checkpoint was written before it stopped; training from the first episode",
@@ -96,7 +96,7 @@ def _train_locked(cfg: TrainConfig, out: Path, built, resume: bool, progress: Pr
         untrained = None
         if cfg.eval_untrained and cfg.eval_episodes > 0 and meta is None:
             untrained = jax.tree_util.tree_map(jnp.copy, learner.policy(carry))  # ``chunk`` donates the carry
-        overhead = _compiled(chunk, carry, t_enter, t_compile, [progress], [meta], cfg)
+        overhead = _compiled(chunk, carry, t_enter, started, [progress], [meta], cfg)
         validation = validation_for(cfg, env, params, learner)
         run = RunRecord(cfg, out, meta, checkpoints, overhead, validation, wandb, visits=params.aut.visit is not None,
                         recurrence=runs_a_recurrence(env))
@@ -176,25 +176,29 @@ def _options_key(options: dict | None) -> tuple | None:
     return None if options is None else tuple(sorted(options.items()))
 
 
-def _compiling(progress: list[ProgressFn | None], metas: list[dict | None], cfg: TrainConfig) -> float:
-    """Tell the progress callbacks (one per run) that compilation starts; returns the time it does."""
+def _compiling(progress: list[ProgressFn | None], metas: list[dict | None], cfg: TrainConfig) -> tuple[float, float]:
+    """Tell the progress callbacks (one per run) that compilation starts; returns the time it does
+    and the compile time the cache had saved by then (``compile_cache.seconds_saved``)."""
     for fn, meta in zip(progress, metas):
         if fn is not None:
             fn({"phase": "compiling", "episodes": (meta or {}).get("episodes", 0), "total": cfg.episodes})
-    return time.perf_counter()
+    return time.perf_counter(), compile_cache.seconds_saved()
 
 
-def _compiled(chunk, carry, t_enter: float, t_compile: float, progress: list[ProgressFn | None],
+def _compiled(chunk, carry, t_enter: float, started: tuple[float, float], progress: list[ProgressFn | None],
               metas: list[dict | None], cfg: TrainConfig) -> dict:
     """Compile ``chunk`` ahead of its first call (the calls reuse the compilation), so that its time
-    is known and shown; returns the overhead times for ``RunRecord``."""
+    is known and shown; returns the overhead times for ``RunRecord``, with the compile time the
+    persistent cache saved since ``started`` (``_compiling``'s)."""
     chunk.lower(carry).compile()
     now = time.perf_counter()
+    t_compile, saved = started
     for fn, meta in zip(progress, metas):
         if fn is not None:
             fn({"phase": "compiled", "compile_seconds": now - t_compile, "episodes": (meta or {}).get("episodes", 0),
                 "total": cfg.episodes})
-    return {"compile_seconds": now - t_compile, "setup_seconds": t_compile - t_enter}
+    return {"compile_seconds": now - t_compile, "setup_seconds": t_compile - t_enter,
+            "compile_seconds_saved": max(0.0, compile_cache.seconds_saved() - saved)}  # reads can outlast tiny compiles
 
 
 def _seed_slice(tree, i: int):
@@ -265,18 +269,18 @@ def _train_seeds_locked(cfgs: list[TrainConfig], outs: list[Path], built, progre
         checkpoints.tidy()
         carry = jax.tree_util.tree_map(jnp.asarray, carry)
         metas = gmeta["runs"]
-        t_compile = _compiling(progress, metas, cfgs[0])
+        started = _compiling(progress, metas, cfgs[0])
     else:
         group.mkdir(parents=True, exist_ok=True)
         metas = [None] * len(cfgs)
-        t_compile = _compiling(progress, metas, cfgs[0])
+        started = _compiling(progress, metas, cfgs[0])
         carry = learner_program(learner, "init", vmapped=True)(keys)
     summaries: list[dict | None] = [read_json(o / "summary.json", "summary") if (o / "summary.json").is_file()
                                     else None for o in outs]
     with contextlib.ExitStack() as stack:  # each unfinished seed's W&B run (None without --wandb)
         sinks = [None if s_ is not None else stack.enter_context(wandb_run(c, o, continuing=m is not None))
                  for c, o, m, s_ in zip(cfgs, outs, metas, summaries)]
-        overhead = _compiled(chunk, carry, t_enter, t_compile, progress, metas, cfgs[0])
+        overhead = _compiled(chunk, carry, t_enter, started, progress, metas, cfgs[0])
         runs = [None if s_ is not None else RunRecord(c, o, m, Checkpoints(o, p), overhead,
                                                       validation_for(c, env, params, learner), wandb=w,
                                                       visits=params.aut.visit is not None,
