@@ -111,10 +111,11 @@ def assert_same_run(run: Path, ref: Path, why: str) -> None:
     assert (run / "episodes.csv").read_bytes() == (ref / "episodes.csv").read_bytes(), why
     assert state_file(run).read_bytes() == state_file(ref).read_bytes(), why
     meta, ref_meta = counters(run), counters(ref)
-    clocks = {k: 0 for k in ("wall_seconds", "setup_seconds", "compile_seconds")}  # times, not state
+    clocks = {k: 0 for k in ("wall_seconds", "setup_seconds", "compile_seconds", "compile_seconds_saved")}  # times, not state
     assert {**meta, **clocks} == {**ref_meta, **clocks}, why
     summary, ref_summary = (json.loads((d / "summary.json").read_bytes()) for d in (run, ref))
-    timing = ("wall_seconds", "env_steps_per_second", "wall_seconds_total", "compile_seconds")
+    timing = ("wall_seconds", "env_steps_per_second", "wall_seconds_total", "compile_seconds",
+              "compile_seconds_saved")
     assert {k: v for k, v in summary.items() if k not in timing} == \
         {k: v for k, v in ref_summary.items() if k not in timing}, why
     left = sorted(p.name for p in run.iterdir() if p.name.endswith(".tmp") or p.name == ".lock")
