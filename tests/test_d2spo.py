@@ -70,7 +70,6 @@ def test_cautious_start_makes_random_exploration_safe():
     proposals, which crash in most episodes, into mostly safe ones (2026-12-01: 34% of episodes
     safe without it and 100% with it on `relaxed`; 33% and 100% for ϕ1 on `paper`). The learner is the short
     run's: placed after that test, it finds the init program the run compiled (d2spo.memo)."""
-    # the short run's config (episodes set the annealing rate, which init compiles in)
     env, params, learner = build(short_run_config())
     carry = learner_program(learner, "init")(jax.random.PRNGKey(0))
     raw = random_proposal_safety(learner, carry, env, params, shielded=False)
