@@ -393,4 +393,3 @@ def test_the_generalists_episodes_default_and_validation_seeds():
     old = config_to_dict(TrainConfig(generalist=True))
     del old["validation_layouts"]  # a generalist trained before validation kept its last policy
     assert config_from_dict(old).validation_layouts == 0
-
