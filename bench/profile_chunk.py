@@ -82,7 +82,7 @@ def main() -> None:
 
     keys = jax.random.split(jax.random.PRNGKey(1), 4)
     u0 = jnp.zeros((cfg.num_envs, env.action_size))
-    ep = L.anneal.env_params(L.params, carry.episodes)
+    ep = L.schedule.env_params(L.params, carry.episodes)
 
     def env_step(s):
         k, es = s
