@@ -87,7 +87,8 @@ def train_seed(runs: Path, seed: int, quick: bool) -> Path:
         return out
     extra = dict(episodes=64, generalist_layouts=8, validation_layouts=0, eval_episodes=0) if quick else {}
     cfg = TrainConfig(algo="d2spo", generalist=True, task="phi1", seed=seed, **extra)
-    train_with_progress(cfg, out, resume=(out / "config.json").is_file())
+    resume = out if (out / "checkpoint.json").is_file() else None  # an interrupted training goes on
+    train_with_progress(cfg, out, resume, show=True)
     return out
 
 
