@@ -9,7 +9,7 @@ PY     := $(VENV)/bin/python
 comma  := ,
 STAMP  := $(VENV)/.installed-$(PYVER)-$(subst $(comma),-,$(EXTRAS))
 
-.PHONY: install demo test test-fast smoke bench clean coinstall-check
+.PHONY: install demo test test-fast smoke bench bench-smoke clean coinstall-check
 
 # uv installs the pinned set (constraints.txt) in about a quarter of pip's time: 24-26 s against
 # 92 s on the slow 2-core Intel, cold, 2026-11-29, the same versions; pip does it where uv cannot be
@@ -63,6 +63,10 @@ coinstall-check:
 
 bench: $(STAMP)
 	$(PY) bench/env_throughput.py
+
+# Every script of bench/ and examples/ once, on tiny settings: that each still runs (not a timing).
+bench-smoke: $(STAMP)
+	PY=$(PY) bash bench/smoke.sh
 
 clean:
 	rm -rf $(VENV) .venv-3.* .venv-coinstall demo_out .pytest_cache .hypothesis
