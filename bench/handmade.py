@@ -49,6 +49,9 @@ def main() -> None:
     print(f"{args.run}: its {meta['policy']} policy", flush=True)
     rows = []
     cases = [(path, task) for path in sorted(HERE.glob("*.json")) for task in OWN_TASKS.get(path.stem, A_TASKS)]
+    if args.cases is not None and args.cases < len(cases):
+        print(f"--cases {args.cases}: the first {args.cases} of the {len(cases)} hand-made cases only; "
+              "these figures are not the table's", flush=True)
     for path, task in cases[:args.cases]:
         row = {"layout": path.stem, "task": task}
         try:
@@ -68,7 +71,7 @@ def main() -> None:
         print(json.dumps(row), flush=True)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "handmade.json").write_text(json.dumps({"run": str(args.run), "policy": meta["policy"],
-                                                        "episodes": args.episodes, "rows": rows}, indent=1))
+                                                        "episodes": args.episodes, "cases_of": len(cases), "rows": rows}, indent=1))
     done = [r for r in rows if "filter" in r]
     print("\n| layout | task | complete (π_Ω) | safe (π_Ω) | complete (filter) | safe (filter) |")
     print("|---|---|---:|---:|---:|---:|")
@@ -82,7 +85,7 @@ def main() -> None:
     if done:
         comp = [r["filter"]["completion_rate"] for r in done]
         worst = min(done, key=lambda r: r["filter"]["completion_rate"])
-        print(f"\n{len(done)} cases ({len(rows) - len(done)} refused): mean completion with the filter "
+        print(f"\n{len(done)} cases of {len(cases)} ({len(rows) - len(done)} refused): mean completion with the filter "
               f"{np.mean(comp):.1%} (π_Ω alone {np.mean([r['alone']['completion_rate'] for r in done]):.1%}); "
               f"worst {worst['filter']['completion_rate']:.0%} ({worst['layout']}, {worst['task']}); safety π_Ω "
               f"{np.mean([r['alone']['safety_rate'] for r in done]):.2%} (worst "
