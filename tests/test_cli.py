@@ -76,6 +76,17 @@ def test_ltl_on_a_layout_warns_of_propositions_that_label_no_area(capsys):
     assert cli.main(["ltl", "F A4", "--layout", "paper"]) == 0 and not capsys.readouterr().err.strip()
 
 
+@pytest.mark.parametrize("formula", ["false", "G false", "F A1 & G !A1", "GF A1 & G !A1"])
+def test_ltl_warns_in_one_line_that_an_unsatisfiable_formula_has_no_run(formula, capsys):
+    """`d2spo ltl false` printed a one-state rejecting automaton and nothing else; `d2spo train`
+    refuses it. Now one warning line says so; a satisfiable formula prints none."""
+    assert cli.main(["ltl", formula]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{formula!r} is unsatisfiable: no run satisfies it" in err[0], err
+    assert cli.main(["ltl", formula.replace("!A1", "!A2")]) == 0
+    assert ("unsatisfiable" in capsys.readouterr().err) == formula.endswith("false")
+
+
 def _docs_layout_example() -> str:
     """The example layout of docs/layouts.md, verbatim (the first ```json block)."""
     from pathlib import Path

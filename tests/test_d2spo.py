@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import pytest
@@ -95,6 +97,10 @@ def test_eval_switches_the_runtime_filter_on_away_from_the_training_layout():
     assert filter_choice(d2, None, None, None, {"slip": 0.05}) is None  # the trained value: nothing changes
     assert filter_choice(d2, "random:3", None, False) is False  # asked for: the paper's π_Ω alone
     assert filter_choice(TrainConfig(algo="td3-lag"), "random:3", None, None) is None  # no filter to switch
+    # a generalist never trained on its config's default layout (`paper`): on there too
+    gen = dataclasses.replace(d2, generalist=True)
+    assert filter_choice(gen, "paper", None, None) is True and filter_choice(gen, "random:3", None, None) is True
+    assert filter_choice(gen, "paper", None, False) is False
 
 
 def test_one_compiled_rollout_serves_every_random_layout():

@@ -91,6 +91,10 @@ def test_a_misspelt_key_is_named_with_the_key_it_is_closest_to(tmp_path):
     data["obstacles"][0] = {"center": data["obstacles"][0]["center"], "radious": 0.3}  # not "half_extents: missing"
     with pytest.raises(ConfigError, match=r"obstacles\[0\]\.radious: unknown key \(did you mean 'radius'\?\)"):
         layouts.load(write(tmp_path, data))
+    # the message names the file, as a malformed file's does
+    (tmp_path / "list.json").write_text("[1, 2]")
+    with pytest.raises(ConfigError, match=r"^layout: expected a JSON object, got list \(in .*list\.json\)$"):
+        layouts.load(str(tmp_path / "list.json"))
 
 
 def test_good_json_layout_loads_and_round_trips(tmp_path):

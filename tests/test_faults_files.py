@@ -190,7 +190,7 @@ def test_a_config_json_that_is_not_an_object_is_one_line(tmp_path, capsys, no_bu
 def fake_rollouts(monkeypatch):
     """``d2spo eval`` without a policy or a rollout: every layout gets the same rates."""
     rates = {"episodes": 1, "safety_rate": 1.0, "completion_rate": 0.0, "mean_return": 0.0, "mean_length": 1.0,
-             "mean_distance": 0.0}
+             "mean_distance": 0.0, "max_steps": 2}
     monkeypatch.setattr("d2spo.evaluate.load_policy",
                         lambda run_dir, which, **kw: (None, None, None, {"policy": "last (after 0 episodes)"}))
     monkeypatch.setattr("d2spo.evaluate._specialist_rollouts", lambda cfg, learner, policy, ecfg, *a, **kw:

@@ -82,11 +82,22 @@ def test_outputs_and_summary(tmp_path, capsys):
     ev = json.loads((run / "eval-relaxed-default.json").read_text())
     assert ev["episodes"] == 4 and [p["layout"] for p in ev["per_layout"]] == ["relaxed"]
     assert ev["mean_distance"] > 0.0 and ev["runtime_filter"] is None  # tlgrl has no filter
-    assert ev["max_steps"] is None and not ev["max_steps_given"]
+    # the limit its episodes ran to: the run's own (its config's, as training built its env)
+    from d2spo.run import build, load_run_config
+    own = int(build(load_run_config(run))[1].max_steps)
+    assert ev["max_steps"] == ev["per_layout"][0]["max_steps"] == own and not ev["max_steps_given"]
     # another episode limit (a specialist; tests/test_zero_shot.py checks what it does to a patrol)
     assert main(["eval", str(run), "--episodes", "4", "--max-steps", "60", "--no-progress"]) == 0
     longer = json.loads((run / "eval-relaxed-default-T60.json").read_text())
     assert longer["max_steps"] == 60 and longer["max_steps_given"]
+    # training's final evaluation again: its key (the run's seed + 10000) and its episode count; another
+    # seed is another evaluation, in a file of its own
+    assert main(["eval", str(run), "--episodes", "8", "--seed", "10000", "--no-progress"]) == 0
+    again = json.loads((run / "eval-relaxed-default-s10000.json").read_text())
+    keys = ("safety_rate", "completion_rate", "mean_return", "mean_length", "mean_distance")
+    assert {k: again["per_layout"][0][k] for k in keys} == pytest.approx({k: summary["eval"][k] for k in keys},
+                                                                          rel=1e-6)
+    assert again["seed"] == 10000 and ev["seed"] == 0
     # under custom dynamics: a JSON file with every field, and a per-field flag on top of it
     robot = {"dt": 0.1, "v_max": 0.5, "omega_max": 1.0, "actuator_tau": 0.0, "v_gain": 1.0, "omega_gain": 1.0,
              "slip": 0.0, "noise_xy": 0.0, "noise_theta": 0.0}

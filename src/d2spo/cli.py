@@ -95,6 +95,9 @@ class LtlCmd:
             check_picture_path(self.plot, "plot")
         warn_if_task_name_typo(self.formula)
         aut = task_automaton(task_formula(self.formula))  # a Büchi task where no finite run completes it
+        if aut.initial in aut.rejecting:  # the empty prefix is already bad: unsatisfiable
+            warnings.warn(f"{self.formula!r} is unsatisfiable: no run satisfies it (its automaton starts in "
+                          "its rejecting state), so no policy can be trained on it", TaskWarning, stacklevel=2)
         if self.all_letters:
             feasible, letters = None, "every letter (all areas may hold at once)"
         elif self.layout is not None:

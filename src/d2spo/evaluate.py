@@ -72,13 +72,16 @@ class EvalConfig:
     """Evaluate under other dynamics: a preset (ideal, default, turtlebot: its unmodelled effects, with the
     trained time step and speed limits) or a JSON file (every field it gives: docs/env.md)."""
     seed: int = 0
-    """Seed of the evaluation episodes."""
+    """Seed of the evaluation episodes (their starts and noise). Training's final evaluation in
+    summary.json ran the run's seed + 10000: ``--seed`` that number and ``--episodes`` its count give
+    its episodes again."""
     layout_seeds: int = 1
     """With a drawn --layout (random, random5, zones or world[:SEED]): average over this many
     layouts of it (seeds SEED..SEED+n-1)."""
     runtime_filter: bool | None = None
     """D²SPO only: switch the runtime safety filter on or off for this evaluation; default: as trained on
-    the training layout and dynamics, on elsewhere (π_Ω alone transfers poorly to unseen layouts)."""
+    the training layout and dynamics, on elsewhere and for a generalist everywhere (π_Ω alone transfers
+    poorly to unseen layouts)."""
     filter_iters: int | None = None
     """D²SPO only: linearise-and-project iterations of the runtime filter; default: as trained."""
     filter_alpha: float | None = None
@@ -163,11 +166,12 @@ def filter_choice(cfg: TrainConfig, layout: str | None, dynamics: str | None, as
                   overrides: dict[str, float] | None = None) -> bool | None:
     """The runtime filter's setting for an evaluation: what was asked; else on for a D²SPO policy on
     another layout or other dynamics than it was trained on (deployment where the learned h never
-    saw data); else None, as trained."""
+    saw data), and for a generalist on any layout (it trained on a bank of drawn layouts, never on a
+    named one: its config's ``env.layout`` is an unused default); else None, as trained."""
     if asked is not None or not has_runtime_filter(cfg.algo):
         return asked
     trained, now = cfg.env.resolved(), eval_env_config(cfg, layout, dynamics, overrides).resolved()
-    elsewhere = ((layout is not None and layout != cfg.layout)
+    elsewhere = (cfg.generalist or (layout is not None and layout != cfg.layout)
                  or any(getattr(trained, k) != getattr(now, k) for k in dyn.DYNAMICS_FIELDS))
     return True if elsewhere else None
 
@@ -211,7 +215,8 @@ def evaluate_run(run_dir: Path, ecfg: EvalConfig = EvalConfig(), keep_paths: int
     else:
         _, learner, policy, meta = load_policy(run_dir, ecfg.policy, layout=ecfg.layout)
         results = _specialist_rollouts(cfg, learner, policy, ecfg, overrides, keep_paths, on_layout)
-        limit, which = ecfg.max_steps, meta["policy"]
+        # the episode limit run: the one asked for, else the longest of the layouts' own limits
+        limit, which = max(r["max_steps"] for r in results), meta["policy"]
     if on_layout is not None:
         on_layout(len(layouts), len(layouts), None)
     paths = [r.pop("paths") for r in results] if keep_paths else None
@@ -267,7 +272,7 @@ def _specialist_rollouts(cfg: TrainConfig, learner, policy, ecfg: EvalConfig, ov
         if shape not in compiled:
             compiled[shape] = make_rollout(other, env, ecfg.episodes, int(params.max_steps))
         res = compiled[shape](params, policy, jax.random.PRNGKey(ecfg.seed))
-        results.append(rates(*res))
+        results.append({**rates(*res), "max_steps": int(params.max_steps)})
         results[-1].update(visit_optimum(env.task, params.max_steps, env.config,
                                           results[-1].get("accepting_visits_per_episode"), barrier_margin(cfg)))
         if keep_paths:
@@ -308,14 +313,17 @@ def layout_tag(layout: str, sha256: str | None = None) -> str:
 
 
 def evaluation_path(run_dir: Path, res: dict) -> Path:
-    """Where ``write_evaluation`` puts ``res``: RUN_DIR/eval-LAYOUT[xN]-DYNAMICS[-TASK][-TSTEPS][-best]
-    [-filter-aA-iN].json, LAYOUT as ``layout_tag`` writes it, TSTEPS an episode limit asked for."""
+    """Where ``write_evaluation`` puts ``res``: RUN_DIR/eval-LAYOUT[xN]-DYNAMICS[-TASK][-TSTEPS][-sSEED][-best]
+    [-filter-aA-iN].json, LAYOUT as ``layout_tag`` writes it, TSTEPS an episode limit asked for,
+    SEED another ``--seed`` than 0 (other episodes: another evaluation)."""
     n = len(res["per_layout"])  # random:0 over 3 layouts is another evaluation than random:0 alone
     tag = f"{layout_tag(res['layout'], res.get('layout_sha256'))}{f'x{n}' if n > 1 else ''}-{res['dynamics']}"
     if res.get("task_given"):
         tag += f"-{zero_shot.task_tag(res['task'])}"
     if res.get("max_steps_given"):  # another episode limit than the run's: another evaluation
         tag += f"-T{res['max_steps']}"
+    if res.get("seed", 0) != 0:
+        tag += f"-s{res['seed']}"
     if str(res.get("policy", "")).startswith("best"):  # a validated run's kept policy
         tag += "-best"
     if res["runtime_filter"]:

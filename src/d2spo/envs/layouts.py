@@ -228,7 +228,10 @@ def load(name_or_path: str | os.PathLike) -> Layout:
             raise ConfigError("layout", f"{path}: malformed JSON: {e.msg} ({where})") from None
         except (RecursionError, ValueError) as e:  # nested too deeply; a number too long to read
             raise ConfigError("layout", f"{path}: unreadable JSON ({json_trouble(e)})") from None
-        return from_json(data, default_name=path.stem)
+        try:
+            return from_json(data, default_name=path.stem)
+        except ConfigError as e:  # which file, as the JSON errors above say
+            raise ConfigError(e.field, f"{str(e).removeprefix(f'{e.field}: ')} (in {path})") from None
     raise ConfigError("layout", f"unknown layout {name_or_path!r}; use one of {list(BUILTIN)}, "
                       "'random[:SEED]', 'random5[:SEED]', 'zones[:SEED]', 'world[:SEED]' or a path to a .json file")
 

@@ -105,8 +105,8 @@ class _Parser:
         self.text = text
         self.tokens = _tokenize(text)
         if len(self.tokens) > MAX_SIZE + 1:  # a token makes at most one node, but for parentheses
-            raise FormulaTooLarge(f"the formula has {len(self.tokens) - 1} symbols; at most MAX_SIZE={MAX_SIZE} are "
-                                  "supported")
+            raise FormulaTooLarge(f"the formula has {len(self.tokens) - 1} symbols (names, operators "
+                                  f"and parentheses); at most MAX_SIZE={MAX_SIZE} are supported")
         self.pos = 0
         self.depth = 0
 
