@@ -116,3 +116,8 @@ def test_ppo_lag_learns_relaxed(tmp_path):
     assert last > first + 3.0, (first, last)
     assert collided[-100:].mean() <= 0.1
     assert summary["episodes"] == 500
+    # `d2spo eval` runs its policy (it once stopped at the on-policy learners' missing ``env``)
+    from d2spo.evaluate import EvalConfig, evaluate_run
+
+    ev = evaluate_run(tmp_path / "run", EvalConfig(episodes=4))
+    assert ev["episodes"] == 4 and 0.0 <= ev["safety_rate"] <= 1.0 and ev["max_steps"] > 0

@@ -123,6 +123,23 @@ def test_misspelled_flag_keeps_the_suggestion(capsys):
     assert "--episodes for --episods" in err and "--seed for --seeed" in err and "--seeds" not in err
 
 
+@pytest.mark.parametrize("args,hint", [
+    (["--cpo.target-kl", "0.02"], "(--cpo.target-kl is a flag of --algo cpo, not of --algo d2spo: "
+                                  "see d2spo train --algo cpo --help)"),
+    (["--algo", "td3-lag", "--cbf.d", "0.2"], "(--cbf.d is a flag of --algo d2spo or --algo sl, not of --algo "
+                                              "td3-lag: see d2spo train --algo d2spo --help)"),
+    (["--algo", "cpo", "--bogus", "1"], "(see d2spo train --algo cpo --help)"),  # the help that lists cpo's flags
+    (["--bogus", "1"], "(see d2spo train --help)"),
+])
+def test_a_flag_of_another_learner_points_to_the_help_that_lists_it(capsys, args, hint):
+    """`train --cpo.target-kl 0.02` (the default learner is d2spo) said "see d2spo train --help",
+    whose list (d2spo's flags) does not hold it."""
+    with pytest.raises(SystemExit) as e:
+        cli.main(["train", *args])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 2 and len(err) == 1 and err[0].endswith(hint), err
+
+
 def test_version(capsys):
     from d2spo import __version__
 

@@ -222,22 +222,77 @@ def test_evaluation_file_names_of_built_in_and_random_layouts_are_kept():
     assert layout_sha256("paper") is None and layout_sha256("random:3") is None
 
 
+def test_a_run_trained_under_its_own_dynamics_is_evaluated_as_trained_not_as_its_preset(tmp_path, capsys,
+                                                                                        fake_rollouts):
+    """A run trained with a dynamics file or per-field flags wrote its evaluations as `-default`, the
+    preset it started from, though it ran under its own values."""
+    from d2spo.evaluate import trained_dynamics
+    from d2spo.run import prepare_dir
+
+    assert trained_dynamics(TrainConfig()) == "default"
+    assert trained_dynamics(TrainConfig(env=EnvConfig(preset="turtlebot"))) == "turtlebot"
+    assert trained_dynamics(TrainConfig(env=EnvConfig(slip=0.05))) == "default"  # the preset's own value
+    run = tmp_path / "run"
+    run.mkdir()
+    prepare_dir(run, TrainConfig(env=EnvConfig(layout="relaxed", v_gain=0.85)), resume=False)
+    assert cli(capsys, "eval", run)[0] == 0
+    res = json.loads((run / "eval-relaxed-trained.json").read_text())
+    assert res["dynamics"] == "trained" and res["dynamics_values"]["v_gain"] == 0.85
+    assert cli(capsys, "eval", run, "--slip", "0.2")[0] == 0 and (run / "eval-relaxed-trained-slip0.2-filter-a3-i3.json").exists()
+
+
 # ------------------------------------------------------------------ 4. the layout's content
 
 
-def test_a_layout_file_edited_since_the_run_started_is_refused(tmp_path, capsys, no_build):
+def test_a_layout_file_edited_since_the_run_started_is_refused(tmp_path, capsys, no_build, monkeypatch):
     lab = layout_file(tmp_path / "lab.json")
     run = started_run(tmp_path / "run", str(lab))
-    with pytest.raises(Built):  # unchanged: the checks pass
-        main(["train", "--resume", str(run), "--no-progress"])
+    for module in ("d2spo.export", "d2spo.certify"):  # as if it had a checkpoint; stop where they would build
+        monkeypatch.setattr(f"{module}.has_checkpoint", lambda run_dir: True)
+        monkeypatch.setattr(f"{module}.build", lambda *a, **kw: (_ for _ in ()).throw(Built()))
+    for command in (["train", "--resume", str(run), "--no-progress"], ["export", str(run), "--out", str(tmp_path / "x")],
+                    ["certify", str(run)]):
+        with pytest.raises(Built):  # unchanged: the checks pass
+            main(command)
     lab.write_text(lab.read_text().replace('"name"', ' "name"', 1))  # one byte more
     line = one_error(capsys, "train", "--resume", run, "--no-progress")
     assert f"{run}: its layout file {lab} changed since the run started" in line
     line = one_error(capsys, "eval", run)
     assert f"its layout file {lab} changed since the run started" in line
     assert f"to evaluate on it as it is now, pass --layout {lab}" in line
+    # export and certify read the map too: an export's filter, a certificate, of another map than learnt
+    # (they once went on with the edited file)
+    line = one_error(capsys, "export", run, "--out", tmp_path / "y")
+    assert f"its layout file {lab} changed since the run started" in line and "export's map" in line
+    assert not (tmp_path / "y").exists()
+    line = one_error(capsys, "certify", run)
+    assert f"its layout file {lab} changed since the run started" in line and "checked against another map" in line
     recorded = json.loads((run / "inputs.json").read_text())["layout"]
     assert recorded["file"] == str(lab) and len(recorded["sha256"]) == 64
+
+
+def test_the_training_layout_file_is_known_by_its_content_not_its_spelling(tmp_path, monkeypatch):
+    """`d2spo eval RUN --layout in/lab.json` ran with the filter as trained and `--layout /abs/in/lab.json`
+    (the same file) with it on, as if elsewhere. Now a file is the training layout when it holds the
+    bytes the run started with, and an edited file is another layout (the filter on)."""
+    from d2spo.evaluate import filter_choice
+    from d2spo.run import is_training_layout, load_run_config
+
+    monkeypatch.chdir(tmp_path)
+    lab = layout_file(tmp_path / "in" / "lab.json")
+    run = started_run(tmp_path / "run", "in/lab.json")
+    cfg = load_run_config(run)
+    assert cfg.algo == "d2spo"
+    for spelling in ("in/lab.json", "./in/lab.json", str(lab), "in/../in/lab.json"):
+        same = is_training_layout(run, cfg, spelling)
+        assert same and filter_choice(cfg, spelling, None, None, None, same) is None, spelling
+    (tmp_path / "copy.json").write_bytes(lab.read_bytes())
+    assert is_training_layout(run, cfg, "copy.json")  # the same bytes: the same layout
+    assert not is_training_layout(run, cfg, "relaxed") and not is_training_layout(run, cfg, "missing.json")
+    lab.write_text(lab.read_text().replace('"name"', ' "name"', 1))  # one byte more
+    same = is_training_layout(run, cfg, "in/lab.json")
+    assert not same and filter_choice(cfg, "in/lab.json", None, None, None, same) is True
+    assert filter_choice(cfg, "in/lab.json", None, None) is None  # by name alone, as before
 
 
 def test_a_run_on_a_relative_layout_path_is_found_from_another_directory(tmp_path, capsys, no_build, monkeypatch):

@@ -64,3 +64,28 @@ def test_an_interrupt_python_cannot_raise_ends_the_command_at_once():
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 130 and proc.stderr.strip().splitlines() == ["d2spo: error: interrupted"], proc.stderr
     assert time.monotonic() - start < 8.0
+
+
+@pytest.mark.skipif(os.name != "posix", reason="needs SIGTERM")
+def test_sigterm_ends_the_command_with_one_line_and_143_and_a_run_with_the_resume_hint(tmp_path):
+    """SIGTERM (`timeout`, a batch scheduler's stop) ended the command silently by the signal's
+    default action. Now it ends as Ctrl-C does: one line, "terminated", exit 143 (128 + 15), and a
+    training with a checkpoint gets the hint to resume. The command's own handler, installed by
+    ``cli.main()``, in a child process whose command sends itself the signal mid-run."""
+    code = ("import os, signal, sys, time\nfrom d2spo import cli, progress\n"
+            "class Cmd:\n    def run(self):\n        os.kill(os.getpid(), signal.SIGTERM)\n        time.sleep(20)\n"
+            "cli.parse = lambda args: Cmd()\nsys.exit(cli.main())\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 143 and proc.stderr.strip().splitlines() == ["d2spo: error: terminated"], proc.stderr
+    # a training stopped after its first checkpoint: the resume hint, as for Ctrl-C
+    run = tmp_path / "run"
+    code = ("import os, signal, sys\nfrom d2spo import cli, progress\n"
+            "progress.has_checkpoint = lambda out: True\n"
+            "def stopped(*a, **kw):\n    os.kill(os.getpid(), signal.SIGTERM)\n    import time; time.sleep(20)\n"
+            "progress.train = stopped\n"
+            f"sys.argv = ['d2spo', 'train', '--task', 'relaxed', '--layout', 'relaxed', '--out', {str(run)!r}, "
+            "'--no-progress']\nsys.exit(cli.main())\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 143, proc.stderr[-2000:]
+    assert proc.stderr.strip().splitlines() == [f"d2spo: error: terminated; `d2spo train --resume {run}` continues "
+                                                "from its last checkpoint"], proc.stderr

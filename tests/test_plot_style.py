@@ -148,7 +148,7 @@ def test_reward_curves_name_every_line_and_band_with_units(tmp_path):
     assert ax.get_xlabel() == "training episodes"
     assert ax.get_ylabel() == "episode return (moving average over 10 episodes)"
     assert [t.get_text() for t in ax.get_legend().get_texts()] == [
-        "LPPO: mean over 3 seeds", "LPPO: ± 1 std", "D²SPO: mean over 1 seed", "D²SPO: ± 1 std"]
+        "LPPO: mean over 3 seeds", "LPPO: ± 1 std", "D²SPO: mean over 1 seed"]  # one seed: no band
     empty = Figure().add_subplot()
     plots.draw_reward_curves(empty, {}, "t")
     assert [t.get_text() for t in empty.texts] == ["no runs"]  # not a blank panel

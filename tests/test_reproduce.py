@@ -47,6 +47,7 @@ def test_cli_input_errors_exit_2(tmp_path, capsys):
     assert main(["reproduce", "table2", "--seeds", "0", "--out", str(tmp_path)]) == 2
     assert main(["reproduce", "table2", "--backend", "slurm", "--methods", "cpo", "--seeds", "1",
                  "--episodes", "1", "--out", str(tmp_path / "x")]) == 2
+    assert not (tmp_path / "x").exists()  # refused before anything is written
     assert main(["report", str(tmp_path / "missing")]) == 2
     assert main(["report", str(tmp_path)]) == 2  # exists but holds nothing
     # a cluster address without the Ray backend would start every run here: refused
@@ -57,6 +58,8 @@ def test_cli_input_errors_exit_2(tmp_path, capsys):
     assert len(err) == 7 and all(line.startswith("d2spo: error:") for line in err)
     assert "address: is a Ray cluster's, for --backend ray" in err[5] and not (tmp_path / "y").exists()
     assert err[6].endswith("afile: exists and is not a directory")
+    assert main(["report", str(tmp_path / "afile")]) == 2  # a file: said so, not "no such directory"
+    assert capsys.readouterr().err.strip().endswith("afile: is a file; give the directory `d2spo reproduce --out` wrote")
 
 
 def test_table3_trains_once_reuses_and_reports(tmp_path, monkeypatch):

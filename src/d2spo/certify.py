@@ -34,7 +34,7 @@ from d2spo.config import config_to_dict
 from d2spo.envs import geometry
 from d2spo.errors import RunDirError
 from d2spo.fields import check_fields
-from d2spo.run import build, carry_template, load_run_config
+from d2spo.run import build, carry_template, check_layout_unchanged, load_run_config
 from d2spo.runio import atomic_write_json
 from d2spo.safety import bounds
 from d2spo.safety import certify as cert
@@ -98,6 +98,8 @@ def load_cbf_run(run_dir: Path) -> CBFRun:
                           "layout (d2spo train --algo d2spo --layout L, without --generalist)")
     if not has_checkpoint(run_dir):
         raise RunDirError(f"{run_dir}: no checkpoint (checkpoint.json) to certify")
+    check_layout_unchanged(run_dir, cfg, "the barrier would be checked against another map than the one it "
+                           "learnt: restore the file, or train a new run on it")
     env, params, learner = build(cfg)
     template = carry_template(learner)
     carry, meta = load_checkpoint(run_dir, template, run_fingerprint(run_dir))

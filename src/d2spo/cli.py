@@ -22,6 +22,7 @@ import tyro
 from rich.console import Console
 
 from d2spo import compile_cache, interrupts
+from d2spo.algos import LEARNERS, config_sections
 from d2spo.cli_certify import CertifyCmd
 from d2spo.cli_docs import DocsCmd
 from d2spo.cli_export import ExportCmd
@@ -309,13 +310,42 @@ SUBCOMMANDS = {"eval": EvalCmd, "ltl": LtlCmd, "env": EnvCmd, "demo": DemoCmd, "
 
 def help_command(args: list[str]) -> str:
     """The help a usage error points to: the subcommand's (``d2spo env show --help``) when ``args``
-    name one, else ``d2spo --help``."""
+    name one, else ``d2spo --help``; for ``train``, whose help lists the chosen learner's flags,
+    with the ``--algo`` the command line gave."""
     words = ["d2spo"]
     if args and (args[0] == "train" or args[0] in SUBCOMMANDS):
         words.append(args[0])
         if args[0] == "env" and len(args) > 1 and args[1] in ENV_SUBCOMMANDS:
             words.append(args[1])
+        if args[0] == "train" and algo_named(args) in LEARNERS and (
+                "--algo" in args or any(a.startswith("--algo=") for a in args)):
+            words += ["--algo", algo_named(args)]
     return " ".join([*words, "--help"])
+
+
+def usage_hint(args: list[str]) -> str:
+    """What a usage error's line ends with: ``see`` the help (``help_command``); for a flag of
+    another learner's section, which learners read it and their help."""
+    if args[:1] == ["train"] and (other := _other_learners_flag(args)) is not None:
+        flag, algos = other
+        return (f"{flag} is a flag of --algo {' or --algo '.join(algos)}, not of --algo {algo_named(args)}: "
+                f"see d2spo train --algo {algos[0]} --help")
+    return f"see {help_command(args)}"
+
+
+def _other_learners_flag(args: list[str]) -> tuple[str, list[str]] | None:
+    """(flag, the learners that read its section) for the first flag of ``args`` whose section
+    (``--cpo.``, ``--cbf.``) the chosen learner does not read; None when there is none."""
+    if algo_named(args) not in LEARNERS:  # an unknown --algo: its own error says so
+        return None
+    chosen = config_sections(algo_named(args))
+    for arg in args:
+        section = arg[2:].split(".", 1)[0].replace("-", "_") if arg.startswith("--") and "." in arg else None
+        if section is not None and section not in chosen:
+            algos = [a for a in LEARNERS if section in config_sections(a)]
+            if algos:
+                return arg.split("=", 1)[0], algos
+    return None
 
 
 def parse(args: list[str]):
@@ -332,7 +362,7 @@ def parse(args: list[str]):
                                         "`d2spo --version` prints the version.")
     except SystemExit as e:
         if e.code not in (0, None):
-            error(tyro_error_line(buf.getvalue(), args) + f" (see {help_command(args)})")
+            error(tyro_error_line(buf.getvalue(), args) + f" ({usage_hint(args)})")
             raise SystemExit(2) from None
         raise
 
@@ -365,13 +395,14 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as e:  # the machine's fault: a full disk, a read-only or vanished directory
         error(f"{e.filename}: {e.strerror}" if e.filename and e.strerror else str(e))
         return 1
-    except KeyboardInterrupt as e:
-        error("interrupted" + (f"; {e}" if str(e) else ""))  # the hint to resume, where there is one
+    except KeyboardInterrupt as e:  # Ctrl-C, or SIGTERM (interrupts.Terminated): its line and status
+        line, status = interrupts.ending(e)
+        error(line + (f"; {e}" if str(e) else ""))  # the hint to resume, where there is one
         if argv is None:  # the `d2spo` command (a caller's main(args) returns): leave now, for an XLA
             sys.stdout.flush()  # compilation still running on another thread would hold the exit for
             sys.stderr.flush()  # its seconds, and interpreter teardown under it has crashed
-            os._exit(130)
-        return 130
+            os._exit(status)
+        return status
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -26,7 +26,8 @@ class ReproduceCmd:
     out: Path = Path("results")
     """Output directory; finished runs in OUT/runs are reused, interrupted ones resume."""
     backend: str = "local"
-    """'local' (one run after another in this process) or 'ray' (one Ray task per run)."""
+    """'local' (in this process: the seeds of a setting vmapped as one program, settings one after another;
+    --no-vmap-seeds for one run at a time) or 'ray' (one Ray task per run)."""
     address: str | None = None
     """Ray cluster address (with --backend ray); default: start a local Ray instance."""
     methods: tuple[str, ...] = ("cpo", "ppo-lag", "td3-lag", "sac-lag", "rcrl", "d2spo")

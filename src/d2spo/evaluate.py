@@ -35,6 +35,7 @@ from d2spo.run import (
     barrier_margin,
     build,
     check_layout_unchanged,
+    is_training_layout,
     load_policy,
     load_run_config,
     preflight_checks,
@@ -156,6 +157,14 @@ def dynamics_label(dynamics: str | None, overrides: dict[str, float] | None, tra
     return base + "".join(f"-{k}{v:g}" for k, v in sorted((overrides or {}).items()))
 
 
+def trained_dynamics(cfg: TrainConfig) -> str:
+    """The name of the dynamics a run trained under: its preset's, or ``trained`` when a dynamics
+    file or per-field flags (``--dynamics robot.json``, ``--v-gain 0.85``) gave other values."""
+    preset = dyn.get_preset(cfg.env.preset)
+    own = cfg.env.resolved()
+    return cfg.env.preset if all(getattr(own, k) == getattr(preset, k) for k in dyn.DYNAMICS_FIELDS) else "trained"
+
+
 def learner_on(cfg: TrainConfig, layout: str | None, dynamics: str | None, overrides: dict[str, float] | None = None):
     """A learner of the same kind on another layout/dynamics (for acting only); ``dynamics`` is a
     preset name or a dynamics JSON file (``eval_env_config``)."""
@@ -163,15 +172,19 @@ def learner_on(cfg: TrainConfig, layout: str | None, dynamics: str | None, overr
 
 
 def filter_choice(cfg: TrainConfig, layout: str | None, dynamics: str | None, asked: bool | None,
-                  overrides: dict[str, float] | None = None) -> bool | None:
+                  overrides: dict[str, float] | None = None, training_layout: bool | None = None) -> bool | None:
     """The runtime filter's setting for an evaluation: what was asked; else on for a D²SPO policy on
     another layout or other dynamics than it was trained on (deployment where the learned h never
     saw data), and for a generalist on any layout (it trained on a bank of drawn layouts, never on a
-    named one: its config's ``env.layout`` is an unused default); else None, as trained."""
+    named one: its config's ``env.layout`` is an unused default); else None, as trained.
+    ``training_layout``: whether ``layout`` names the training layout (``run.is_training_layout``: a
+    file by its content); None: when it is the run's layout by name."""
     if asked is not None or not has_runtime_filter(cfg.algo):
         return asked
     trained, now = cfg.env.resolved(), eval_env_config(cfg, layout, dynamics, overrides).resolved()
-    elsewhere = (cfg.generalist or (layout is not None and layout != cfg.layout)
+    if training_layout is None:
+        training_layout = layout == cfg.layout
+    elsewhere = (cfg.generalist or (layout is not None and not training_layout)
                  or any(getattr(trained, k) != getattr(now, k) for k in dyn.DYNAMICS_FIELDS))
     return True if elsewhere else None
 
@@ -196,7 +209,8 @@ def evaluate_run(run_dir: Path, ecfg: EvalConfig = EvalConfig(), keep_paths: int
     for name in ("runtime_filter", "filter_iters", "filter_alpha"):
         if getattr(ecfg, name) is not None and not has_filter:
             raise ConfigError(name, f"only D²SPO has a runtime filter; this run is {cfg.algo!r}")
-    runtime_filter = filter_choice(cfg, ecfg.layout, ecfg.dynamics, ecfg.runtime_filter, overrides)
+    runtime_filter = filter_choice(cfg, ecfg.layout, ecfg.dynamics, ecfg.runtime_filter, overrides,
+                                   ecfg.layout is not None and is_training_layout(run_dir, cfg, ecfg.layout))
     if runtime_filter is not None:
         cfg = dataclasses.replace(cfg, d2spo=dataclasses.replace(cfg.d2spo, runtime_filter=runtime_filter))
     cbf_changes = {k: v for k, v in (("filter_iters", ecfg.filter_iters), ("filter_alpha_coef", ecfg.filter_alpha))
@@ -224,7 +238,7 @@ def evaluate_run(run_dir: Path, ecfg: EvalConfig = EvalConfig(), keep_paths: int
         "run": str(run_dir), "policy": which, "episodes": ecfg.episodes * len(layouts),
         "layout": ecfg.layout or cfg.layout, "layouts": [lay or cfg.layout for lay in layouts],
         "layout_sha256": layout_sha256(ecfg.layout or cfg.layout),
-        "dynamics": dynamics_label(ecfg.dynamics, overrides, cfg.env.preset),
+        "dynamics": dynamics_label(ecfg.dynamics, overrides, trained_dynamics(cfg)),
         "dynamics_values": {k: getattr(env_cfg.resolved(), k) for k in dyn.DYNAMICS_FIELDS}, "seed": ecfg.seed,
         "task": ecfg.task or cfg.task, "task_given": ecfg.task is not None and ecfg.task != cfg.task,
         "max_steps": limit, "max_steps_given": ecfg.max_steps is not None,

@@ -35,7 +35,7 @@ from d2spo.deploy.policy import FORMAT, FORMAT_VERSION, MANIFEST, WEIGHTS, file_
 from d2spo.envs import geodesic
 from d2spo.errors import ConfigError, RunDirError
 from d2spo.fields import check_choice, check_fields
-from d2spo.run import POLICY_CHOICES, build, load_policy, load_run_config
+from d2spo.run import POLICY_CHOICES, build, check_layout_unchanged, load_policy, load_run_config
 from d2spo.runio import atomic_write_bytes, atomic_write_json, make_run_dir
 
 ACTIVATION_NAMES = {nn.relu: "relu", nn.tanh: "tanh"}
@@ -91,6 +91,8 @@ def export_run(run_dir: Path, out: Path, ecfg: ExportConfig = ExportConfig()) ->
             raise ConfigError(name, f"only D²SPO has a runtime filter; this run is {cfg.algo!r}")
     if not has_checkpoint(run_dir):
         raise RunDirError(f"{run_dir}: no checkpoint to export; has the run written one yet?")
+    check_layout_unchanged(run_dir, cfg, "the export's map would not be the one the policy and its barrier learnt: "
+                           "restore the file, or train a new run on it")
     check_out(out)
     env, params, learner = build(cfg)
     _, _, policy, meta = load_policy(run_dir, ecfg.policy, learner)

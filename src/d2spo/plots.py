@@ -256,12 +256,13 @@ def reward_curves(runs: Mapping[str, Iterable[Path]], smooth: int = 200) -> dict
 
 
 def draw_reward_curves(ax, curves: Mapping[str, tuple], title: str) -> None:
-    """``reward_curves`` as lines in the palette's order, each with its ± 1 std band, both named in
-    the legend (with the number of seeds); 'no runs' when there is no curve."""
+    """``reward_curves`` as lines in the palette's order, each with its ± 1 std band over two or more
+    seeds, both named in the legend (with the number of seeds); 'no runs' when there is no curve."""
     for label, (x, mean, std, seeds) in curves.items():
         line = ax.plot(x, mean, label=f"{label}: mean over {seeds} seed{'s' * (seeds != 1)}",
                        marker="o" if len(x) == 1 else None)[0]
-        ax.fill_between(x, mean - std, mean + std, color=line.get_color(), alpha=0.2, label=f"{label}: ± 1 std")
+        if seeds > 1:  # one seed has no spread: no band, and no legend entry for one
+            ax.fill_between(x, mean - std, mean + std, color=line.get_color(), alpha=0.2, label=f"{label}: ± 1 std")
     ax.set_xlabel("training episodes")
     ax.xaxis.set_major_locator(MaxNLocator(5, integer=True))  # 20000-episode labels do not run together
     widths = sorted({int(x[0]) for x, *_ in curves.values()})  # a curve's first point ends its first window

@@ -79,9 +79,9 @@ def train_with_progress(cfg: TrainConfig, out: Path | None, resume: Path | None,
         on_event = display.add(_label(cfg), cfg.episodes)
         try:
             summary = train(cfg, out, resume=resume is not None, progress=on_event)
-        except KeyboardInterrupt:  # the CLI's "interrupted" line says how to go on, where it can
-            if has_checkpoint(out):
-                raise KeyboardInterrupt(f"`d2spo train --resume {out}` continues from its last checkpoint") from None
+        except KeyboardInterrupt as e:  # the CLI's "interrupted" line says how to go on, where it can
+            if has_checkpoint(out):  # of the same type: Ctrl-C's, or SIGTERM's (interrupts.Terminated)
+                raise type(e)(f"`d2spo train --resume {out}` continues from its last checkpoint") from None
             raise
     Console().print(summary_table(summary, f"{cfg.algo} on {cfg.task} / {summary.get('layout', cfg.layout)} (seed {cfg.seed}) → {out}"))
     return 0

@@ -111,6 +111,8 @@ _JSON_NAMES = {list: "list", int: "integer", float: "number", bool: "boolean", s
 def build_report(out: Path) -> Path:
     """Write OUT/report.md from what is in OUT; raises RunDirError if nothing is there."""
     out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise RunDirError(f"{out}: is a file; give the directory `d2spo reproduce --out` wrote")
     if not out.is_dir():
         raise RunDirError(f"{out}: no such directory; run `d2spo reproduce ... --out {out}` first")
     meta_path = out / "reproduce.json"

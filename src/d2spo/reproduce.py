@@ -293,6 +293,8 @@ def reproduce(targets: Iterable[str], out: Path, seeds: int = 3, episodes: int =
     for m in methods:
         if m not in METHODS:
             raise UserError(f"unknown method {m!r}; choose from {', '.join(METHODS)}")
+    if backend not in ("local", "ray"):  # before anything is written
+        raise UserError(f"unknown backend {backend!r}; choose local or ray")
     targets = expand(targets)
     if not targets:
         raise UserError(f"name at least one target: {', '.join(TARGETS)} or all")
@@ -303,8 +305,6 @@ def reproduce(targets: Iterable[str], out: Path, seeds: int = 3, episodes: int =
         for s in runs_for(t, seeds, episodes, methods):
             if s not in specs:
                 specs.append(s)
-    if backend not in ("local", "ray"):
-        raise UserError(f"unknown backend {backend!r}; choose local or ray")
     stale = stale_runs(out, specs)
     if stale:
         name, diffs = next(iter(stale.items()))

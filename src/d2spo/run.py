@@ -136,6 +136,25 @@ def _found_layout(run_dir: Path, cfg: TrainConfig, given: str | None) -> TrainCo
                       "the command takes one")
 
 
+def is_training_layout(run_dir: Path, cfg: TrainConfig, layout: str) -> bool:
+    """Whether ``layout`` (a command's --layout) names the layout the run trained on: the same name
+    for a built-in or drawn layout; for a file, the bytes the run started with (``INPUTS``' SHA-256),
+    however its path is spelled (``in/lab.json``, ``./in/lab.json``, an absolute path), or, for a run
+    without ``INPUTS``, the same file. An edited file is another layout. Never for a generalist."""
+    if cfg.generalist:
+        return False
+    given, trained = layouts.layout_file(layout), layouts.layout_file(cfg.layout)
+    if given is None or trained is None:
+        return layout == cfg.layout
+    entry = {}
+    if (Path(run_dir) / INPUTS).is_file():
+        data = read_json(Path(run_dir) / INPUTS, "the hash of the run's layout file")
+        entry = data.get("layout") if isinstance(data, dict) and isinstance(data.get("layout"), dict) else {}
+    if not isinstance(entry.get("sha256"), str):
+        return given.resolve() == trained.resolve()
+    return given.is_file() and sha256_of(given, _layout_error) == entry["sha256"]
+
+
 def check_layout_unchanged(run_dir: Path, cfg: TrainConfig, remedy: str) -> None:
     """RunDirError, ending in ``remedy``, when the layout file ``cfg`` names no longer holds what
     the run ``run_dir`` started with (``INPUTS``). A run without ``INPUTS`` (a built-in or random

@@ -280,7 +280,7 @@ class CPOLearner:
 
     def __init__(self, env, params, cfg: CPOConfig, anneal: AnnealConfig, num_envs: int, chunk_steps: int,
                  total_episodes: int):
-        self.cfg = cfg
+        self.cfg, self.env = cfg, env  # the env it acts in, as every learner has it (``d2spo eval``)
         if (num_envs * cfg.rollout_steps) % cfg.critic_minibatches != 0:
             raise ConfigError("cpo.critic_minibatches", f"must divide num_envs * rollout_steps = "
                               f"{num_envs * cfg.rollout_steps}, got {cfg.critic_minibatches}")

@@ -137,7 +137,7 @@ class PPOLagLearner:
 
     def __init__(self, env, params, cfg: PPOLagConfig, anneal: AnnealConfig, num_envs: int, chunk_steps: int,
                  total_episodes: int):
-        self.cfg, self.num_envs = cfg, num_envs
+        self.cfg, self.num_envs, self.env = cfg, num_envs, env  # the env, as every learner has it (``d2spo eval``)
         if (num_envs * cfg.rollout_steps) % cfg.n_minibatches != 0:
             raise ConfigError("ppo_lag.n_minibatches", f"must divide num_envs * rollout_steps = "
                               f"{num_envs * cfg.rollout_steps}, got {cfg.n_minibatches}")
