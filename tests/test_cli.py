@@ -240,14 +240,22 @@ def test_a_picture_path_matplotlib_cannot_write_is_one_line_exit_2(args, tmp_pat
     assert not list(tmp_path.glob("*.*"))  # nothing written
 
 
-@pytest.mark.parametrize("extra,named", [(["--episodes", "100"], "--episodes"), (["--out", "OTHER"], "--out"),
-                                         (["--td3.batch-size", "64"], "--td3.batch-size")])
+@pytest.mark.parametrize("extra,named", [
+    (["--episodes", "100"], "--episodes"), (["--out", "OTHER"], "--out"), (["--td3.batch-size", "64"], "--td3.batch-size"),
+    # a generalist's settings without --generalist (once dropped silently: the default learner does not read them)
+    (["--generalist-layouts", "4", "--validation-episodes", "4"], "leave out --generalist-layouts, --validation-episodes"),
+    (["--c-n", "0.05", "--max-steps", "500"], "leave out --max-steps, --c-n"),  # the env's flags, flat
+    # --generalist names itself only, not the defaults it gives other fields
+    (["--generalist", "--validation-layouts", "3"], "leave out --generalist, --validation-layouts"),
+])
 def test_resume_refuses_the_flags_its_config_json_would_override(extra, named, tmp_path, capsys):
     """`--resume DIR` continues with DIR/config.json: a training flag beside it would be ignored, so it
     is refused (one line, exit 2) instead of silently dropped."""
     assert cli.main(["train", "--resume", str(tmp_path), "--no-progress", *extra]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("d2spo: error: resume:") and named in err[0], err
+    if named.startswith("leave out"):
+        assert err[0].endswith(named), err
 
 
 def test_the_command_line_starts_without_matplotlib_or_scipy():

@@ -40,6 +40,10 @@ def test_evaluation_is_named_written_and_shown(tmp_path, capsys):
     assert "random:1" in out and "75.00%" in out and "all 3" in out and "91.67%" in out
     print_evaluation(three, path, filter_asked=True)  # asked for: no note on why it is on
     assert "not the training" not in " ".join(capsys.readouterr().out.split())
+    # a generalist's: on everywhere, its own training layouts too; and the task it ran is named
+    print_evaluation({**three, "generalist": True, "task": "phi1"}, path, filter_asked=None)
+    out = " ".join(capsys.readouterr().out.split())
+    assert "runtime filter on (a generalist's default;" in out and "task 'phi1'" in out and "zero-shot" not in out
 
 
 def test_a_patrol_on_one_layout_shows_the_count_that_keeps_the_margin(tmp_path, capsys, monkeypatch):

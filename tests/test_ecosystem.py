@@ -74,7 +74,8 @@ def test_train_config_file_is_parsed_and_flags_override_it(tmp_path):
 
 @pytest.mark.parametrize("content, says", [
     (None, "cannot read"), ("{not json", "not valid JSON"), ('{"algo": "tlgrl", "colour": 1}', "colour: unknown field"),
-    ('{"episodes": -1}', "episodes"),
+    ('{"episodes": -1}', "episodes"), ('{"episdoes": 10}', "episdoes: unknown field (did you mean 'episodes'?)"),
+    ('{"td3": {"batch_sise": 8}}', "td3.batch_sise: unknown field (did you mean 'batch_size'?)"),
 ])
 def test_train_config_file_errors_are_one_line(tmp_path, capsys, content, says):
     path = tmp_path / "config.json"

@@ -141,6 +141,21 @@ def test_a_patrols_panels_give_its_visits_not_a_completion_no_episode_reaches():
     assert co.axes[0].get_title().startswith("random:11: 33% completed, 67% safe")
 
 
+@pytest.mark.parametrize("n", [1, 2, 3, 4])
+def test_evaluation_figure_text_does_not_overlap(n):
+    """Two panels once drew the figure's title over the panels' titles and the legend over the x
+    labels (the figure too short for square panels and their text)."""
+    fig = plots.draw_evaluation_figure(*_paths(n), "gen: phi2 / default, runtime filter on")
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    top = fig._suptitle.get_window_extent(renderer)
+    legend = fig.legends[0].get_window_extent(renderer)
+    for ax in fig.axes:
+        assert ax.title.get_window_extent(renderer).y1 <= top.y0, ax.get_title()
+        assert ax.xaxis.label.get_window_extent(renderer).y0 >= legend.y1 or \
+            ax.get_subplotspec().rowspan.stop < ax.get_gridspec().nrows, ax.get_title()
+
+
 def test_reward_curves_name_every_line_and_band_with_units(tmp_path):
     ax = Figure().add_subplot()
     x = np.arange(5) + 10

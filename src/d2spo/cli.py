@@ -27,8 +27,7 @@ from d2spo.cli_certify import CertifyCmd
 from d2spo.cli_docs import DocsCmd
 from d2spo.cli_export import ExportCmd
 from d2spo.cli_reproduce import ReportCmd, ReproduceCmd
-from d2spo.config import TrainConfig, algo_named, config_file_named, flags_for, plain
-from d2spo.config_diff import config_differences
+from d2spo.config import TrainConfig, algo_named, config_file_named, config_to_dict, flags_for, plain
 from d2spo.console import (
     error,
     print_evaluation,
@@ -172,6 +171,25 @@ class DemoCmd:
         return run_demo(self.out, self.seed, self.episodes)
 
 
+def flags_given(cfg: TrainConfig) -> list[str]:
+    """The training flags a command line set (``--generalist-tasks``, ``--td3.batch-size``, ...): the
+    fields of ``cfg`` that differ from a fresh config of the same learner, ``--algo``, ``--generalist``
+    and ``--fast`` named first (the defaults the other fields take follow these three, so a field
+    they fill is not a flag the user gave). Every field counts, read by this learner or not."""
+    keys = {"algo": cfg.algo, "generalist": cfg.generalist, "fast": cfg.fast}
+    base = TrainConfig(**keys)
+    named = [f"--{k}" for k, v in keys.items() if v != getattr(TrainConfig, k)]
+
+    def walk(a, b, where: str) -> list[str]:
+        if isinstance(a, dict) and isinstance(b, dict):
+            return [d for k in sorted(set(a) | set(b)) for d in walk(a.get(k), b.get(k), f"{where}.{k}" if where else k)]
+        flag = where.rsplit(".", 1)[-1] if where.startswith("env.") else where  # the env's flags are flat
+        return [] if a == b else ["--" + flag.replace("_", "-")]
+
+    differs = walk(config_to_dict(base), config_to_dict(cfg), "")
+    return named + [f for f in differs if f not in named]
+
+
 @dataclasses.dataclass
 class TrainCmd:
     """Train a learner on an LTL task; writes config.json, episodes.csv, summary.json, checkpoints. The
@@ -196,7 +214,7 @@ class TrainCmd:
             raise ConfigError("resume", "continues the run with its own config.json; leave out --config")
         if self.resume is not None:  # the run's own config.json wins: a flag beside it would be ignored
             given = [f for f, v in (("--out", self.out), ("--dynamics", self.dynamics)) if v is not None]
-            if given := given + ["--" + d.split(":")[0].replace("_", "-") for d in config_differences(TrainConfig(), cfg)]:
+            if given := given + flags_given(cfg):
                 raise ConfigError("resume", f"continues the run with its own config.json; leave out {', '.join(given)}")
         if self.dynamics is None:
             return cfg

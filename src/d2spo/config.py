@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import difflib
 import json
 import typing
 from dataclasses import dataclass, field
@@ -80,7 +81,7 @@ class TrainConfig:
     chunk_steps: int = 250
     """Vectorised steps per jitted chunk (one host sync each)."""
     checkpoint_every: int = 1_000
-    """Write a checkpoint every this many episodes."""
+    """Write a checkpoint every this many episodes (at the end of the first chunk past each multiple)."""
     window: int = 2_000
     """Safety and completion rates cover the last N episodes."""
     snapshots: tuple[int, ...] = ()
@@ -111,7 +112,8 @@ class TrainConfig:
     validation_episodes: int = 256
     """With --generalist: episodes of each validation."""
     validate_every: int = 250
-    """With --generalist, or a patrol's --patrol-validation: validate every N training episodes."""
+    """With --generalist, or a patrol's --patrol-validation: validate every N training episodes (at the
+    end of the first chunk past each multiple)."""
     patrol_validation: int = 32
     """One layout, a recurrence task (a patrol, scored by its accepting visits): every validate_every
     episodes, run the policy for N deterministic episodes on the training layout and keep the one that
@@ -269,7 +271,8 @@ def _build(cls: type, data: dict, where: str) -> Any:
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(data) - names)
     if unknown:
-        raise ConfigError(f"{where}{unknown[0]}", "unknown field")
+        close = difflib.get_close_matches(unknown[0], sorted(names), n=1, cutoff=0.6)
+        raise ConfigError(f"{where}{unknown[0]}", "unknown field" + (f" (did you mean {close[0]!r}?)" if close else ""))
     kwargs = {}
     for name, value in data.items():
         tp = hints[name]

@@ -93,8 +93,11 @@ def print_evaluation(res: dict, path: Path, filter_asked: bool | None) -> None:
     if res["runtime_filter"] is not None:
         filt = ", runtime filter " + ("on" if res["runtime_filter"] else "off")
         if res["runtime_filter"] and filter_asked is None:
-            filt += " (not the training layout/dynamics; --runtime-filter False for π_Ω alone)"
+            why = "a generalist's default" if res.get("generalist") else "not the training layout/dynamics"
+            filt += f" ({why}; --runtime-filter False for π_Ω alone)"
     task = f", task {res['task']!r} (zero-shot)" if res.get("task_given") else ""
+    if not task and res.get("generalist"):  # its training mixture's task: say which one ran
+        task = f", task {res['task']!r}"
     which = f", {res['policy']} policy" if str(res.get("policy", "")).startswith("best") else ""
     limit = f" of {res['max_steps']} steps" if res.get("max_steps_given") else ""
     t = Table(title=f"{res['run']}{which} on {res['layout']} / {res['dynamics']} ({res['episodes']} episodes{limit}{filt}{task})")

@@ -68,7 +68,8 @@ class EvalConfig:
     """Evaluate on another layout (name or JSON file); default: the training layout."""
     task: str | None = None
     """Zero-shot: run a generalist (`d2spo train --generalist`) on this task, a name or a formula over
-    A1..A4 (needs --layout); other runs only take the task they learnt."""
+    the layout's area labels (A1..A4, or a layout file's own: docs/layouts.md; needs --layout); other
+    runs only take the task they learnt."""
     dynamics: str | None = None
     """Evaluate under other dynamics: a preset (ideal, default, turtlebot: its unmodelled effects, with the
     trained time step and speed limits) or a JSON file (every field it gives: docs/env.md)."""
@@ -235,7 +236,7 @@ def evaluate_run(run_dir: Path, ecfg: EvalConfig = EvalConfig(), keep_paths: int
         on_layout(len(layouts), len(layouts), None)
     paths = [r.pop("paths") for r in results] if keep_paths else None
     out = {
-        "run": str(run_dir), "policy": which, "episodes": ecfg.episodes * len(layouts),
+        "run": str(run_dir), "policy": which, "generalist": cfg.generalist, "episodes": ecfg.episodes * len(layouts),
         "layout": ecfg.layout or cfg.layout, "layouts": [lay or cfg.layout for lay in layouts],
         "layout_sha256": layout_sha256(ecfg.layout or cfg.layout),
         "dynamics": dynamics_label(ecfg.dynamics, overrides, trained_dynamics(cfg)),

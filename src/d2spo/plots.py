@@ -210,7 +210,7 @@ def draw_evaluation_figure(paths: Sequence[tuple], per_layout: Sequence[dict], s
     shown = list(zip(paths, per_layout, strict=True))[:EVAL_PLOT_LAYOUTS]
     ncols = 2 if len(shown) == 4 else 3
     nrows = -(-len(shown) // min(ncols, len(shown)))
-    fig = Figure(figsize=(max(4.6 * min(ncols, len(shown)), 7.0), 4.6 * nrows + 0.8), layout="constrained")
+    fig = Figure(figsize=(max(4.6 * min(ncols, len(shown)), 7.0), 4.6 * nrows + 1.6), layout="constrained")
     FigureCanvasAgg(fig)
     handles = {}
     for ax, ((layout, poses, collided, completed), rates) in zip(panel_grid(fig, len(shown), ncols), shown):
