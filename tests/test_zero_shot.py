@@ -188,8 +188,8 @@ def test_eval_runs_the_validated_policy_unless_the_last_is_asked_for(gen_run, tm
     _, _, best, meta = load_policy(shared)
     assert meta["policy"] == "best on validation (after 7 episodes)" and meta["episodes"] == 10
     assert all(np.all(x == 1) for x in jax.tree_util.tree_leaves(best))
-    with pytest.raises(RunDirError):
-        load_policy(shared, "last")
+    with pytest.raises(RunDirError, match="a shared run without its checkpoints: its kept policy"):
+        load_policy(shared, "last")  # the message says why there is none and what runs instead
     # ... or with the checkpoints' manifests but not their state files: the same, with a warning
     from d2spo.errors import RunDirWarning
 

@@ -131,7 +131,9 @@ class Checkpoints:
         checkpoint. A damaged newest one gives a ``RunDirWarning`` and the previous one; a
         checkpoint of another config.json, or none usable, a ``RunDirError``."""
         if not has_checkpoint(self.dir):
-            raise RunDirError(f"{self.dir}: no checkpoint ({MANIFEST}); has the run written one yet?")
+            kept = " (a shared run without its checkpoints: its kept policy, policy-best.msgpack, runs without --policy last)" \
+                if (Path(self.dir) / "policy-best.msgpack").is_file() else ""
+            raise RunDirError(f"{self.dir}: no checkpoint ({MANIFEST}); has the run written one yet?{kept}")
         failed: list[str] = []
         for name in (MANIFEST, PREVIOUS):
             if not (self.dir / name).is_file():
