@@ -247,9 +247,12 @@ def test_a_run_trained_under_its_own_dynamics_is_evaluated_as_trained_not_as_its
 def test_a_layout_file_edited_since_the_run_started_is_refused(tmp_path, capsys, no_build, monkeypatch):
     lab = layout_file(tmp_path / "lab.json")
     run = started_run(tmp_path / "run", str(lab))
+    def built(*a, **kw):
+        raise Built
+
     for module in ("d2spo.export", "d2spo.certify"):  # as if it had a checkpoint; stop where they would build
         monkeypatch.setattr(f"{module}.has_checkpoint", lambda run_dir: True)
-        monkeypatch.setattr(f"{module}.build", lambda *a, **kw: (_ for _ in ()).throw(Built()))
+        monkeypatch.setattr(f"{module}.build", built)
     for command in (["train", "--resume", str(run), "--no-progress"], ["export", str(run), "--out", str(tmp_path / "x")],
                     ["certify", str(run)]):
         with pytest.raises(Built):  # unchanged: the checks pass

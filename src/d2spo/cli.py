@@ -22,12 +22,13 @@ import tyro
 from rich.console import Console
 
 from d2spo import compile_cache, interrupts
-from d2spo.algos import LEARNERS, config_sections
+from d2spo.algos import LEARNERS
 from d2spo.cli_certify import CertifyCmd
 from d2spo.cli_docs import DocsCmd
 from d2spo.cli_export import ExportCmd
 from d2spo.cli_reproduce import ReportCmd, ReproduceCmd
-from d2spo.config import TrainConfig, algo_named, config_file_named, config_to_dict, flags_for, plain
+from d2spo.config import TrainConfig, algo_named, config_file_named, flags_for, plain
+from d2spo.config_diff import flags_given, other_learners_flag
 from d2spo.console import (
     error,
     print_evaluation,
@@ -169,25 +170,6 @@ class DemoCmd:
 
     def run(self) -> int:
         return run_demo(self.out, self.seed, self.episodes)
-
-
-def flags_given(cfg: TrainConfig) -> list[str]:
-    """The training flags a command line set (``--generalist-tasks``, ``--td3.batch-size``, ...): the
-    fields of ``cfg`` that differ from a fresh config of the same learner, ``--algo``, ``--generalist``
-    and ``--fast`` named first (the defaults the other fields take follow these three, so a field
-    they fill is not a flag the user gave). Every field counts, read by this learner or not."""
-    keys = {"algo": cfg.algo, "generalist": cfg.generalist, "fast": cfg.fast}
-    base = TrainConfig(**keys)
-    named = [f"--{k}" for k, v in keys.items() if v != getattr(TrainConfig, k)]
-
-    def walk(a, b, where: str) -> list[str]:
-        if isinstance(a, dict) and isinstance(b, dict):
-            return [d for k in sorted(set(a) | set(b)) for d in walk(a.get(k), b.get(k), f"{where}.{k}" if where else k)]
-        flag = where.rsplit(".", 1)[-1] if where.startswith("env.") else where  # the env's flags are flat
-        return [] if a == b else ["--" + flag.replace("_", "-")]
-
-    differs = walk(config_to_dict(base), config_to_dict(cfg), "")
-    return named + [f for f in differs if f not in named]
 
 
 @dataclasses.dataclass
@@ -344,26 +326,11 @@ def help_command(args: list[str]) -> str:
 def usage_hint(args: list[str]) -> str:
     """What a usage error's line ends with: ``see`` the help (``help_command``); for a flag of
     another learner's section, which learners read it and their help."""
-    if args[:1] == ["train"] and (other := _other_learners_flag(args)) is not None:
+    if args[:1] == ["train"] and (other := other_learners_flag(args, algo_named(args))) is not None:
         flag, algos = other
         return (f"{flag} is a flag of --algo {' or --algo '.join(algos)}, not of --algo {algo_named(args)}: "
                 f"see d2spo train --algo {algos[0]} --help")
     return f"see {help_command(args)}"
-
-
-def _other_learners_flag(args: list[str]) -> tuple[str, list[str]] | None:
-    """(flag, the learners that read its section) for the first flag of ``args`` whose section
-    (``--cpo.``, ``--cbf.``) the chosen learner does not read; None when there is none."""
-    if algo_named(args) not in LEARNERS:  # an unknown --algo: its own error says so
-        return None
-    chosen = config_sections(algo_named(args))
-    for arg in args:
-        section = arg[2:].split(".", 1)[0].replace("-", "_") if arg.startswith("--") and "." in arg else None
-        if section is not None and section not in chosen:
-            algos = [a for a in LEARNERS if section in config_sections(a)]
-            if algos:
-                return arg.split("=", 1)[0], algos
-    return None
 
 
 def parse(args: list[str]):

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from d2spo.algos import all_config_sections, config_sections
+from d2spo.algos import LEARNERS, all_config_sections, config_sections
 from d2spo.config import TrainConfig, config_to_dict
 
 _SHAPING_FIELDS = ("shaping", "shaping_metric", "shaping_clearance", "shaping_clearance_cost", "shaping_collide_cost",
@@ -65,16 +65,39 @@ def effective_config(cfg: TrainConfig) -> dict:
     return d
 
 
+def _differences(a: Any, b: Any, where: str = "") -> list[tuple[str, Any, Any]]:
+    """(dotted path, a's value, b's value) for each leaf of two nested dicts that differs."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        return [d for k in sorted(set(a) | set(b)) for d in _differences(a.get(k), b.get(k), f"{where}.{k}" if where else k)]
+    return [] if a == b else [(where, a, b)]
+
+
 def config_differences(old: TrainConfig, new: TrainConfig) -> list[str]:
     """``'path: old -> new'`` for each effective setting that differs between two configs."""
-    out: list[str] = []
+    return [f"{where}: {a!r} -> {b!r}" for where, a, b in _differences(effective_config(old), effective_config(new))]
 
-    def walk(a: Any, b: Any, where: str) -> None:
-        if isinstance(a, dict) and isinstance(b, dict):
-            for k in sorted(set(a) | set(b)):
-                walk(a.get(k), b.get(k), f"{where}.{k}" if where else k)
-        elif a != b:
-            out.append(f"{where}: {a!r} -> {b!r}")
 
-    walk(effective_config(old), effective_config(new), "")
-    return out
+def flags_given(cfg: TrainConfig) -> list[str]:
+    """The training flags a command line set (``--generalist-tasks``, ``--td3.batch-size``, ...): the
+    fields of ``cfg`` that differ from a fresh config of the same learner, ``--algo``, ``--generalist``
+    and ``--fast`` named first (the defaults the other fields take follow these three, so a field
+    they fill is not a flag the user gave). Every field counts, read by this learner or not."""
+    keys = {"algo": cfg.algo, "generalist": cfg.generalist, "fast": cfg.fast}
+    named = [f"--{k}" for k, v in keys.items() if v != getattr(TrainConfig, k)]
+    flags = ["--" + (where.rsplit(".", 1)[-1] if where.startswith("env.") else where).replace("_", "-")  # env's: flat
+             for where, _, _ in _differences(config_to_dict(TrainConfig(**keys)), config_to_dict(cfg))]
+    return named + [f for f in flags if f not in named]
+
+
+def other_learners_flag(args: list[str], algo: str) -> tuple[str, list[str]] | None:
+    """(flag, the learners that read its section) for the first flag of ``args`` whose section
+    (``--cpo.``, ``--cbf.``) the learner ``algo`` does not read; None when there is none."""
+    if algo not in LEARNERS:  # an unknown --algo: its own error says so
+        return None
+    for arg in args:
+        section = arg[2:].split(".", 1)[0].replace("-", "_") if arg.startswith("--") and "." in arg else None
+        if section is not None and section not in config_sections(algo):
+            algos = [a for a in LEARNERS if section in config_sections(a)]
+            if algos:
+                return arg.split("=", 1)[0], algos
+    return None

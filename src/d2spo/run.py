@@ -114,6 +114,14 @@ def record_inputs(out: Path, cfg: TrainConfig) -> None:
                                         "path": str(file.resolve())}})  # for commands run from elsewhere
 
 
+def _recorded_layout(run_dir: Path) -> dict:
+    """``INPUTS``' entry for the run's layout file (``file``, ``path``, ``sha256``); {} without one."""
+    if not (Path(run_dir) / INPUTS).is_file():
+        return {}
+    data = read_json(Path(run_dir) / INPUTS, "the hash of the run's layout file")
+    return data.get("layout") if isinstance(data, dict) and isinstance(data.get("layout"), dict) else {}
+
+
 def _found_layout(run_dir: Path, cfg: TrainConfig, given: str | None) -> TrainConfig:
     """``cfg`` with its layout file found from here: a path relative to where the run was trained is
     looked up at the absolute path ``INPUTS`` recorded, then at ``given`` (a command's --layout), each
@@ -122,10 +130,7 @@ def _found_layout(run_dir: Path, cfg: TrainConfig, given: str | None) -> TrainCo
     file = None if cfg.generalist else layouts.layout_file(cfg.layout)
     if file is None or file.exists():
         return cfg
-    entry = {}
-    if (Path(run_dir) / INPUTS).is_file():
-        data = read_json(Path(run_dir) / INPUTS, "the hash of the run's layout file")
-        entry = data.get("layout") if isinstance(data, dict) and isinstance(data.get("layout"), dict) else {}
+    entry = _recorded_layout(run_dir)
     for candidate in (entry.get("path"), given):
         if isinstance(candidate, str) and layouts.layout_file(candidate) is not None and Path(candidate).is_file() \
                 and sha256_of(Path(candidate), _layout_error) == entry.get("sha256"):
@@ -146,10 +151,7 @@ def is_training_layout(run_dir: Path, cfg: TrainConfig, layout: str) -> bool:
     given, trained = layouts.layout_file(layout), layouts.layout_file(cfg.layout)
     if given is None or trained is None:
         return layout == cfg.layout
-    entry = {}
-    if (Path(run_dir) / INPUTS).is_file():
-        data = read_json(Path(run_dir) / INPUTS, "the hash of the run's layout file")
-        entry = data.get("layout") if isinstance(data, dict) and isinstance(data.get("layout"), dict) else {}
+    entry = _recorded_layout(run_dir)
     if not isinstance(entry.get("sha256"), str):
         return given.resolve() == trained.resolve()
     return given.is_file() and sha256_of(given, _layout_error) == entry["sha256"]
