@@ -48,6 +48,8 @@ def main() -> None:
                         help="the runtime filter (D²SPO): as exported, on, or off")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
+    if args.episodes < 1:
+        parser.exit(2, f"{parser.prog}: error: --episodes must be >= 1, got {args.episodes}\n")
 
     # ROS 2: in the node's __init__: load the policy once and make the tracker of the task's state.
     try:
@@ -60,7 +62,10 @@ def main() -> None:
         parser.exit(2, f"{parser.prog}: error: --filter on: this policy has no runtime filter (only D²SPO's has one)\n")
     m = policy.manifest
     cfg = config_from_dict(m["config"])
-    env = gym.make("d2spo/Nav-v0", task=cfg.task, config=cfg.env_config())
+    # max_episode_steps=-1: no TimeLimit of the spec's 300 steps; the env ends an episode at its own
+    # limit, which a long route or a patrol raises (docs/env.md), as d2spo eval does
+    env = gym.make("d2spo/Nav-v0", task=cfg.task, config=cfg.env_config(), max_episode_steps=-1)
+    patrol = policy.automaton.visit is not None  # a Büchi task: never finished, scored by its visits
     lidar = policy.parts["lidar"]  # where the observation holds the scan (the manifest's observation.parts)
 
     def sensors(obs):
@@ -74,7 +79,7 @@ def main() -> None:
         obs, _ = env.reset(seed=args.seed + episode)
         ranges, pose = sensors(obs)
         task.reset(pose[0], pose[1])  # ROS 2: when the mission starts, at the robot's pose
-        steps, done, collided, completed, mismatches = 0, False, False, False, 0
+        steps, done, collided, completed, mismatches, env_visits = 0, False, False, False, 0, 0
         while not done:
             # ROS 2: a timer at 1/dt (the manifest's action.dt) runs these three lines and publishes
             # Twist(linear.x=v, angular.z=omega) on /cmd_vel.
@@ -84,19 +89,22 @@ def main() -> None:
             ranges, pose = sensors(obs)
             task.update(pose[0], pose[1])  # ROS 2: after each step, from the new pose
             mismatches += task.q != info["q_next"]  # the env's own automaton state, for this check only
+            env_visits += info.get("accepting_visit", False)  # and its own count of a patrol's visits
             steps += 1
             done = terminated or truncated
             collided, completed = collided or info["collided"], completed or info["completed"]
-        results.append((collided, completed, steps))
+        results.append((collided, completed, steps, task.visits))
+        outcome = (f"{task.visits} accepting visits" + ("" if task.visits == env_visits else f" (the env counted {env_visits})")
+                   if patrol else "completed" if completed else "not completed")
         print(f"episode {episode}: {steps} steps, {'collided' if collided else 'safe'}, "
-              f"{'completed' if completed else 'not completed'} (last command v={v:.2f} m/s, omega={omega:.2f} rad/s"
+              f"{outcome} (last command v={v:.2f} m/s, omega={omega:.2f} rad/s"
               f"{'' if not mismatches else f'; automaton state differed from the env in {mismatches} steps'})")
-    collided, completed, steps = map(np.array, zip(*results))
+    collided, completed, steps, visits = map(np.array, zip(*results))
     filt = "none" if policy.runtime_filter is None else ("on" if (policy.filter_on if use_filter is None else use_filter)
                                                  else "off")
-    print(json.dumps({"episodes": len(results), "safety_rate": float(1 - collided.mean()),
-                      "completion_rate": float(completed.mean()), "mean_length": float(steps.mean()),
-                      "runtime_filter": filt}))
+    scores = {"visits_per_episode": float(visits.mean())} if patrol else {"completion_rate": float(completed.mean())}
+    print(json.dumps({"episodes": len(results), "safety_rate": float(1 - collided.mean()), **scores,
+                      "mean_length": float(steps.mean()), "runtime_filter": filt}))
 
 
 if __name__ == "__main__":

@@ -154,3 +154,15 @@ def short_d2spo_run(tmp_path_factory):
     # the run evaluate it with the same rollout program
     return out, summary, dict(calls)
 
+
+@pytest.fixture
+def no_build(monkeypatch):
+    """Training and evaluation stop with ``_faults.Built`` where they would build a learner (the fault
+    tests around files and run directories: nothing there compiles)."""
+    from _faults import Built
+
+    def built(*a, **kw):
+        raise Built
+
+    monkeypatch.setattr("d2spo.train.build", built)
+    monkeypatch.setattr("d2spo.evaluate.load_policy", built)

@@ -82,8 +82,8 @@ def test_bad_input_gets_one_line_and_exit_2(tmp_path, capsys, untrained_run):
     foreign = tmp_path / "foreign"
     write_run(foreign, tiny_cfg(), carry={"something": np.zeros(3)})
     assert "checkpoint" in one_error_line(capsys, ["certify", str(foreign)])
-    assert "eps_safe" in one_error_line(capsys, ["certify", str(untrained_run), "--eps-safe", "0"])
-    assert "eps_unsafe" in one_error_line(capsys, ["certify", str(untrained_run), "--repair", "--eps-unsafe", "-1",
+    assert "--eps-safe: " in one_error_line(capsys, ["certify", str(untrained_run), "--eps-safe", "0"])
+    assert "--eps-unsafe: " in one_error_line(capsys, ["certify", str(untrained_run), "--repair", "--eps-unsafe", "-1",
                                                     "--out", str(tmp_path / "r")])
     # the repair's flags without --repair would be ignored (no repaired run written): refused, before any work
     assert one_error_line(capsys, ["certify", str(untrained_run), "--out", str(tmp_path / "r")]).endswith(
@@ -97,8 +97,57 @@ def test_bad_epsilon_through_the_command_line_has_no_traceback(untrained_run):
     res = subprocess.run([sys.executable, "-m", "d2spo.cli", "certify", str(untrained_run), "--eps-unsafe", "0"],
                          capture_output=True, text=True, timeout=120)
     assert res.returncode == 2 and "Traceback" not in res.stderr
-    assert [ln for ln in res.stderr.splitlines() if ln.strip()] == ["d2spo: error: eps_unsafe: must be a finite number > 0, got 0.0"]
+    assert [ln for ln in res.stderr.splitlines() if ln.strip()] == ["d2spo: error: --eps-unsafe: must be a finite number > 0, got 0.0"]
 
+
+
+def test_certify_checks_the_policy_eval_and_export_take(untrained_run, tmp_path):
+    """A validated run's kept policy is the one `d2spo eval` and `d2spo export` take by default; certify
+    checked the newest checkpoint's barrier instead. Now ``--policy best`` (the default) checks the kept
+    one, ``--policy last`` the newest, and certify.json says which."""
+    from flax import serialization
+
+    from d2spo.certify import CertifyConfig, certify_run, load_cbf_run, with_policy
+    from d2spo.run import best_policy_path
+
+    ccfg = CertifyConfig(**CCFG_TINY)
+    last = load_cbf_run(untrained_run)
+    run = tmp_path / "run"
+    run.mkdir()
+    for f in untrained_run.iterdir():  # its config and inputs; the checkpoint is written below
+        if f.is_file():
+            (run / f.name).write_bytes(f.read_bytes())
+    kept = _shifted(last, 20.0).carry  # the kept policy: h shifted up, violated on the ring
+    newest_carry = _shifted(last, -20.0).carry  # the newest checkpoint's: shifted down, certified there
+    Checkpoints(run, run_fingerprint(run)).save(newest_carry, {"episodes": 0, "env_steps": 0, "chunks": 0,
+                                                             "wall_seconds": 0.0, "best": {"episodes": 0}})
+    best_policy_path(run).write_bytes(serialization.to_bytes(jax.device_get((kept.agent.actor, kept.safety))))
+    loaded = load_cbf_run(run)
+    best, _ = certify_run(run, ccfg, run=with_policy(loaded, run, "best"), search=False)
+    newest, _ = certify_run(run, ccfg, run=with_policy(loaded, run, "last"), search=False)
+    assert best["policy"].startswith("best on validation") and newest["policy"].startswith("last")
+    assert best["nets"]["grid_L"]["violated"] == 1.0 and newest["nets"]["grid_L"]["certified"] == 1.0
+
+
+def test_certify_names_each_stage_as_it_starts_and_is_quiet_without_progress(untrained_run, tmp_path, capsys):
+    """A certification runs a minute or more without a table: stderr says which stage runs (a log
+    gets a line per stage); --no-progress prints none of them."""
+    import shutil
+
+    from d2spo import cli
+    from d2spo.progress import StageProgress
+
+    run = tmp_path / "run"
+    shutil.copytree(untrained_run, run)
+    flags = [f"--{k.replace('_', '-')}={v}" for k, v in CCFG_TINY.items()]
+    assert cli.main(["certify", str(run), *flags]) == 0
+    seen = capsys.readouterr()
+    stages = [ln.split(": ", 1)[1].split(" (")[0] for ln in seen.err.splitlines() if ln.startswith("certify run: ")]
+    assert stages == ["the nominal model's residual on the data", "Propositions 1-2 on the datasets and the grids",
+                      "searching for counterexamples", "drawing certify.png"], seen.err
+    assert "wrote" in seen.out and (run / "certify.json").is_file()
+    with StageProgress(None, False, "certify run") as on_stage:  # --no-progress: no callback, no console used
+        assert on_stage is None
 
 
 @pytest.fixture(scope="module")

@@ -123,6 +123,31 @@ def test_misspelled_flag_keeps_the_suggestion(capsys):
     assert "--episodes for --episods" in err and "--seed for --seeed" in err and "--seeds" not in err
 
 
+@pytest.mark.parametrize("args, says", [
+    (["train", "--episodes", "0"], "d2spo: error: --episodes: must be a positive integer, got 0"),
+    (["train", "--td3.batch-size=0"], "d2spo: error: --td3.batch-size: must be a positive integer, got 0"),
+    (["train", "--generalist", "--generalist-layouts", "99999999"], "d2spo: error: --generalist-layouts: at most"),
+])
+def test_a_refused_value_is_named_by_the_flag_typed(capsys, args, says):
+    """A config's refusal names its field ("td3.batch_size"); the user typed a flag ("--td3.batch-size")."""
+    try:
+        status = cli.main(args)
+    except SystemExit as e:  # refused while tyro parses (a learner's section), or after it
+        status = e.code
+    assert status == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(says), err
+
+
+def test_a_field_not_typed_as_a_flag_keeps_its_name():
+    assert console.as_typed("td3.batch_size: bad", ["train", "--td3.batch-size", "0"]) == "--td3.batch-size: bad"
+    assert console.as_typed("fast: bad", ["train", "--no-fast"]) == "--no-fast: bad"
+    assert console.as_typed("episodes: bad", ["train", "--config", "c.json"]) == "episodes: bad"  # from the file
+    assert console.as_typed("episodes: bad", ["train", "--episodes-x", "3"]) == "episodes: bad"
+    assert console.as_typed("no field here", ["train", "--episodes", "0"]) == "no field here"
+    assert console.as_typed("reward.r_goal: bad", ["train", "--r-goal", "inf"]) == "--r-goal: bad"  # flattened
+
+
 @pytest.mark.parametrize("args,hint", [
     (["--cpo.target-kl", "0.02"], "(--cpo.target-kl is a flag of --algo cpo, not of --algo d2spo: "
                                   "see d2spo train --algo cpo --help)"),
@@ -168,7 +193,7 @@ def test_ltl_refuses_an_unknown_label_mode_before_printing_anything(capsys):
     """As `d2spo train --label-mode` does; it once printed the automaton and went on (exit 0)."""
     assert cli.main(["ltl", "patrol2", "--label-mode", "foo"]) == 2
     seen = capsys.readouterr()
-    assert seen.out == "" and seen.err.strip() == "d2spo: error: label_mode: must be one of ['event', 'step'], got 'foo'"
+    assert seen.out == "" and seen.err.strip() == "d2spo: error: --label-mode: must be one of ['event', 'step'], got 'foo'"
 
 
 @pytest.mark.parametrize("args,hint", [(["eval", "RUN", "--episodes", "abc"], "d2spo eval --help"),
@@ -253,7 +278,7 @@ def test_resume_refuses_the_flags_its_config_json_would_override(extra, named, t
     is refused (one line, exit 2) instead of silently dropped."""
     assert cli.main(["train", "--resume", str(tmp_path), "--no-progress", *extra]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith("d2spo: error: resume:") and named in err[0], err
+    assert len(err) == 1 and err[0].startswith("d2spo: error: --resume:") and named in err[0], err
     if named.startswith("leave out"):
         assert err[0].endswith(named), err
 

@@ -81,7 +81,8 @@ def test_bad_files_give_one_line_and_exit_2(tmp_path, capsys, content, field, wo
     assert e.value.field == field and words in str(e.value)
     assert cli.main(["train", "--dynamics", str(path), "--out", str(tmp_path / "run")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith(f"d2spo: error: {field}: ") and words in err[0], err
+    shown = "--dynamics" if field == "dynamics" else field  # the flag typed, or the file's own field
+    assert len(err) == 1 and err[0].startswith(f"d2spo: error: {shown}: ") and words in err[0], err
     assert not (tmp_path / "run").exists()  # nothing written
 
 

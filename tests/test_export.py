@@ -208,6 +208,50 @@ def test_task_tracker_follows_the_envs_automaton(case):
     assert len(set(got)) > 2 and tracker.completed == bool(params.aut.accepting[got[-1]])
 
 
+@pytest.mark.parametrize("task, label_mode", [("patrol2", "event"), ("GF A1 & GF A2", "step"), ("phi1", "event")])
+def test_task_tracker_counts_a_patrols_accepting_visits_as_the_env(task, label_mode):
+    """A robot on a patrol never finishes; its laps are the accepting visits the env's info reports
+    (``accepting_visit`` under the true labelling). The tracker of the exported automaton counts the
+    same along a path that shuttles between the areas; a task with a finite goal counts none."""
+    from d2spo.deploy.task import Automaton, TaskTracker
+    from d2spo.envs import make_env
+    from d2spo.export import _automaton, _layout
+    from d2spo.ltl.labelling import accepting_visit
+
+    env, params = make_env(EnvConfig(layout="paper", label_mode=label_mode), task)
+    manifest = json.loads(json.dumps({"automaton": _automaton(env, params), "layout": _layout(env, params)}))
+    tracker = TaskTracker(Automaton.of_manifest(manifest))
+    centres = [np.asarray(c) for c in params.area_center]
+    stops = [np.asarray(params.start[:2])] + [centres[i] for i in (0, 1, 2, 1, 0, 1, 2, 1, 0)]  # round A4
+    path = np.concatenate([np.linspace(a, b, 30, endpoint=False) for a, b in zip(stops, stops[1:])]).astype(np.float32)
+
+    def step(carry, xy):
+        q, letter = carry
+        _, true = env._letters(xy, q, params)
+        visit = accepting_visit(params.aut, q, true, letter, params.event)
+        return (next_state(params.aut, q, true, letter, params.event), true), visit
+
+    q0 = jnp.asarray(params.aut.initial, jnp.int32)
+    _, first = env._letters(jnp.asarray(path[0]), q0, params)
+    start = next_state(params.aut, q0, first, jnp.int32(0), params.event)
+    if params.aut.visit is None:
+        assert manifest["automaton"]["visit"] is None
+    else:
+        _, want = jax.lax.scan(step, (start, first), jnp.asarray(path[1:]))
+        want = np.asarray(want).tolist()
+    tracker.reset(*path[0])
+    got = []
+    for xy in path[1:]:
+        tracker.update(*xy)
+        got.append(tracker.visited)
+    if params.aut.visit is None:
+        assert tracker.visits == 0 and not any(got)
+    else:
+        assert got == want and tracker.visits == sum(want) >= 2, (tracker.visits, sum(want))
+    tracker.reset(*path[0])
+    assert tracker.visits == 0
+
+
 @pytest.mark.skipif(not (has_module("onnx") and has_module("onnxruntime")), reason="needs the extra d2spo[onnx]")
 def test_onnx_graphs_run_as_the_numpy_networks(case, states):
     import onnxruntime

@@ -71,8 +71,8 @@ def test_a_new_export_removes_the_files_only_the_one_it_replaces_had(tiny, tmp_p
 
 def test_the_example_refuses_a_path_that_is_not_a_policy_in_one_line(tiny, tmp_path, capsys, monkeypatch):
     temp = _temporary_dirs_here(monkeypatch, tmp_path)
-    for path in (tmp_path / "nope", tiny[1] / "manifest.json"):
-        monkeypatch.setattr(sys, "argv", ["deploy_gym_loop.py", str(path)])
+    for args in ([tmp_path / "nope"], [tiny[1] / "manifest.json"], [tiny[1], "--episodes", "0"]):
+        monkeypatch.setattr(sys, "argv", ["deploy_gym_loop.py", *map(str, args)])
         with pytest.raises(SystemExit) as e:
             runpy.run_path(str(ROOT / "examples" / "deploy_gym_loop.py"), run_name="__main__")
         err = capsys.readouterr().err.strip().splitlines()
@@ -103,8 +103,18 @@ def test_export_command_and_bad_input(tiny, tmp_path, capsys):
     assert "exists and is not a directory" in one_error_line(capsys, ["export", str(run), "--out",
                                                                        str(tmp_path / "file")])
     assert "holds no exported policy" in one_error_line(capsys, ["export", str(run), "--out", str(run)])
+    # what an export stopped before its manifest left (Ctrl-C): its own files only, taken over
+    (tmp_path / "partial").mkdir()
+    (tmp_path / "partial" / "weights.npz").write_bytes(b"half")
+    (tmp_path / "partial" / ".weights.npz.123-0a1b2c3d.tmp").write_bytes(b"half")
+    assert cli.main(["export", str(run), "--out", str(tmp_path / "partial")]) == 0
+    Policy.load(tmp_path / "partial")
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "weights.npz").write_bytes(b"x")
+    (tmp_path / "mine" / "notes.txt").write_text("mine")  # not an export's: the folder is left alone
+    assert "holds no exported policy" in one_error_line(capsys, ["export", str(run), "--out", str(tmp_path / "mine")])
     # a filter of no iterations would return the action as it is: refused, as eval and training refuse it
-    assert "filter_iters: must be a positive integer, got 0" in one_error_line(
+    assert "--filter-iters: must be a positive integer, got 0" in one_error_line(
         capsys, ["export", str(run), "--out", str(tmp_path / "o"), "--filter-iters", "0"])
     write_run(tmp_path / "ppo", tiny_cfg("ppo-lag"))
     assert "ppo-lag is not exported" in one_error_line(capsys, ["export", str(tmp_path / "ppo"), "--out",
@@ -143,6 +153,13 @@ def test_a_damaged_or_foreign_export_is_refused(tiny, tmp_path):
         Policy.load(copy)
 
 
+def _edited(policy, ranges, pose, part: str, k: int, value: float):
+    """The observation at ``pose`` with entry ``k`` of its ``part`` set to ``value``."""
+    obs = policy.observation(ranges, pose, 0)
+    obs[policy.parts[part].start + k] = value
+    return obs
+
+
 @pytest.mark.parametrize("call, match", [
     (lambda p, r, pose: p.act(r, (0.6, 0.6, float("nan")), 0), r"pose must be .*entries \[2\] are not finite"),
     (lambda p, r, pose: p.act(r, (0.6, float("inf"), 0.0), 0), r"pose must be .*not finite"),
@@ -159,6 +176,14 @@ def test_a_damaged_or_foreign_export_is_refused(tiny, tmp_path):
     (lambda p, r, pose: p.act(r, pose, 0, filter="yes"), "filter must be True, False or None"),
     (lambda p, r, pose: p.act_observation(np.full(p.observation_size, np.nan)), "obs must be .*not finite"),
     (lambda p, r, pose: p.act_observation(np.zeros(10)), "obs must be an observation of .*got 10 values"),
+    # an observation of numbers that no env gives: refused by its part, never a NaN or an unchecked pose
+    (lambda p, r, pose: p.act_observation(_edited(p, r, pose, "pose", 0, 1e10)), "outside the arena"),
+    (lambda p, r, pose: p.act_observation(_edited(p, r, pose, "pose", 2, 5.0)), "pose part .*not a unit vector"),
+    (lambda p, r, pose: p.act_observation(_edited(p, r, pose, "lidar", 3, 50.0)), r"lidar part .*outside \[0, 1\]"),
+    (lambda p, r, pose: p.act_observation(_edited(p, r, pose, "automaton", 0, 0.5)), "automaton part .*not one-hot"),
+    (lambda p, r, pose: p.act_observation(_edited(p, r, pose, "path", 0, 3e38)), "path part .*longer than a unit"),
+    (lambda p, r, pose: p.x_of_observation(p.observation(r, pose, 0)[:5]), "obs must be an observation of .*got 5"),
+    (lambda p, r, pose: p.filter(pose, [5.0, 5.0]), r"u0 must be .*in \[-1, 1\]; got \[5.0, 5.0\]"),
     (lambda p, r, pose: p.command([float("nan"), 0.0]), "action must be .*not finite"),
     (lambda p, r, pose: p.command(0.5), "action must be .*got 1 value$"),
     (lambda p, r, pose: p.filter(pose, [float("nan"), 0.0]), "u0 must be .*not finite"),
@@ -186,3 +211,23 @@ def test_a_policy_without_a_filter_says_so_when_asked_to_filter(tiny):
     policy.runtime_filter = None
     with pytest.raises(ValueError, match="no runtime filter"):
         policy.filter((0.6, 0.6, 0.0), [0.1, 0.0])
+
+
+def test_the_export_says_how_the_policy_it_wrote_was_evaluated(tmp_path):
+    """An unfinished run or one whose final policy never stayed safe exported without a word; the
+    export now quotes the run's evaluation of the policy it wrote, or says there is none."""
+    from d2spo.cli_export import evaluated_line
+
+    m = {"source": {"policy": "last (after 112 episodes)", "episodes": 112}, "config": {"episodes": 400}}
+    assert evaluated_line(tmp_path, m).startswith("note: the run is unfinished (112 of 400 episodes): this policy "
+                                                  "has not been evaluated; d2spo eval")
+    e = {"episodes": 8, "safety_rate": 0.0, "completion_rate": 0.25}
+    (tmp_path / "summary.json").write_text(json.dumps({"eval": e, "eval_best": {**e, "safety_rate": 1.0}}))
+    assert evaluated_line(tmp_path, m).endswith("(8 episodes): 0.00% safe, 25.00% complete")
+    best = {**m, "source": {"policy": "best (episode 90)", "episodes": 112}}
+    assert evaluated_line(tmp_path, best).endswith("(8 episodes): 100.00% safe, 25.00% complete")
+    (tmp_path / "summary.json").write_text(json.dumps({"route_optimal_visits": 11,
+                                                       "eval": {**e, "accepting_visits_per_episode": 6.5}}))
+    assert evaluated_line(tmp_path, m).endswith("0.00% safe, 6.50 accepting visits per episode")
+    (tmp_path / "summary.json").write_text(json.dumps({"episodes": 400}))
+    assert "holds no final evaluation" in evaluated_line(tmp_path, m)

@@ -55,7 +55,7 @@ def test_none_alone_means_the_default_widths():
 def test_fast_on_the_command_line_for_another_learner_is_one_line(capsys):
     assert main(["train", "--algo", "tlgrl", "--fast", "--episodes", "1"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith("d2spo: error: fast:")
+    assert len(err) == 1 and err[0].startswith("d2spo: error: --fast:")
 
 
 def test_the_generalists_actor_proposes_forward_motion_and_old_runs_keep_theirs():
@@ -117,7 +117,7 @@ def test_td3_lag_refuses_an_annealed_exploration_noise(capsys):
         main(["train", "--algo", "td3-lag", "--td3-lag.td3.exploration-noise-final", "0.05", "--out", "/nonexistent/x"])
     assert e.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "td3_lag.td3.exploration_noise_final" in err[0]
+    assert len(err) == 1 and err[0].startswith("d2spo: error: --td3-lag.td3.exploration-noise-final: "), err
 
 
 @pytest.mark.parametrize("term", ["smoothness", "saturation", "speed-search"])
@@ -126,7 +126,7 @@ def test_td3_lag_refuses_the_actor_terms_its_loss_lacks(capsys, term):
         main(["train", "--algo", "td3-lag", f"--td3-lag.td3.{term}", "1", "--out", "/nonexistent/x"])
     assert e.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and f"td3_lag.td3.{term.replace('-', '_')}" in err[0]
+    assert len(err) == 1 and err[0].startswith(f"d2spo: error: --td3-lag.td3.{term}: "), err
 
 
 def test_the_actor_terms_check_their_values():

@@ -53,7 +53,7 @@ def test_env_show_writes_the_format_its_out_names_and_refuses_jpg_in_one_line(tm
     capsys.readouterr()
     assert cli.main(["env", "show", "--out", str(tmp_path / "x.jpg")]) == 2  # matplotlib could, d2spo does not
     err = capsys.readouterr().err.strip().splitlines()
-    assert err == [f"d2spo: error: out: {tmp_path / 'x.jpg'}: not a picture format; end the name in one of "
+    assert err == [f"d2spo: error: --out: {tmp_path / 'x.jpg'}: not a picture format; end the name in one of "
                    ".png, .pdf, .svg"]
 
 

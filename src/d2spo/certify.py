@@ -34,7 +34,7 @@ from d2spo.config import config_to_dict
 from d2spo.envs import geometry
 from d2spo.errors import RunDirError
 from d2spo.fields import check_fields
-from d2spo.run import build, carry_template, check_layout_unchanged, load_run_config
+from d2spo.run import build, carry_template, check_layout_unchanged, load_policy, load_run_config
 from d2spo.runio import atomic_write_json
 from d2spo.safety import bounds
 from d2spo.safety import certify as cert
@@ -107,7 +107,19 @@ def load_cbf_run(run_dir: Path) -> CBFRun:
     want = jax.tree_util.tree_leaves(template)
     if len(got) != len(want) or any(np.shape(a) != b.shape for a, b in zip(got, want)):
         raise RunDirError(f"{run_dir}: checkpoint.msgpack does not match this run's config (a foreign checkpoint?)")
+    meta = {**meta, "policy": f"last (after {meta.get('episodes')} episodes)"}
     return CBFRun(cfg, env, params, learner, jax.tree_util.tree_map(jnp.asarray, carry), meta)
+
+
+def with_policy(run: CBFRun, run_dir: Path, which: str) -> CBFRun:
+    """``run`` with the actor and the safety networks (h, π_Ω, f_n) of the policy ``which`` (as
+    ``d2spo eval`` and ``d2spo export`` take it: "best" is a validated run's kept policy where there is
+    one, else the newest checkpoint's; "last" the newest checkpoint's); the datasets stay the
+    checkpoint's. ``meta["policy"]`` says which was taken."""
+    _, _, (actor, safety), meta = load_policy(run_dir, which, run.learner)
+    c = run.carry
+    carry = c.replace(td3=c.td3.replace(agent=c.agent.replace(actor=actor)), safety=safety)
+    return run._replace(carry=jax.tree_util.tree_map(jnp.asarray, carry), meta={**run.meta, "policy": meta["policy"]})
 
 
 def _chunked(fn, *arrays, size: int = 8192):
@@ -326,25 +338,30 @@ DEFINITIONS = {
 
 
 def certify_run(run_dir: Path, ccfg: CertifyConfig | None = None, run: CBFRun | None = None,
-                search: bool = True, data=None) -> tuple[dict, dict]:
+                search: bool = True, data=None, on_stage=None) -> tuple[dict, dict]:
     """Check Propositions 1-2 on a run (on the datasets `data`, default the run's own). Returns
-    (summary, nets); `write_outputs` saves them."""
+    (summary, nets); `write_outputs` saves them. ``on_stage(text)``, if given, hears each stage begin."""
     ccfg = ccfg or CertifyConfig()
+    stage = on_stage or (lambda text: None)
     t0, c0 = time.perf_counter(), time.process_time()
     run = run or load_cbf_run(run_dir)
     times = {}
+    stage("the nominal model's residual on the data (compiling first)")
     res, res_h = model_residual(run, ccfg)
     rho_h = float(np.quantile(res_h, ccfg.residual_quantile))
     times["residual"] = time.perf_counter() - t0
+    stage("Propositions 1-2 on the datasets and the grids")
     nets = check_nets(run, ccfg, rho_h, data)
     times["nets"] = time.perf_counter() - t0 - sum(times.values())
+    if search:
+        stage("searching for counterexamples")
     found = search_counterexamples(run, ccfg, nets, _compiled(run, ccfg), policy_of(run)) if search else {"L": [], "D": []}
     times["search"] = time.perf_counter() - t0 - sum(times.values())
     glob = {k: v / run.learner.H for k, v in bounds.global_lipschitz(bounds.dense_layers(run.carry.safety.cbf)).items()}
     keys = [k for k in ("X_L", "grid_L", "P_exp", "grid_D", "grid_free") if k in nets]
     summary = {
         "run": str(run_dir), "algo": run.cfg.algo, "task": run.cfg.task, "layout": run.cfg.layout,
-        "episodes_trained": run.meta.get("episodes"), "config": dataclasses.asdict(ccfg),
+        "episodes_trained": run.meta.get("episodes"), "policy": run.meta.get("policy"), "config": dataclasses.asdict(ccfg),
         "definitions": DEFINITIONS,
         "residual": {"rho_h": rho_h, "quantile": ccfg.residual_quantile, "transitions": int(res.size),
                      "h": {"p50": float(np.quantile(res_h, 0.5)), "p99": float(np.quantile(res_h, 0.99)),

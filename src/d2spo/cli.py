@@ -30,6 +30,7 @@ from d2spo.cli_reproduce import ReportCmd, ReproduceCmd
 from d2spo.config import TrainConfig, algo_named, config_file_named, flags_for, plain
 from d2spo.config_diff import flags_given, other_learners_flag
 from d2spo.console import (
+    as_typed,
     error,
     print_evaluation,
     show_warning,
@@ -347,7 +348,7 @@ def parse(args: list[str]):
                                         "`d2spo --version` prints the version.")
     except SystemExit as e:
         if e.code not in (0, None):
-            error(tyro_error_line(buf.getvalue(), args) + f" ({usage_hint(args)})")
+            error(as_typed(tyro_error_line(buf.getvalue(), args), args) + f" ({usage_hint(args)})")
             raise SystemExit(2) from None
         raise
 
@@ -369,7 +370,7 @@ def main(argv: list[str] | None = None) -> int:
             print("\n".join(e.pretty().splitlines()[1:]), file=sys.stderr)
         return 2
     except UserError as e:
-        error(str(e))
+        error(as_typed(str(e), args))
         return 2
     except NaNError as e:
         error(str(e))

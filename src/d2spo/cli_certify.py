@@ -12,10 +12,13 @@ from typing import Annotated
 import tyro
 from rich.console import Console
 
-from d2spo.certify import CertifyConfig, certify_run, load_cbf_run, write_outputs
+from d2spo.certify import CertifyConfig, certify_run, load_cbf_run, with_policy, write_outputs
 from d2spo.console import print_certify, print_repair_round
 from d2spo.errors import UserError
+from d2spo.fields import check_choice
+from d2spo.progress import StageProgress
 from d2spo.repair import RepairConfig, repair_run
+from d2spo.run import POLICY_CHOICES
 
 
 @dataclasses.dataclass
@@ -31,12 +34,20 @@ class CertifyCmd:
     out: Path | None = None
     """With --repair: the new run directory (default: RUN-repaired)."""
     fix: Annotated[RepairConfig, tyro.conf.arg(name="")] = dataclasses.field(default_factory=RepairConfig)
+    policy: str = "best"
+    """Which policy's barrier, π_Ω and actor to check: best (a validated run's kept policy, where there is
+    one; the newest checkpoint's otherwise) or last (the newest checkpoint's), as d2spo eval and d2spo export
+    take it. --repair trains on from the newest checkpoint."""
+    progress: bool = True
+    """Show which stage runs (a spinner on a terminal, a line per stage if not)."""
 
     def run(self) -> int:
         console = Console()
         if not console.is_terminal and "COLUMNS" not in os.environ:  # a log or a pipe: rich's 80 columns cut
             console = Console(width=160)  # the table's numbers short ("0.0005…"); a file has room for them all
         if self.repair:
+            if self.policy != "best":
+                raise UserError("--policy: --repair trains on from the newest checkpoint; leave --policy out")
             out = self.out or self.run_dir.with_name(self.run_dir.name + "-repaired")
             res = repair_run(self.run_dir, out, self.check, self.fix,
                              progress=lambda r: print_repair_round(console, r, self.fix.eval_episodes))
@@ -44,9 +55,13 @@ class CertifyCmd:
             print(f"wrote the repaired run {out} (round {res['kept']} kept; certify.json, certify.png, checkpoint)")
             return 0
         self._refuse_repair_flags()
-        run = load_cbf_run(self.run_dir)
-        summary, nets = certify_run(self.run_dir, self.check, run=run)
-        j, p = write_outputs(self.run_dir, run, self.check, summary, nets)
+        check_choice(self, "policy", POLICY_CHOICES)
+        run = with_policy(load_cbf_run(self.run_dir), self.run_dir, self.policy)
+        with StageProgress(Console(stderr=True), self.progress, f"certify {self.run_dir.name}") as on_stage:
+            summary, nets = certify_run(self.run_dir, self.check, run=run, on_stage=on_stage)
+            if on_stage is not None:
+                on_stage("drawing certify.png")
+            j, p = write_outputs(self.run_dir, run, self.check, summary, nets)
         print_certify(console, summary)
         print(f"wrote {j} and {p}")
         return 0

@@ -4,6 +4,7 @@ robot runs with ``d2spo.deploy`` (``d2spo.export``; docs/deploy.md)."""
 from __future__ import annotations
 
 import dataclasses
+import json
 from pathlib import Path
 from typing import Annotated
 
@@ -33,4 +34,27 @@ class ExportCmd:
         print(f"wrote {self.out}: {m['source']['algo']} on {m['source']['task']} / {m['source']['layout']}, "
               f"policy {m['source']['policy']}{line}")
         print(f"files: {files}; {sum(sizes.values()) / 1024:.0f} KiB in all")
+        print(evaluated_line(self.run_dir, m))
         return 0
+
+
+def evaluated_line(run_dir: Path, manifest: dict) -> str:
+    """What the run says of the exported policy: its evaluation at the end of training (summary.json),
+    or that the run is unfinished and the policy unevaluated."""
+    try:
+        summary = json.loads((run_dir / "summary.json").read_text())
+    except (OSError, ValueError):
+        summary = None
+    if not isinstance(summary, dict):
+        done, total = manifest["source"].get("episodes"), manifest["config"].get("episodes")
+        state = (f"is unfinished ({done} of {total} episodes)" if isinstance(done, int) and isinstance(total, int)
+                 and done < total else "has no summary.json")
+        return (f"note: the run {state}: this policy has not been evaluated; "
+                f"d2spo eval {run_dir} --policy {str(manifest['source']['policy']).split()[0]} first")
+    best = str(manifest["source"]["policy"]).startswith("best") and "eval_best" in summary
+    e = summary.get("eval_best" if best else "eval")
+    if not isinstance(e, dict):
+        return "note: summary.json holds no final evaluation of this policy (--eval-episodes 0); d2spo eval it first"
+    score = (f"{e['accepting_visits_per_episode']:.2f} accepting visits per episode" if "route_optimal_visits" in summary
+             else f"{100 * e['completion_rate']:.2f}% complete")
+    return f"evaluated at the end of training ({e['episodes']} episodes): {100 * e['safety_rate']:.2f}% safe, {score}"

@@ -85,6 +85,24 @@ def tyro_error_line(text: str, args: list[str] = ()) -> str:
     return f"{title}: {msg}" if title and not msg.startswith(title) else msg
 
 
+def as_typed(msg: str, args: list[str] = ()) -> str:
+    """A ConfigError's line ("td3.batch_size: must be ...") naming the flag as the user typed it
+    ("--td3.batch-size: must be ..."), when ``args`` holds that flag; else unchanged (a value from
+    a config file or a run's config.json keeps its field's name). A section the command line
+    flattens ("env.reward.r_goal" is ``--r-goal``) is matched by the field's path's shortest tail."""
+    field, sep, rest = msg.partition(": ")
+    if not sep or not re.fullmatch(r"[a-z0-9_.]+", field):
+        return msg
+    parts = field.split(".")
+    for k in range(len(parts)):  # the whole path first, then without its leading sections
+        head = ".".join(parts[k:-1])
+        for stem in ("", "no_"):
+            flag = f"--{head}{'.' if head else ''}{stem}{parts[-1]}".replace("_", "-")
+            if any(a == flag or a.startswith(flag + "=") for a in args):
+                return f"{flag}: {rest}"
+    return msg
+
+
 # ------------------------------------------------------------------------------------ d2spo eval
 def print_evaluation(res: dict, path: Path, filter_asked: bool | None) -> None:
     """``d2spo.evaluate.evaluate_run``'s result as a table (a row per layout when there are several),
@@ -155,7 +173,8 @@ def print_repair_round(console, r: dict, eval_episodes: int) -> None:
 def print_certify(console, s: dict) -> None:
     """``d2spo.certify.certify_run``'s summary: a table per net, the model residual, counterexamples."""
     cpu = f", {s['cpu_seconds']:.0f} s CPU" if "cpu_seconds" in s else ""
-    t = Table(title=f"{s['run']}: Propositions 1-2 ({s['seconds']:.0f} s{cpu})")
+    policy = f", policy {s['policy']}" if s.get("policy") else ""
+    t = Table(title=f"{s['run']}: Propositions 1-2{policy} ({s['seconds']:.0f} s{cpu})")
     for name in ("net", "proposition", "points", "certified", "not certified", "violated", "worst margin", "worst value"):
         t.add_column(name, justify="left" if name in ("net", "proposition") else "right")
     rows = (("X_L (ℒ)", "1: h < 0", "max_h", "h"), ("grid: ring + contact", "1: h < 0", "max_h", "h"),

@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import io
 import json
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -67,12 +68,20 @@ class ExportConfig:
 
 
 def check_out(out: Path) -> None:
-    """RunDirError unless ``out`` can take an export: absent, empty, or an earlier export (replaced)."""
+    """RunDirError unless ``out`` can take an export: absent, empty, an earlier export (replaced), or
+    what an export stopped before its manifest left (its own files only: the manifest comes last)."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise RunDirError(f"{out}: exists and is not a directory")
-    if out.is_dir() and any(out.iterdir()) and not (out / MANIFEST).is_file():
+    if out.is_dir() and not (out / MANIFEST).is_file() and not all(map(_an_exports_file, out.iterdir())):
         raise RunDirError(f"{out}: not empty and holds no exported policy ({MANIFEST}); choose another --out")
+
+
+def _an_exports_file(path: Path) -> bool:
+    """Whether ``path`` is a file an export writes before its manifest (or one's temporary file)."""
+    name = path.name
+    temporary = re.fullmatch(r"\.(.+)\.\d+-[0-9a-f]{8}\.tmp", name)  # runio.atomic_write_bytes's
+    return path.is_file() and (temporary.group(1) if temporary else name) in (WEIGHTS, "policy.onnx", "cbf.onnx")
 
 
 def export_run(run_dir: Path, out: Path, ecfg: ExportConfig = ExportConfig()) -> dict:
@@ -96,7 +105,7 @@ def export_run(run_dir: Path, out: Path, ecfg: ExportConfig = ExportConfig()) ->
     check_out(out)
     env, params, learner = build(cfg)
     _, _, policy, meta = load_policy(run_dir, ecfg.policy, learner)
-    source = {"run": str(run_dir), "algo": cfg.algo, "task": cfg.task, "layout": cfg.layout,
+    source = {"run": str(run_dir.resolve()), "algo": cfg.algo, "task": cfg.task, "layout": cfg.layout,
               "policy": meta["policy"], "episodes": meta.get("episodes"), "config_sha256": run_fingerprint(run_dir)}
     return write_export(out, cfg, (env, params, learner), jax.device_get(policy), source, ecfg)
 
@@ -273,6 +282,8 @@ def _automaton(env, params) -> dict:
     return {"aps": list(env.aps), "initial": int(aut.initial), "accepting": np.asarray(aut.accepting).tolist(),
             "rejecting": np.asarray(aut.rejecting).tolist(), "delta": np.asarray(aut.delta).tolist(),
             "distance": np.asarray(aut.distance).tolist(), "label_mode": env.config.label_mode,
+            # a Büchi task's accepting transitions (``ltl.labelling.accepting_visit``): a patrol's laps
+            "visit": None if aut.visit is None else np.asarray(aut.visit).tolist(),
             "letters": "bit i of a letter holds while the robot centre is within label_radius of an area whose "
                        "bit is 1 << i (aps[i]); event labelling reads a letter only when it differs from the last "
                        "one and is not empty"}

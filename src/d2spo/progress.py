@@ -11,6 +11,7 @@ from rich.progress import (
     BarColumn,
     MofNCompleteColumn,
     Progress,
+    SpinnerColumn,
     TextColumn,
     TimeElapsedColumn,
     TimeRemainingColumn,
@@ -270,4 +271,38 @@ class EvalProgress:
         elif k == 0 or k == n or now - self.last >= self.every:
             self.last = now
             print(f"{self.label}: {k}/{n} layouts evaluated, {_clock(now - self.start)}; {doing}",
+                  file=self.console.file, flush=True)
+
+
+class StageProgress:
+    """``with StageProgress(console, show, label) as on_stage: certify_run(..., on_stage=on_stage)``:
+    the stages of a command whose parts cannot be counted ahead (``d2spo certify``). A transient spinner
+    with the stage and the time so far on a terminal; on a log a line as each stage starts; nothing with
+    ``show=False`` (the callback is then None)."""
+
+    def __init__(self, console, show: bool, label: str):
+        self.console, self.show, self.label = console, show, label
+        self.bar = self.task = None
+        self.start = 0.0
+
+    def __enter__(self):
+        if not self.show:
+            return None
+        self.start = time.perf_counter()
+        if self.console.is_terminal:
+            self.bar = Progress(SpinnerColumn(), TextColumn("[bold]{task.description}"), TimeElapsedColumn(),
+                                console=self.console, transient=True)
+            self.bar.__enter__()
+            self.task = self.bar.add_task(self.label, total=None)
+        return self._on_stage
+
+    def __exit__(self, *exc) -> None:
+        if self.bar is not None:
+            self.bar.__exit__(*exc)
+
+    def _on_stage(self, stage: str) -> None:
+        if self.bar is not None:
+            self.bar.update(self.task, description=f"{self.label}: {stage}")
+        else:
+            print(f"{self.label}: {stage} ({_clock(time.perf_counter() - self.start)} so far)",
                   file=self.console.file, flush=True)

@@ -53,7 +53,7 @@ class TD3LagConfig:
         check_cost_options(self, "td3_lag")
         if self.td3.exploration_noise_final is not None:  # the loop's behaviour hook sees no episode count
             raise ConfigError("td3_lag.td3.exploration_noise_final", "is for td3, tlgrl, d2spo and sl; "
-                              "td3-lag explores with the constant td3_lag.td3.exploration_noise")
+                              "td3-lag explores with the constant --td3-lag.td3.exploration-noise")
         for term in ("smoothness", "saturation", "speed_search"):
             if getattr(self.td3, term):
                 raise ConfigError(f"td3_lag.td3.{term}", f"is for td3, tlgrl, d2spo and sl; td3-lag's actor loss "

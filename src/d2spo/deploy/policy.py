@@ -85,12 +85,7 @@ class Policy:
         self.map = Map(np.array(lay["arena_lo"], F32), np.array(lay["arena_hi"], F32), pts("boxes", "lo", 2),
                        pts("boxes", "hi", 2), pts("disks", "center", 2), pts("disks", "radius", 1)[:, 0],
                        self.n_rays, self.H)
-        aut, areas = m["automaton"], lay["areas"]
-        self.automaton = Automaton(
-            tuple(aut["aps"]), np.array(aut["delta"], np.int32), int(aut["initial"]), np.array(aut["accepting"], bool),
-            np.array(aut["rejecting"], bool), aut["label_mode"] == "event", pts("areas", "center", 2),
-            np.array([a["radius"] for a in areas], F32), np.array([a["label_radius"] for a in areas], F32),
-            np.array([a["bit"] for a in areas], np.int32))
+        self.automaton = Automaton.of_manifest(m)
         self.parts = {p["name"]: slice(p["start"], p["start"] + p["size"]) for p in m["observation"]["parts"]}
         self.observation_size = int(m["observation"]["size"])
         path = m.get("path_field")
@@ -220,10 +215,36 @@ class Policy:
         norm = np.sqrt(grad[0] * grad[0] + grad[1] * grad[1])
         return -grad / norm if norm > 0 else np.zeros(2, F32)
 
+    def checked_observation(self, obs) -> np.ndarray:
+        """``obs`` checked: float32 [observation_size], finite, each part within what
+        ``observation`` can give (lidar in [0, 1], a pose in the arena with (cos θ, sin θ) a unit
+        vector, a one-hot automaton state, a path direction of length at most 1). ValueError otherwise."""
+        what = f"an observation of {self.observation_size} finite numbers (Policy.observation)"
+        obs = finite(numbers(obs, "obs", self.observation_size, what), "obs", what)
+        tol = F32(1e-3)
+
+        def refuse(part: str, why: str):
+            raise ValueError(f"obs: its {part} part (entries {self.parts[part].start}..{self.parts[part].stop - 1}) "
+                             f"{why}; is it an observation of this policy's env (Policy.observation)?")
+
+        lidar = obs[self.parts["lidar"]]
+        if (lidar < -tol).any() or (lidar > 1 + tol).any():
+            refuse("lidar", f"holds values outside [0, 1] ({lidar.min():g} .. {lidar.max():g})")
+        p = obs[self.parts["pose"]]
+        if abs(float(p[2] * p[2] + p[3] * p[3]) - 1.0) > 1e-2:
+            refuse("pose", f"has (cos θ, sin θ) = ({p[2]:g}, {p[3]:g}), not a unit vector")
+        self.pose(self.pose_of_observation(obs))  # in the arena: the pose check's own error
+        z = obs[self.parts["automaton"]]
+        if not (np.isin(z, (0.0, 1.0)).all() and z.sum() == 1):
+            refuse("automaton", "is not one-hot")
+        if "path" in self.parts and float(np.linalg.norm(obs[self.parts["path"]])) > 1 + 1e-2:
+            refuse("path", "is longer than a unit vector")
+        return obs
+
     def x_of_observation(self, obs: np.ndarray) -> np.ndarray:
         """x = b(z, O_s) [K + 1] read off an observation: its lidar part times H and the distance from
         the position it reports to the nearest obstacle on the map (``sensors.cbf_input_from_obs``)."""
-        obs = np.asarray(obs, F32)
+        obs = numbers(obs, "obs", self.observation_size, f"an observation of {self.observation_size} numbers")
         p = obs[self.parts["pose"]]
         lo, hi = self.map.arena_lo, self.map.arena_hi
         xy = (p[:2] + F32(1.0)) * F32(0.5) * (hi - lo) + lo
@@ -231,7 +252,8 @@ class Policy:
 
     def pose_of_observation(self, obs: np.ndarray) -> np.ndarray:
         """(x, y, θ) read back from an observation's pose part (for a simulator that gives no pose)."""
-        p = np.asarray(obs, F32)[self.parts["pose"]]
+        obs = numbers(obs, "obs", self.observation_size, f"an observation of {self.observation_size} numbers")
+        p = obs[self.parts["pose"]]
         lo, hi = self.map.arena_lo, self.map.arena_hi
         xy = (p[:2] + F32(1.0)) * F32(0.5) * (hi - lo) + lo
         return np.array([xy[0], xy[1], np.arctan2(p[3], p[2])], F32)
@@ -244,22 +266,24 @@ class Policy:
         return self.act_observation(self.observation(ranges, pose, q), pose, filter)
 
     def act_observation(self, obs, pose=None, filter: bool | None = None) -> np.ndarray:
-        """The action [2] for an observation as the env gives it; the filter reads ``pose`` (default:
-        the pose the observation reports)."""
-        what = f"an observation of {self.observation_size} finite numbers (Policy.observation)"
-        obs = finite(numbers(obs, "obs", self.observation_size, what), "obs", what)
+        """The action [2] for an observation as the env gives it (``checked_observation``); the filter
+        reads ``pose`` (default: the pose the observation reports)."""
+        obs = self.checked_observation(obs)
         if filter is not None and not isinstance(filter, (bool, np.bool_)):
             raise ValueError(f"filter must be True, False or None; got {filter!r:.40}")
         use_filter = self.filter_on if filter is None else bool(filter)
         if use_filter and self.runtime_filter is None:
             raise ValueError("this policy has no runtime filter (only D²SPO's has one)")
         if self.safety_policy is None:
-            return self._run_onnx(obs) if self._session else self.actor(obs)
-        x = self.x_of_observation(obs)
-        u = self._run_onnx(obs, x) if self._session else self.safety_policy(x, self.actor(obs))
-        if use_filter:
-            pose = self.pose_of_observation(obs) if pose is None else self.pose(pose)
-            u = self.runtime_filter(pose, u)[0]
+            u = self._run_onnx(obs) if self._session else self.actor(obs)
+        else:
+            x = self.x_of_observation(obs)
+            u = self._run_onnx(obs, x) if self._session else self.safety_policy(x, self.actor(obs))
+            if use_filter:
+                pose = self.pose_of_observation(obs) if pose is None else self.pose(pose)
+                u = self.runtime_filter(pose, u)[0]
+        if not np.isfinite(u).all():  # never returned: a robot would drive on it
+            raise ValueError(f"the policy's action for this observation is not finite ({np.asarray(u).tolist()})")
         return u
 
     def filter(self, pose, u0):
@@ -268,7 +292,10 @@ class Policy:
         if self.runtime_filter is None:
             raise ValueError("this policy has no runtime filter (only D²SPO's has one)")
         what = "an action of two finite numbers (linear, angular) in [-1, 1]"
-        return self.runtime_filter(self.pose(pose), finite(numbers(u0, "u0", 2, what), "u0", what))
+        u0 = finite(numbers(u0, "u0", 2, what), "u0", what)
+        if (np.abs(u0) > 1 + 1e-6).any():
+            raise ValueError(f"u0 must be {what}; got {u0.tolist()}")
+        return self.runtime_filter(self.pose(pose), u0)
 
     def _run_onnx(self, obs: np.ndarray, x: np.ndarray | None = None) -> np.ndarray:
         feeds = {"obs": obs[None]} if x is None else {"obs": obs[None], "x": x[None]}

@@ -40,6 +40,20 @@ class Automaton:
     """float32 [N]: labelling radii (the observed q)."""
     area_bits: np.ndarray
     """int32 [N]: the letter bit each area sets (0: its label is no proposition of the task)."""
+    visit: np.ndarray | None = None
+    """bool [Q, 2**len(aps)]: the accepting transitions of a Büchi task (a recurrence such as a patrol
+    is scored by how often it takes one); None for a task with a finite goal."""
+
+    @classmethod
+    def of_manifest(cls, manifest: dict) -> Automaton:
+        """The automaton of an export's manifest (its ``automaton`` and ``layout.areas``)."""
+        aut, areas = manifest["automaton"], manifest["layout"]["areas"]
+        return cls(tuple(aut["aps"]), np.array(aut["delta"], np.int32), int(aut["initial"]),
+                   np.array(aut["accepting"], bool), np.array(aut["rejecting"], bool), aut["label_mode"] == "event",
+                   np.array([a["center"] for a in areas], F32).reshape(-1, 2),
+                   np.array([a["radius"] for a in areas], F32), np.array([a["label_radius"] for a in areas], F32),
+                   np.array([a["bit"] for a in areas], np.int32),
+                   None if aut.get("visit") is None else np.array(aut["visit"], bool))  # absent before 2026-12-02
 
     @property
     def n_states(self) -> int:
@@ -52,6 +66,13 @@ class Automaton:
         radius = self.area_radius if true else self.label_radius
         inside = dx * dx + dy * dy <= radius * radius
         return int(np.bitwise_or.reduce(np.where(inside, self.area_bits, 0), initial=0))
+
+    def is_visit(self, q: int, letter: int, prev_letter: int) -> bool:
+        """Whether the step that ``advance`` takes from q reads an accepting transition
+        (``ltl.labelling.accepting_visit``); always False for a task without them."""
+        if self.visit is None or (self.event and (letter == prev_letter or letter == 0)):
+            return False
+        return bool(self.visit[q, letter])
 
     def advance(self, q: int, letter: int, prev_letter: int) -> int:
         """The state after reading ``letter`` at q, the previous step's letter being ``prev_letter``."""
@@ -78,6 +99,11 @@ class TaskTracker:
         self.q = self.q_true = automaton.initial
         self.letter = self.letter_true = 0
         self.started = False
+        self.visits = 0
+        """Accepting visits since ``reset`` (read with the true radii, as the env's ``accepting_visit``):
+        a patrol's laps. Stays 0 for a task with a finite goal."""
+        self.visited = False
+        """Whether the last ``update`` took an accepting transition."""
 
     def reset(self, x: float, y: float) -> int:
         """A new run from (x, y): the automaton reads the start's letter (as the env's reset does)."""
@@ -87,6 +113,7 @@ class TaskTracker:
         self.letter, self.letter_true = aut.letter(x, y), aut.letter(x, y, true=True)
         self.q = aut.advance(aut.initial, self.letter, 0)
         self.q_true = aut.advance(aut.initial, self.letter_true, 0)
+        self.visits, self.visited = 0, False
         return self.q
 
     def update(self, x: float, y: float) -> int:
@@ -97,6 +124,8 @@ class TaskTracker:
         aut = self.automaton
         letter, letter_true = aut.letter(x, y), aut.letter(x, y, true=True)
         self.q = aut.advance(self.q, letter, self.letter)
+        self.visited = aut.is_visit(self.q_true, letter_true, self.letter_true)
+        self.visits += self.visited
         self.q_true = aut.advance(self.q_true, letter_true, self.letter_true)
         self.letter, self.letter_true = letter, letter_true
         return self.q

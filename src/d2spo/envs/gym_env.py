@@ -81,6 +81,8 @@ def _step_masked(env: Env, key, state, actions, params, autoreset):
     out |= {"q": keep(state.q, info["q"]), "q_next": keep(state.q, info["q_next"]),
             "next_pose": keep(state.pose, info["next_pose"]), "next_obs": info["next_obs"]}
     out |= {k: info[k] for k in _EPISODE_KEYS}
+    if "accepting_visit" in info:  # a Büchi task
+        out["accepting_visit"] = jnp.where(go, info["accepting_visit"], False)
     return (jax.tree.map(keep, state, stepped), first_obs, jnp.where(go, reward, 0.0), jnp.where(go, cost, 0.0),
             done & go, out)
 
@@ -203,6 +205,8 @@ class NavEnv(gymnasium.Env):
         reward, cost, done, info = jax.device_get((reward, cost, done, info))
         self._pose = info["next_pose"]
         out: dict[str, Any] = {"cost": float(cost), **{k: info[k].item() for k in _INFO_KEYS}}
+        if "accepting_visit" in info:  # a Büchi task: whether this step took an accepting transition
+            out["accepting_visit"] = info["accepting_visit"].item()
         if done:
             out[EPISODE_STATS] = {k: info[k].item() for k in _EPISODE_KEYS}
         if self.render_mode == "human":
@@ -297,7 +301,7 @@ class NavVectorEnv(VectorEnv):
         self._state, *out = self._fns.step_masked(self._next_key(), self._state, actions, self.params, autoreset)
         first_obs, reward, cost, done, info = jax.device_get(out)
         self._pose = info["next_pose"]
-        extra: dict[str, Any] = {"cost": cost, **{k: info[k] for k in _INFO_KEYS}}
+        extra: dict[str, Any] = {"cost": cost, **{k: info[k] for k in (*_INFO_KEYS, "accepting_visit") if k in info}}
         extra[EPISODE_STATS] = {k: info[k] for k in _EPISODE_KEYS}
         extra["_" + EPISODE_STATS] = done
         if next_step:
