@@ -290,3 +290,14 @@ def test_the_command_line_starts_without_matplotlib_or_scipy():
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.strip() == "[]"
+
+
+def test_ltl_plot_refuses_a_recurrence_train_refuses(tmp_path, capsys):
+    """`ltl --plot` said it checks that the task can be done, but passed `GF A1`, whose "laps" are a
+    step out of A1 and back: `train` and `env check` refuse it. Now it refuses it too, after the picture."""
+    picture = tmp_path / "f.png"
+    assert cli.main(["ltl", "GF A1", "--layout", "paper", "--plot", str(picture)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "not laps" in err[0] and picture.is_file(), err
+    assert cli.main(["env", "check", "--layout", "paper", "--task", "GF A1"]) == 2
+    assert "not laps" in capsys.readouterr().err

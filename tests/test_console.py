@@ -90,3 +90,13 @@ def test_certify_summary_is_shown():
     assert "ρ_h = 0.0123" in out and "pose [1.0, 2.0, 0.0] with h = 0.3 (1 of the worst 1 found)" in out
     assert "gradient search in D: no counterexample found" in out
     assert "round 2: certified ℒ 95.00%, D 50.00%, violated grid points: 3 (Prop. 1), 0 (Prop. 2, explored)" in out
+
+
+def test_the_eval_table_fits_a_log_s_80_columns(tmp_path, capsys, monkeypatch):
+    """In a log (80 columns) the table cut "completion_rate" and a layout file's path to "/tmp/trial_wo…":
+    its headings are words, and a file's row is its name (the title keeps the path)."""
+    monkeypatch.setenv("COLUMNS", "80")
+    res = _res(str(tmp_path), [(str(tmp_path / "a" / "long" / "folder" / "my_lab.json"), 1.0)])
+    print_evaluation(res, tmp_path / "e.json", filter_asked=None)
+    out = capsys.readouterr().out
+    assert "│ my_lab.json " in out and "completed" in out and "…" not in out.split("┏")[1], out

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import pathlib
 
 import jax
 import jax.numpy as jnp
@@ -319,3 +320,16 @@ def test_pure_pursuit_completes_phi1_on_paper_within_200_steps():
         if int(info["q_next"]) != int(info["q"]):  # area reached: follow the next leg
             leg, i = leg + 1, 0
     assert bool(info["completed"]) and 60 < t + 1 < 200
+
+
+def test_a_file_whose_robot_does_not_fit_is_named_in_the_refusal(tmp_path):
+    """The schema's errors said "(in FILE)"; the robot's own checks (the start against the walls, an
+    area it cannot reach) did not, though the file is what the user must fix."""
+    from d2spo.envs.nav import checked_layout
+
+    data = json.loads((pathlib.Path(__file__).parent / "data" / "layouts" / "handmade" / "corridor-5.json").read_text())
+    near = tmp_path / "near.json"
+    near.write_text(json.dumps({**data, "start": [0.1, data["start"][1], 0.0]}))  # 0.1 m from the wall
+    with pytest.raises(ConfigError, match=rf"layout.start: .*would touch an obstacle or wall \(in {near}\)$"):
+        checked_layout(EnvConfig(layout=str(near)))
+    checked_layout(EnvConfig(layout="paper"))  # a built-in names no file

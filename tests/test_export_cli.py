@@ -148,9 +148,23 @@ def test_a_damaged_or_foreign_export_is_refused(tiny, tmp_path):
     with pytest.raises(ArtefactError, match="format version 99"):
         Policy.load(copy)
     shutil.copy(tiny[1] / "weights.npz", weights)
-    (copy / "manifest.json").write_text(json.dumps({k: v for k, v in manifest.items() if k != "automaton"}))
+    # any value edited (the speed a robot is sent at, the filter's alpha): refused, not run as written
+    for edit in ({"action": {**manifest["action"], "v_max": 9.0}},
+                 {"filter": {**manifest["filter"], "alpha": "cubicc"}},
+                 {"automaton": {**manifest["automaton"], "delta": [[0]]}}):
+        (copy / "manifest.json").write_text(json.dumps({**manifest, **edit}))
+        with pytest.raises(ArtefactError, match="edited or damaged since export"):
+            Policy.load(copy)
+    (copy / "manifest.json").write_text(json.dumps({**manifest, "observation": {"size": "sixteen"}}, indent=1))
+    with pytest.raises(ArtefactError, match="edited or damaged since export"):
+        Policy.load(copy)
+    # an export of an earlier d2spo (no content_sha256) that a broken writer left without a key
+    old = {k: v for k, v in manifest.items() if k not in ("automaton", "content_sha256")}
+    (copy / "manifest.json").write_text(json.dumps(old))
     with pytest.raises(ArtefactError, match="damaged .KeyError"):
         Policy.load(copy)
+    (copy / "manifest.json").write_text(json.dumps({k: v for k, v in manifest.items() if k != "content_sha256"}))
+    Policy.load(copy)  # it loads as before
 
 
 def _edited(policy, ranges, pose, part: str, k: int, value: float):

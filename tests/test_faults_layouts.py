@@ -15,6 +15,7 @@ from _faults import Built, cli, layout_file, one_error, started_run
 from d2spo.cli import main
 from d2spo.config import TrainConfig
 from d2spo.envs import EnvConfig
+from d2spo.errors import ConfigError
 
 # ------------------------------------------------------------------------ eval file names
 
@@ -162,3 +163,25 @@ def test_a_run_without_a_recorded_layout_hash_still_resumes_and_evaluates(tmp_pa
         main(["train", "--resume", str(run), "--no-progress"])
     with pytest.raises(Built):
         main(["eval", str(run)])
+
+
+def test_a_specialist_on_a_layout_of_other_area_slots_is_refused_or_warned():
+    """A specialist reads area k's position in slot k: on a layout of another area count the refusal
+    names both counts; the same count in another label order ran without a word (a user's lab file
+    with its areas reordered), and now warns."""
+    from types import SimpleNamespace as NS
+
+    from d2spo.errors import TaskWarning
+    from d2spo.evaluate import check_same_slots
+
+    def env(*labels, states=3):
+        return NS(layout=NS(areas=[NS(label=x) for x in labels]), n_states=states,
+                  observation_size=2 * len(labels) + states)
+
+    trained = env("dock", "dock", "kitchen", "office")
+    check_same_slots(trained, env("dock", "dock", "kitchen", "office"), "lab.json")  # nothing to say
+    with pytest.warns(TaskWarning, match=r"lists its areas' labels as \['dock', 'kitchen', 'dock', 'office'\]"):
+        check_same_slots(trained, env("dock", "kitchen", "dock", "office"), "lab.json")
+    with pytest.raises(ConfigError, match="trained on 4 areas and 3 automaton states; layout 'small.json' has 3 "
+                                          "areas and the task 3 states here"):
+        check_same_slots(trained, env("dock", "kitchen", "office"), "small.json")

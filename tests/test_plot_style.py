@@ -4,6 +4,8 @@ every mark, no empty panel. Figures drawn from synthetic data: nothing is traine
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from matplotlib.colors import to_hex
@@ -141,11 +143,17 @@ def test_a_patrols_panels_give_its_visits_not_a_completion_no_episode_reaches():
     assert co.axes[0].get_title().startswith("random:11: 33% completed, 67% safe")
 
 
-@pytest.mark.parametrize("n", [1, 2, 3, 4])
-def test_evaluation_figure_text_does_not_overlap(n):
+@pytest.mark.parametrize("n, layout", [(1, None), (2, None), (3, None), (4, None), (1, "rooms-12x8.json"),
+                                       (2, "handmade/warehouse-16.json"), (3, "handmade/corridor-12.json")])
+def test_evaluation_figure_text_does_not_overlap(n, layout):
     """Two panels once drew the figure's title over the panels' titles and the legend over the x
-    labels (the figure too short for square panels and their text)."""
-    fig = plots.draw_evaluation_figure(*_paths(n), "gen: phi2 / default, runtime filter on")
+    labels (the figure too short for square panels and their text); so did one panel of a 12 x 8 m
+    lab with eight areas (a user's, tests/data/layouts/rooms-12x8.json: a long legend)."""
+    paths, rates = _paths(n)
+    if layout is not None:
+        lay = layouts.load(str(Path(__file__).parent / "data" / "layouts" / layout))
+        paths = [(lay, np.zeros_like(poses) + np.array([*lay.start[:2], 0.0]), *rest) for _, poses, *rest in paths]
+    fig = plots.draw_evaluation_figure(paths, rates, "gen: phi2 / default, runtime filter on")
     fig.canvas.draw()
     renderer = fig.canvas.get_renderer()
     top = fig._suptitle.get_window_extent(renderer)

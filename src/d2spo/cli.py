@@ -42,7 +42,7 @@ from d2spo.envs import EnvConfig, layouts, make_env
 from d2spo.envs.compiled_task import default_task
 from d2spo.envs.dynamics import load_dynamics
 from d2spo.envs.nav import checked_layout
-from d2spo.envs.preflight import check_feasible, missing_labels, preflight
+from d2spo.envs.preflight import check_feasible, check_lap, missing_labels, preflight
 from d2spo.errors import ConfigError, D2SPOWarning, LTLSyntaxError, NaNError, TaskWarning, UserError
 from d2spo.evaluate import EvalConfig, evaluate_run, write_evaluation
 from d2spo.fields import check_choice, check_fields
@@ -83,7 +83,8 @@ class LtlCmd:
     plot: Path | None = None
     """With --layout: draw per automaton state its shaping distance field (--shaping-metric
     geodesic-per-state) with its target and forbidden areas into this picture (.png at 300 dpi, .pdf or .svg),
-    then check the task can be done."""
+    then check the task can be done (a recurrence: that its laps are more than a step out of an area and
+    back), as train and env check do."""
 
     def run(self) -> int:
         if self.json and self.dot:
@@ -126,6 +127,8 @@ class LtlCmd:
             state_fields_figure(task, self.plot)
             print(f"wrote {self.plot}")
             check_feasible(task, repr(self.formula))  # after the picture, which shows why
+            if task.recurrence:  # as training checks it: laps, not jitter at an area's edge
+                check_lap(task, EnvConfig(layout=self.layout).resolved().robot_radius, repr(self.formula))
         return 0
 
 
@@ -135,7 +138,8 @@ class EnvShowCmd:
 
     layout: str = "paper"
     """Built-in layout name (paper, relaxed, open, physical-1..4), random[:SEED] (5-10 m, three styles),
-    random5[:SEED] (the earlier 5 m generator) or a JSON file."""
+    random5[:SEED] (the earlier 5 m generator), world[:SEED] (the generalist's world: 5-20 m, boxes and
+    pillars, 4-12 areas), zones[:SEED] (a ZoneEnv-style layout) or a JSON file (docs/layouts.md)."""
     out: Path = Path("layout.png")
     """Where to write the picture: .png (300 dpi), .pdf or .svg."""
     rollout_steps: int = 0

@@ -120,8 +120,8 @@ def print_evaluation(res: dict, path: Path, filter_asked: bool | None) -> None:
     limit = f" of {res['max_steps']} steps" if res.get("max_steps_given") else ""
     t = Table(title=f"{res['run']}{which} on {res['layout']} / {res['dynamics']} ({res['episodes']} episodes{limit}{filt}{task})")
     recurrence = "accepting_visits_per_episode" in res  # a patrol completes nothing: its visits instead
-    score = "visits / optimum" if recurrence else "completion_rate"
-    for name in ("layout", "safety_rate", score, "mean_return", "distance driven"):
+    score = "visits / optimum" if recurrence else "completed"
+    for name in ("layout", "safe", score, "mean return", "distance driven"):
         t.add_column(name, justify="left" if name == "layout" else "right")
 
     def visits(r: dict) -> str:
@@ -131,7 +131,8 @@ def print_evaluation(res: dict, path: Path, filter_asked: bool | None) -> None:
         margin = "" if kept is None or kept == best else f"; {kept} keeping {r['margin']:g} m"
         return f"{r['accepting_visits_per_episode']:.2f}{of}" + ("" if frac is None else f" ({100 * frac:.1f}%{margin})")
 
-    def row(name: str, r: dict, **style) -> None:
+    def row(name: str, r: dict, **style) -> None:  # a layout file by its name: the title gives its path
+        name = Path(name).name if name.endswith(".json") else name
         t.add_row(name, f"{100 * r['safety_rate']:.2f}%", visits(r) if recurrence else f"{100 * r['completion_rate']:.2f}%",
                   f"{r['mean_return']:.2f}", f"{r['mean_distance']:.2f} m", **style)
 

@@ -11,6 +11,7 @@ the CLI shows the result with ``d2spo.console.print_evaluation``.
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from pathlib import Path
 from typing import Annotated
 
@@ -25,7 +26,7 @@ from d2spo.envs import dynamics as dyn
 from d2spo.envs.env_config import EnvConfig
 from d2spo.envs.layouts import RANDOM_KINDS, layout_file, random_seed
 from d2spo.envs.layouts import load as load_layout
-from d2spo.errors import ConfigError, NaNError
+from d2spo.errors import ConfigError, NaNError, TaskWarning
 from d2spo.fields import check_choice, check_fields, field_docstring
 from d2spo.inputs import sha256_of
 from d2spo.memory import check_eval_memory
@@ -65,7 +66,8 @@ class EvalConfig:
     episodes: int = 100
     """Evaluation episodes per layout (run in parallel)."""
     layout: str | None = None
-    """Evaluate on another layout (name or JSON file); default: the training layout."""
+    """Evaluate on another layout (a name as train's --layout takes, world:SEED and zones:SEED among them,
+    or a JSON file); default: the training layout."""
     task: str | None = None
     """Zero-shot: run a generalist (`d2spo train --generalist`) on this task, a name or a formula over
     the layout's area labels (A1..A4, or a layout file's own: docs/layouts.md; needs --layout); other
@@ -259,6 +261,23 @@ def evaluate_run(run_dir: Path, ecfg: EvalConfig = EvalConfig(), keep_paths: int
     return out
 
 
+def check_same_slots(trained, env, layout: str | None) -> None:
+    """A specialist's observation holds each area's position in the slot of its place in the layout
+    file, and one slot per automaton state: ConfigError for another count of either (one line naming
+    both), a TaskWarning when the areas' labels come in another order than in training."""
+    old = [a.label for a in trained.layout.areas]
+    new = [a.label for a in env.layout.areas]
+    if env.observation_size != trained.observation_size:
+        raise ConfigError("layout", f"the policy was trained on {len(old)} areas and {trained.n_states} automaton "
+                          f"states; layout {layout!r} has {len(new)} areas and the task {env.n_states} states here. "
+                          "A specialist reads each area in its own slot: evaluate it on layouts with as many "
+                          "areas, or train a generalist (--generalist) for other layouts")
+    if old != new:
+        warnings.warn(f"layout {layout!r} lists its areas' labels as {new}, the training layout as {old}: the "
+                      "policy reads each area's position in the slot of its place in the file, where it learnt "
+                      "another label's; list the areas in the training layout's order", TaskWarning, stacklevel=2)
+
+
 def _specialist_rollouts(cfg: TrainConfig, learner, policy, ecfg: EvalConfig, overrides: dict[str, float],
                          keep_paths: int = 0, on_layout=None) -> list[dict]:
     """Rates per layout of a policy that reads its layout's coordinates (every learner but the
@@ -266,7 +285,6 @@ def _specialist_rollouts(cfg: TrainConfig, learner, policy, ecfg: EvalConfig, ov
     ``keep_paths`` each also holds ``"paths"`` (``evaluate_run``)."""
     results = []
     compiled: dict = {}  # one compiled rollout per shape of the env params (random5 layouts share one)
-    size = learner.env.observation_size
     names = ecfg.layouts()
     for lay in names:  # every layout named loads, before the first progress line and rollout
         if lay is not None:
@@ -276,10 +294,7 @@ def _specialist_rollouts(cfg: TrainConfig, learner, policy, ecfg: EvalConfig, ov
         if lay is not None or ecfg.dynamics is not None or overrides or ecfg.max_steps is not None:
             # training checked its own layout at its own limit
             preflight_checks(cfg, env, params)  # as training: the time and barrier-margin warnings here
-        if env.observation_size != size:
-            raise ConfigError("layout", f"the policy was trained with observations of size {size}, "
-                              f"layout {lay!r} gives {env.observation_size} (different number of areas or "
-                              "automaton states)")
+        check_same_slots(learner.env, env, lay)
         if on_layout is not None:  # after the checks: a refused layout is the one line the user sees
             on_layout(k, len(names), lay or cfg.layout)
         leaves, tree = jax.tree_util.tree_flatten(params)  # the structure holds the static fields (n_rays, ...)

@@ -32,7 +32,7 @@ from d2spo.algos.common.networks import DeterministicActor, GaussianActor
 from d2spo.checkpoint import has_checkpoint, run_fingerprint
 from d2spo.config import config_to_dict
 from d2spo.console import version
-from d2spo.deploy.policy import FORMAT, FORMAT_VERSION, MANIFEST, WEIGHTS, file_sha256
+from d2spo.deploy.policy import CONTENT_KEY, FORMAT, FORMAT_VERSION, MANIFEST, WEIGHTS, content_sha256, file_sha256
 from d2spo.envs import geodesic
 from d2spo.errors import ConfigError, RunDirError
 from d2spo.fields import check_choice, check_fields
@@ -156,6 +156,7 @@ def write_export(out: Path, cfg, built, policy, source: dict, ecfg: ExportConfig
         from d2spo.export_onnx import write_onnx
 
         m["onnx"] = write_onnx(out, m, arrays)
+    m[CONTENT_KEY] = content_sha256(m)  # written last: Policy.load refuses a manifest edited since
     atomic_write_json(out / MANIFEST, m)
     files = [WEIGHTS, MANIFEST] + ([v["file"] for v in m["onnx"].values()] if m["onnx"] else [])
     for name in earlier - set(files):  # e.g. the ONNX graphs of an earlier export with --onnx

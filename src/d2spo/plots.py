@@ -210,7 +210,22 @@ def draw_evaluation_figure(paths: Sequence[tuple], per_layout: Sequence[dict], s
     shown = list(zip(paths, per_layout, strict=True))[:EVAL_PLOT_LAYOUTS]
     ncols = 2 if len(shown) == 4 else 3
     nrows = -(-len(shown) // min(ncols, len(shown)))
-    fig = Figure(figsize=(max(4.6 * min(ncols, len(shown)), 7.0), 4.6 * nrows + 1.6), layout="constrained")
+    labels = {f"area labelled {a.label!r}" for (lay, *_), _ in shown for a in lay.areas}
+    legend_rows = -(-(len(labels) + 6) // 2)  # the areas' labels, obstacle, start and the outcomes (two columns)
+    height = 4.6 * nrows + 1.6 + 0.25 * max(0, legend_rows - 5)
+    # constrained layout neither sees the panels' equal aspect nor says when it gives up: a figure it
+    # cannot fit draws the titles over each other (a 12 x 8 m lab's long legend did), so it is drawn
+    # taller until nothing overlaps
+    for _ in range(8):
+        fig = _evaluation_panels(shown, ncols, (max(4.6 * min(ncols, len(shown)), 7.0), height), suptitle)
+        if not text_overlaps(fig):
+            break
+        height += 0.4
+    return fig
+
+
+def _evaluation_panels(shown, ncols: int, size: tuple[float, float], suptitle: str) -> Figure:
+    fig = Figure(figsize=size, layout="constrained")
     FigureCanvasAgg(fig)
     handles = {}
     for ax, ((layout, poses, collided, completed), rates) in zip(panel_grid(fig, len(shown), ncols), shown):
@@ -224,6 +239,22 @@ def draw_evaluation_figure(paths: Sequence[tuple], per_layout: Sequence[dict], s
     fig.legend(handles=list(handles.values()), loc="outside lower center", ncol=2, fontsize=8, frameon=False)
     fig.suptitle(suptitle, fontsize=11)
     return fig
+
+
+def text_overlaps(fig: Figure) -> bool:
+    """Whether a panel's title reaches into the figure's title, or a bottom panel's x label into the
+    legend under the panels (``draw_evaluation_figure``'s layout)."""
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    top = fig._suptitle.get_window_extent(renderer).y0 if fig._suptitle is not None else np.inf
+    bottom = fig.legends[0].get_window_extent(renderer).y1 if fig.legends else -np.inf
+    for ax in fig.axes:
+        if ax.title.get_window_extent(renderer).y1 > top:
+            return True
+        last_row = ax.get_subplotspec().rowspan.stop == ax.get_gridspec().nrows
+        if last_row and ax.xaxis.label.get_window_extent(renderer).y0 < bottom:
+            return True
+    return False
 
 
 # ---------------------------------------------------------------------- Figs. 2-3: reward curves

@@ -34,6 +34,17 @@ def file_sha256(path: Path) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
+CONTENT_KEY = "content_sha256"
+"""The manifest's own checksum: of its JSON without this key (``content_sha256``)."""
+
+
+def content_sha256(manifest: dict) -> str:
+    """SHA-256 of ``manifest`` without ``CONTENT_KEY``, as canonical JSON (sorted keys, no spaces):
+    an edit of any value (the action's scaling, the map, the automaton, the filter) changes it."""
+    body = {k: v for k, v in manifest.items() if k != CONTENT_KEY}
+    return hashlib.sha256(json.dumps(body, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+
+
 POSE_SLACK = 0.5
 """How far (m) outside the arena a pose may lie before it is refused: a localisation estimate at a
 wall may stray a little; a pose in another frame (an origin at the arena's centre, millimetres)
@@ -138,6 +149,10 @@ class Policy:
         if manifest.get("format_version") != FORMAT_VERSION:
             raise ArtefactError(f"{path}: format version {manifest.get('format_version')!r}; this d2spo reads "
                                 f"version {FORMAT_VERSION}")
+        recorded = manifest.get(CONTENT_KEY)  # absent in exports before 2026-12-02
+        if recorded is not None and recorded != content_sha256(manifest):
+            raise ArtefactError(f"{path}: edited or damaged since export (its content's SHA-256 is not the one it "
+                                "records); export the run again, with the flags that change what it should")
         try:
             weights = directory / manifest["weights"]["file"]
             if not weights.is_file():
@@ -147,7 +162,7 @@ class Policy:
             with np.load(weights, allow_pickle=False) as data:
                 arrays = {k: data[k] for k in data.files}
             return cls(directory, manifest, arrays, backend)
-        except (KeyError, TypeError, IndexError) as e:  # a manifest edited by hand, or of a broken writer
+        except (KeyError, TypeError, IndexError, ValueError) as e:  # a manifest of a broken writer, or edited
             raise ArtefactError(f"{path}: damaged ({type(e).__name__}: {e})") from None
 
     # ------------------------------------------------------------------------ the observation

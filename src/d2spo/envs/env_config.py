@@ -19,7 +19,8 @@ class EnvConfig:
     """Configuration of the navigation environment. Fields left at None take the preset's value."""
 
     layout: str = "paper"
-    """Workspace: paper, relaxed, open, physical-1..4, random[:SEED], random5[:SEED] or a .json path."""
+    """Workspace: paper, relaxed, open, physical-1..4, random[:SEED], random5[:SEED], world[:SEED],
+    zones[:SEED] or a .json path (docs/layouts.md)."""
     preset: str = "default"
     """Preset of unset fields: ideal, default, turtlebot."""
     max_steps: int | None = None

@@ -37,6 +37,7 @@ from d2spo.envs.compiled_task import CompiledTask, compile_task
 from d2spo.envs.env_config import EnvConfig
 from d2spo.envs.params import EnvParams, env_params
 from d2spo.envs.workspace import Layout
+from d2spo.errors import ConfigError
 from d2spo.ltl import task_automaton, task_formula
 from d2spo.ltl.automaton import Automaton
 from d2spo.ltl.labelling import accepting_visit, next_state
@@ -327,8 +328,13 @@ def checked_layout(cfg: EnvConfig) -> tuple[EnvConfig, Layout]:
     what ``make_env`` checks before it reads the task. Raises ConfigError."""
     cfg = cfg.resolved()
     layout = layouts.load(cfg.layout).scaled(cfg.layout_scale)
-    workspace.validate(layout)
-    workspace.check_robot_fits(layout, cfg.robot_radius, cfg.start_jitter_xy)
+    try:
+        workspace.validate(layout)
+        workspace.check_robot_fits(layout, cfg.robot_radius, cfg.start_jitter_xy)
+    except ConfigError as e:  # a file's fault: which file, as its schema errors say (layouts.load)
+        if layouts.layout_file(str(cfg.layout)) is None or "(in " in str(e):
+            raise
+        raise ConfigError(e.field, f"{str(e).removeprefix(f'{e.field}: ')} (in {cfg.layout})") from None
     return cfg, layout
 
 
