@@ -148,8 +148,8 @@ def test_a_patrol_no_letter_sequence_visits_is_refused_in_a_patrols_words():
     with pytest.raises(ConfigError, match="cannot be completed in layout 'relaxed'"):  # a task that completes
         make_env(EnvConfig(layout="relaxed"), "reach-never")
     # a misspelt task name is one proposition of that name: the refusal says which names were meant
-    with pytest.raises(ConfigError, match=r"\['patrol22'\]; its labels: A1, A2, A3, A4\) \(not a task name: did you mean "
-                                          r"patrol2, patrol3\?\)"):
+    with pytest.raises(ConfigError, match=r"^task: patrol22 is not a task name \(did you mean patrol2, patrol3\?\); "
+                                          r"read as a formula, .*\['patrol22'\]; its labels: A1, A2, A3, A4\)$"):
         make_env(EnvConfig(layout="paper"), "patrol22")
     with pytest.raises(ConfigError, match=r"\['B7'\]; its labels: A1, A2, A3, A4\): no sequence") as e:  # no guess
         make_env(EnvConfig(layout="paper"), "F B7")
@@ -302,7 +302,12 @@ def test_a_patrol_file_without_the_visits_column_resumes_without_it(tmp_path):
 def test_the_printed_automaton_names_the_accepting_visits():
     text = task_automaton("GF A1 & GF A3 & G !A4").pretty()
     assert text.splitlines()[-3:] == ["accepting visits:", "  in 0: A1 & A3 & !A4", "  in 1: A3 & !A4"]
-    assert task_automaton("G !A4 & F A1").pretty().endswith("accepting visits: none")
+    never = task_automaton("G !A4 & F A1").pretty().splitlines()
+    assert never[-2] == "accepting visits: none"
+    # its completed state is no good prefix of the formula (A4 may still come): it says what it is
+    assert "1      completed  0         G !A4" in never and never[-1].startswith("completed: the goal is met")
+    assert "accepting_means" in task_automaton("G !A4 & F A1").to_json()
+    assert "accepting_means" not in task_automaton("GF A1 & GF A3").to_json()
 
 
 def test_the_summary_table_scores_a_recurrence_by_its_visits_not_completion():

@@ -60,6 +60,10 @@ def test_cli_input_errors_exit_2(tmp_path, capsys):
     assert err[6].endswith("afile: exists and is not a directory")
     assert main(["report", str(tmp_path / "afile")]) == 2  # a file: said so, not "no such directory"
     assert capsys.readouterr().err.strip().endswith("afile: is a file; give the directory `d2spo reproduce --out` wrote")
+    # `--methods` with nothing after it rendered an empty table with an IndexError's traceback, exit 1
+    assert main(["reproduce", "table2", "--methods", "--no-train", "--out", str(tmp_path / "z")]) == 2
+    assert capsys.readouterr().err.strip().startswith("d2spo: error: --methods names no method")
+    assert not (tmp_path / "z").exists()
 
 
 def test_table3_trains_once_reuses_and_reports(tmp_path, monkeypatch):

@@ -295,6 +295,7 @@ FORMER_DEFAULTS: dict[tuple[str, ...], Any] = {
     ("patrol_validation",): 0,  # patrols on one layout kept their last policy until 2026-11-30
     ("generalist_world",): "random",  # generalists trained on random:SEED until 2026-11-26
     ("td3", "recurrence_noise_final"): None,  # a patrol's exploration noise was constant until 2026-11-30
+    ("td3_lag", "td3", "recurrence_noise_final"): None,  # td3-lag's, until 2026-12-02 (written as null before)
     ("env", "recurrence_max_steps"): 0,  # a recurrence's unset limit was the route rule's alone until 2026-11-30
     ("env", "base_max_steps"): 200,  # an unset max_steps gave 200 steps until 2026-11-25
     ("env", "reward", "shaping_clearance_cost"): 10.0,  # the per-state field's clearance band cost 10x until 2026-11-25

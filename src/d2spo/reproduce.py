@@ -290,6 +290,8 @@ def reproduce(targets: Iterable[str], out: Path, seeds: int = 3, episodes: int =
     if episodes < 1:
         raise UserError(f"--episodes must be >= 1, got {episodes}")
     methods = list(methods)
+    if not methods:  # `--methods` with nothing after it: no row to train or draw
+        raise UserError(f"--methods names no method; name one or more of {', '.join(METHODS)}, or leave it out for all")
     for m in methods:
         if m not in METHODS:
             raise UserError(f"unknown method {m!r}; choose from {', '.join(METHODS)}")

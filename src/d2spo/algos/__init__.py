@@ -41,7 +41,8 @@ def _d2spo(cfg, env, params, anneal):
 
 
 def _td3_lag(cfg, env, params, anneal):
-    return TD3LagLearner(env, params, cfg.td3_lag, anneal, cfg.num_envs, cfg.chunk_steps, cfg.episodes)
+    lag = dataclasses.replace(cfg.td3_lag, td3=cfg.td3_lag.td3.for_task(runs_a_recurrence(env)))  # as _td3's
+    return TD3LagLearner(env, params, lag, anneal, cfg.num_envs, cfg.chunk_steps, cfg.episodes)
 
 
 def _sac_lag(cfg, env, params, anneal):

@@ -105,8 +105,9 @@ def mean_episode_cost(window: CostWindow) -> jax.Array:
 class OffPolicyAlgo(Protocol):
     """What an algorithm gives the loop (all pure, traced inside the chunk)."""
 
-    def behaviour(self, agent: Any, obs: jax.Array, key: jax.Array) -> jax.Array:
-        """Exploration action [N, m] in [-1, 1] once warm-up is over."""
+    def behaviour(self, agent: Any, obs: jax.Array, key: jax.Array, episodes: jax.Array) -> jax.Array:
+        """Exploration action [N, m] in [-1, 1] once warm-up is over, ``episodes`` episodes into the run
+        (an annealed exploration noise reads it)."""
 
     def on_step(self, agent: Any, mean_cost: jax.Array) -> tuple[Any, Metrics]:
         """Once per vectorised step after warm-up, before the updates; ``mean_cost`` may be NaN.
@@ -162,7 +163,7 @@ class OffPolicyLoop:
     def _iteration(self, c: OffPolicyCarry, algo: OffPolicyAlgo):
         def act(k, warm_up):
             uniform = jax.random.uniform(k["uniform"], (self.num_envs, self.env.action_size), minval=-1.0, maxval=1.0)
-            action = jnp.where(warm_up, uniform, algo.behaviour(c.agent, c.obs, k["act"]))
+            action = jnp.where(warm_up, uniform, algo.behaviour(c.agent, c.obs, k["act"], c.episodes))
             return action, action
 
         s = explore_and_store(c, ("act", "uniform", "env", "update"), act, self.env, self.params, self.schedule,

@@ -177,7 +177,7 @@ class RCRLLearner:
         return loss, {"losses/qh": loss, "values/qh": jnp.mean(q), "values/h": jnp.mean(h)}
 
     # -- hooks of the loop --------------------------------------------------------------
-    def behaviour(self, agent: RCRLAgent, obs, key):
+    def behaviour(self, agent: RCRLAgent, obs, key, episodes):  # SAC's own entropy: no schedule
         return sac_behaviour(self.nets, agent.sac, obs, key)
 
     def update(self, agent: RCRLAgent, batch, key):

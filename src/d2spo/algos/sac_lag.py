@@ -88,7 +88,7 @@ class SACLagLearner:
         return self.loop.chunk(carry, self)
 
     # -- hooks of the loop --------------------------------------------------------------
-    def behaviour(self, agent: SACLagAgent, obs, key):
+    def behaviour(self, agent: SACLagAgent, obs, key, episodes):  # SAC's own entropy: no schedule
         return sac_behaviour(self.nets, agent.sac, obs, key)
 
     def on_step(self, agent: SACLagAgent, mean_cost):

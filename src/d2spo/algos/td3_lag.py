@@ -37,9 +37,9 @@ from d2spo.ltl.anneal import AnnealConfig
 class TD3LagConfig:
     """TD3-Lagrangian: the TD3 core, a cost critic ensemble and the Lagrange multiplier."""
 
-    td3: TD3Config = field(default_factory=lambda: TD3Config(hidden=(128, 128), batch_size=128,
-                                                             recurrence_noise_final=None))
-    """The TD3 core (TD3Config's defaults; constant exploration noise, a patrol's too)."""
+    td3: TD3Config = field(default_factory=lambda: TD3Config(hidden=(128, 128), batch_size=128))
+    """The TD3 core (TD3Config's defaults: a constant exploration noise, which falls over a patrol's run
+    as D²SPO's does, ``recurrence_noise_final``)."""
     cost_critics: int = 2
     """Cost critics in the ensemble (twin by default)."""
     cost_reduce: str = "max"
@@ -51,9 +51,6 @@ class TD3LagConfig:
 
     def __post_init__(self) -> None:
         check_cost_options(self, "td3_lag")
-        if self.td3.exploration_noise_final is not None:  # the loop's behaviour hook sees no episode count
-            raise ConfigError("td3_lag.td3.exploration_noise_final", "is for td3, tlgrl, d2spo and sl; "
-                              "td3-lag explores with the constant --td3-lag.td3.exploration-noise")
         for term in ("smoothness", "saturation", "speed_search"):
             if getattr(self.td3, term):
                 raise ConfigError(f"td3_lag.td3.{term}", f"is for td3, tlgrl, d2spo and sl; td3-lag's actor loss "
@@ -93,9 +90,10 @@ class TD3LagLearner:
         return self.loop.chunk(carry, self)
 
     # -- hooks of the loop --------------------------------------------------------------
-    def behaviour(self, agent: TD3LagAgent, obs, key):
-        return explore(self.nets, agent.td3, obs, key, jnp.bool_(False), self.cfg.td3.exploration_noise,
-                       self.cfg.td3.exploration_noise_space)
+    def behaviour(self, agent: TD3LagAgent, obs, key, episodes):
+        t = self.cfg.td3
+        return explore(self.nets, agent.td3, obs, key, jnp.bool_(False),
+                       t.noise_at(episodes, self.loop.schedule.per_episode), t.exploration_noise_space)
 
     def on_step(self, agent: TD3LagAgent, mean_cost):
         return self.shell.on_step(agent, mean_cost)

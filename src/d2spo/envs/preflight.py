@@ -46,10 +46,11 @@ def check_letters(task: CompiledTask, what: str) -> None:
         hint = ""
         if missing:
             hint = f" ({missing_labels(task.automaton.aps, layout)})"
-        close = close_task_names(what)  # `--task patrol22`: a misspelt name, read as a proposition
-        if close:
-            hint += f" (not a task name: did you mean {', '.join(close)}?)"
         done = "make one accepting visit" if task.recurrence else "be completed"  # a patrol never completes
+        close = close_task_names(what)  # `--task patrol22`: a misspelt name, read as a proposition
+        if close:  # the likelier mistake first
+            raise ConfigError("task", f"{what} is not a task name (did you mean {', '.join(close)}?); read as a "
+                              f"formula, the proposition {what}, it cannot {done} in layout {layout.name!r}{hint}")
         raise ConfigError("task", f"{what} cannot {done} in layout {layout.name!r}{hint}: no sequence of the "
                           "letters it can produce (areas entered alone, or together where they overlap) does it")
 

@@ -23,6 +23,12 @@ from d2spo.ltl.buchi import BuchiAutomaton, NoDeterministicBuchi, letters_to_mar
 from d2spo.ltl.formula import Formula
 from d2spo.ltl.translate import NeverCompletedWarning, translate
 
+COMPLETED_MEANS = ("completed: the goal is met with nothing violated and only a never part is left (the state's "
+                   "formula); the episode ends there, so the automaton holds it (absorbing) and does not watch that "
+                   "never part further. A monitor of the whole formula, which rejects a later violation: "
+                   "d2spo.ltl.to_dba (docs/ltl.md)")
+"""What a ``BuchiTask``'s accepting (completed) state means, as ``d2spo ltl`` prints it."""
+
 
 @dataclass(frozen=True, eq=False)
 class BuchiTask(Automaton):
@@ -47,23 +53,32 @@ class BuchiTask(Automaton):
         to_visit = letters_to_marked(self.delta, self.visits, letters)
         return [d if d is not None else v for d, v in zip(to_done, to_visit, strict=True)]
 
+    def status(self, q: int) -> str:
+        """'completed' (the DBA's completed state: the episode ends there), 'rejecting' or 'undecided'."""
+        return "completed" if q in self.accepting else super().status(q)
+
     def pretty(self, feasible_letters: Collection[int] | None = None) -> str:
-        """``Automaton.pretty``, then the accepting visits: per state, the guard of the letters whose
-        reading is one (what a patrol is scored by)."""
+        """``Automaton.pretty`` (a completed state's status says so), then the accepting visits: per
+        state, the guard of the letters whose reading is one (what a patrol is scored by)."""
         lines = [super().pretty(feasible_letters), "accepting visits:"]
         for q, row in enumerate(self.visits):
             letters = [a for a, v in enumerate(row) if v]
             if letters:
                 lines.append(f"  in {q}: {letters_to_guard(letters, self.aps)}")
-        return "\n".join(lines if len(lines) > 2 else lines[:1] + ["accepting visits: none"])
+        lines = lines if len(lines) > 2 else lines[:1] + ["accepting visits: none"]
+        if self.accepting:
+            lines.append(COMPLETED_MEANS)
+        return "\n".join(lines)
 
     def to_json(self, feasible_letters: Collection[int] | None = None) -> dict:
         """``Automaton.to_json`` (``accepting``: the completed states), with ``visits``: per state,
-        the letters whose reading is an accepting visit, and ``recurrence``: whether no episode can
-        complete the task (``is_recurrence``: it is scored by those visits)."""
-        return {**super().to_json(feasible_letters),
-                "visits": [[a for a, v in enumerate(row) if v] for row in self.visits],
-                "recurrence": is_recurrence(self)}
+        the letters whose reading is an accepting visit, ``recurrence``: whether no episode can
+        complete the task (``is_recurrence``: it is scored by those visits), and with completed states
+        ``accepting_means`` (``COMPLETED_MEANS``)."""
+        out = {**super().to_json(feasible_letters),
+               "visits": [[a for a, v in enumerate(row) if v] for row in self.visits],
+               "recurrence": is_recurrence(self)}
+        return out | ({"accepting_means": COMPLETED_MEANS} if self.accepting else {})
 
     @classmethod
     def from_json(cls, data: dict) -> BuchiTask:
