@@ -86,6 +86,8 @@ def test_table3_trains_once_reuses_and_reports(tmp_path, monkeypatch):
         with open(out / "runs" / r / "episodes.csv") as f:
             collided.append(np.mean([int(e["collided"]) for e in csv.DictReader(f)]))
     assert float(row["collision_rate_all_mean"]) == pytest.approx(np.mean(collided))
+    assert all(len(v.lstrip("-0.").replace(".", "").rstrip("0")) <= 12 for v in row.values()  # 12 digits, no
+               if v.replace(".", "").replace("-", "").isdigit())  # binary tails (1 - 0.95 = 0.0500...044)
     md = (out / "table3.md").read_text()
     assert "| LPPO | 2 |" in md and "91.59" in md and "63.50" in md
     assert f"over all {TINY_EPISODES} training episodes" in md  # not "the last 2000 of 24"

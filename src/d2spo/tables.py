@@ -72,7 +72,9 @@ def write_table(out: Path, target: str, runs: Mapping[str, Iterable[Path]], task
     with open(out / f"{target}.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=[k for k in rows[0] if not k.startswith("_")])
         w.writeheader()
-        w.writerows([{k: v for k, v in r.items() if not k.startswith("_")} for r in rows])
+        # rates to 12 significant digits: 1 - 0.95 is 0.050000000000000044 in binary, 0.05 here
+        w.writerows([{k: float(f"{v:.12g}") if isinstance(v, float) else v for k, v in r.items() if not k.startswith("_")}
+                     for r in rows])
     window = min(next((g["window"] for gs in by.values() for g in gs), 2000), episodes)  # a short run: all of it
     lines = [f"### {TITLES[target]}", "",
              f"Safety and completion rate (%) over {f'the last {window} of' if window < episodes else 'all'} "
