@@ -333,3 +333,16 @@ def test_a_file_whose_robot_does_not_fit_is_named_in_the_refusal(tmp_path):
     with pytest.raises(ConfigError, match=rf"layout.start: .*would touch an obstacle or wall \(in {near}\)$"):
         checked_layout(EnvConfig(layout=str(near)))
     checked_layout(EnvConfig(layout="paper"))  # a built-in names no file
+
+
+def test_a_start_inside_a_forbidden_area_is_named_in_the_refusal(tmp_path):
+    """`G !A4 & F A1` from a start inside A4 was refused because "the first area the robot can enter
+    from the start rejects it": the start itself is in the area, and the refusal now says so."""
+    from importlib import resources
+
+    data = json.loads(resources.files("d2spo.envs").joinpath("layouts", "paper.json").read_text())
+    a4 = next(a for a in data["areas"] if a.get("label", a["name"]) == "A4")
+    path = tmp_path / "start-in-a4.json"
+    path.write_text(json.dumps({**data, "start": [*a4["center"], 0.0]}))
+    with pytest.raises(ConfigError, match=r"the start \(.*\) lies inside A4, and the automaton reads that area at once"):
+        make_env(EnvConfig(layout=str(path)), "G !A4 & F A1")

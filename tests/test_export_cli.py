@@ -206,6 +206,7 @@ def _edited(policy, ranges, pose, part: str, k: int, value: float):
     (lambda p, r, pose: p.task_tracker().update(0.6, 0.6), "update before reset"),
     (lambda p, r, pose: p.task_tracker().reset(float("nan"), 0.6), "x must be a finite number"),
     (lambda p, r, pose: p.task_tracker().reset(0.6, None), "y must be a finite number"),
+    (lambda p, r, pose: p.task_tracker().reset(1000.0, 1000.0), r"\(1000, 1000\) lies outside the arena"),
 ])
 def test_every_runtime_call_refuses_malformed_input_in_one_value_error(tiny, call, match):
     """A robot's driver may hand the runtime a NaN pose, a scan of the wrong size or a float state:

@@ -324,8 +324,10 @@ class Policy:
         return float(a[0]) * (self.v_max - self.v_mid) + self.v_mid, float(a[1]) * self.omega_max
 
     def task_tracker(self) -> TaskTracker:
-        """A fresh tracker of the automaton state (``TaskTracker.reset`` it at the start pose)."""
-        return TaskTracker(self.automaton)
+        """A fresh tracker of the automaton state (``TaskTracker.reset`` it at the start pose); it refuses
+        a position more than ``POSE_SLACK`` outside the arena, as ``pose`` does."""
+        slack = F32(POSE_SLACK)
+        return TaskTracker(self.automaton, (self.map.arena_lo - slack, self.map.arena_hi + slack))
 
     def scan(self, pose) -> np.ndarray:
         """[K] the ranges the env's lidar reads at ``pose`` on the map (for a simulator, or to check a real scan)."""

@@ -94,8 +94,10 @@ class TaskTracker:
     """The automaton state along one run of the robot: ``reset`` at the start pose, then ``update``
     after every control step with the pose reached. ``q`` is what the policy observes."""
 
-    def __init__(self, automaton: Automaton):
+    def __init__(self, automaton: Automaton, bounds: tuple[np.ndarray, np.ndarray] | None = None):
         self.automaton = automaton
+        self.bounds = bounds
+        """(lo, hi) a position must lie within (m, the layout's frame), or None: unchecked."""
         self.q = self.q_true = automaton.initial
         self.letter = self.letter_true = 0
         self.started = False
@@ -107,7 +109,7 @@ class TaskTracker:
 
     def reset(self, x: float, y: float) -> int:
         """A new run from (x, y): the automaton reads the start's letter (as the env's reset does)."""
-        x, y = _position(x, y)
+        x, y = self._inside(*_position(x, y))
         self.started = True
         aut = self.automaton
         self.letter, self.letter_true = aut.letter(x, y), aut.letter(x, y, true=True)
@@ -118,7 +120,7 @@ class TaskTracker:
 
     def update(self, x: float, y: float) -> int:
         """After a step to (x, y): the new state q."""
-        x, y = _position(x, y)
+        x, y = self._inside(*_position(x, y))
         if not self.started:
             raise ValueError("TaskTracker.update before reset: call reset(x, y) at the start pose first")
         aut = self.automaton
@@ -129,6 +131,14 @@ class TaskTracker:
         self.q_true = aut.advance(self.q_true, letter_true, self.letter_true)
         self.letter, self.letter_true = letter, letter_true
         return self.q
+
+    def _inside(self, x: float, y: float) -> tuple[float, float]:
+        if self.bounds is not None:
+            lo, hi = self.bounds
+            if not (lo[0] <= x <= hi[0] and lo[1] <= y <= hi[1]):
+                raise ValueError(f"TaskTracker: ({x:g}, {y:g}) lies outside the arena (with its slack: x {lo[0]:g}..."
+                                 f"{hi[0]:g}, y {lo[1]:g}...{hi[1]:g} m); is it in the layout's frame, in metres?")
+        return x, y
 
     @property
     def completed(self) -> bool:

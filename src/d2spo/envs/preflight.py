@@ -110,8 +110,11 @@ def check_feasible(task: CompiledTask, name: str, radius: float | None = None, r
     ends = aut.accepting | aut.rejecting
     live = [q for q in range(aut.n_states) if reached[q] and q not in ends and distance[q] is not None]
     if not live:
-        raise ConfigError("task", f"{name} cannot be completed on layout {layout.name!r}: the first area the robot "
-                          "can enter from the start rejects it")
+        sx, sy = layout.start[:2]
+        inside = [a.name for a in layout.areas if (a.center[0] - sx) ** 2 + (a.center[1] - sy) ** 2 <= a.radius ** 2]
+        where = (f": the start ({sx:g}, {sy:g}) lies inside {', '.join(inside)}, and the automaton reads that area at "
+                 "once" if inside else ": the first area the robot can enter from the start rejects it")
+        raise ConfigError("task", f"{name} cannot be completed on layout {layout.name!r}{where}")
     q = min(live, key=lambda s: (distance[s], s))
     targets, forbidden = (named_areas(aut, layout, task.roles, role)[q] for role in (TARGET, FORBIDDEN))
     goal = " or ".join(targets) or "an area that makes progress"
