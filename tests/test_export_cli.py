@@ -246,3 +246,16 @@ def test_the_export_says_how_the_policy_it_wrote_was_evaluated(tmp_path):
     assert evaluated_line(tmp_path, m).endswith("0.00% safe, 6.50 accepting visits per episode")
     (tmp_path / "summary.json").write_text(json.dumps({"episodes": 400}))
     assert "holds no final evaluation" in evaluated_line(tmp_path, m)
+
+
+def test_scan_error_tells_a_scan_the_map_predicts_from_one_it_does_not(tiny):
+    """Ranges in millimetres clip to H and read as free space, and a scan of another place acts
+    without complaint: ``scan_error`` is the check a robot's node can make against the map."""
+    policy = Policy.load(tiny[1])
+    pose = (0.6, 0.6, 0.0)
+    ranges = policy.scan(pose)
+    assert policy.scan_error(ranges, pose) == 0.0
+    assert policy.scan_error(ranges * 1000, pose) > 0.3  # millimetres
+    assert policy.scan_error(policy.scan((4.0, 4.0, 1.0)), pose) > 0.1  # another pose's scan
+    with pytest.raises(ValueError, match="ranges must be"):
+        policy.scan_error(ranges[:3], pose)

@@ -329,6 +329,17 @@ class Policy:
         slack = F32(POSE_SLACK)
         return TaskTracker(self.automaton, (self.map.arena_lo - slack, self.map.arena_hi + slack))
 
+    def scan_error(self, ranges, pose) -> float:
+        """The median |ranges - scan(pose)| (m) over the rays, both clipped to H: how far the robot's scan
+        is from what the map predicts at its pose. Near 0 on a good map and localisation; a large value
+        means the pose is off, the map out of date or the ranges in another unit (millimetres clip to H
+        and read as free space), which ``act`` cannot tell by itself."""
+        got = numbers(ranges, "ranges", self.n_rays, f"{self.n_rays} lidar ranges (m), one per ray")
+        if np.isnan(got).any():
+            raise ValueError("lidar ranges are NaN; give +inf for a ray with no return")
+        want = self.scan(pose)
+        return float(np.median(np.abs(np.clip(got, 0.0, self.H) - np.clip(want, 0.0, self.H))))
+
     def scan(self, pose) -> np.ndarray:
         """[K] the ranges the env's lidar reads at ``pose`` on the map (for a simulator, or to check a real scan)."""
         pose = self.pose(pose)
