@@ -48,7 +48,8 @@ def _shifted(run, c: float):
 
 
 def test_h_shifted_up_is_reported_violated_and_shifted_down_certified(untrained_run, tmp_path):
-    from d2spo.certify import CertifyConfig, certify_run, load_cbf_run, status_maps, write_outputs
+    from d2spo.certify import CertifyConfig, certify_run, status_maps, write_outputs
+    from d2spo.certify_load import load_cbf_run
 
     ccfg = CertifyConfig(**CCFG_TINY)  # the same config as the repair test: the compiled pieces are shared
     run = load_cbf_run(untrained_run)
@@ -107,7 +108,8 @@ def test_certify_checks_the_policy_eval_and_export_take(untrained_run, tmp_path)
     one, ``--policy last`` the newest, and certify.json says which."""
     from flax import serialization
 
-    from d2spo.certify import CertifyConfig, certify_run, load_cbf_run, with_policy
+    from d2spo.certify import CertifyConfig, certify_run
+    from d2spo.certify_load import load_cbf_run, with_policy
     from d2spo.run import best_policy_path
 
     ccfg = CertifyConfig(**CCFG_TINY)
@@ -156,7 +158,8 @@ def filled_run(untrained_run, tmp_path_factory):
     part of the ring is violated: something for --repair to work on."""
     import jax.numpy as jnp
 
-    from d2spo.certify import CertifyConfig, _compiled, load_cbf_run
+    from d2spo.certify import CertifyConfig, _compiled
+    from d2spo.certify_load import load_cbf_run
     from d2spo.certify_search import pose_grid
     from d2spo.repair import add_counterexamples
 

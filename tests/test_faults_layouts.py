@@ -84,7 +84,7 @@ def test_a_layout_file_edited_since_the_run_started_is_refused(tmp_path, capsys,
     def built(*a, **kw):
         raise Built
 
-    for module in ("d2spo.export", "d2spo.certify"):  # as if it had a checkpoint; stop where they would build
+    for module in ("d2spo.export", "d2spo.certify_load"):  # as if it had a checkpoint; stop where they would build
         monkeypatch.setattr(f"{module}.has_checkpoint", lambda run_dir: True)
         monkeypatch.setattr(f"{module}.build", built)
     for command in (["train", "--resume", str(run), "--no-progress"], ["export", str(run), "--out", str(tmp_path / "x")],

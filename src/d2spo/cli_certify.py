@@ -12,7 +12,8 @@ from typing import Annotated
 import tyro
 from rich.console import Console
 
-from d2spo.certify import CertifyConfig, certify_run, load_cbf_run, with_policy, write_outputs
+from d2spo.certify import CertifyConfig, certify_run, write_outputs
+from d2spo.certify_load import load_cbf_run, with_policy
 from d2spo.console import print_certify, print_repair_round
 from d2spo.errors import UserError
 from d2spo.fields import check_choice

@@ -4,13 +4,14 @@ robot runs with ``d2spo.deploy`` (``d2spo.export``; docs/deploy.md)."""
 from __future__ import annotations
 
 import dataclasses
-import json
 from pathlib import Path
 from typing import Annotated
 
 import tyro
 
+from d2spo.errors import RunDirError
 from d2spo.export import ExportConfig, export_run
+from d2spo.runio import read_json
 
 
 @dataclasses.dataclass
@@ -42,10 +43,10 @@ def evaluated_line(run_dir: Path, manifest: dict) -> str:
     """What the run says of the exported policy: its evaluation at the end of training (summary.json),
     or that the run is unfinished and the policy unevaluated."""
     try:
-        summary = json.loads((run_dir / "summary.json").read_text())
-    except (OSError, ValueError):
+        summary = read_json(run_dir / "summary.json", "the run's summary")
+    except RunDirError:  # none (unfinished), or damaged: nothing to quote either way
         summary = None
-    if not isinstance(summary, dict):
+    if summary is None:
         done, total = manifest["source"].get("episodes"), manifest["config"].get("episodes")
         state = (f"is unfinished ({done} of {total} episodes)" if isinstance(done, int) and isinstance(total, int)
                  and done < total else "has no summary.json")

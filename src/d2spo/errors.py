@@ -15,6 +15,11 @@ class ConfigError(UserError, ValueError):
         super().__init__(f"{field}: {message}")
 
 
+def in_file(e: ConfigError, path) -> ConfigError:
+    """``e`` with the file it is about named at its end, "(in PATH)" (a layout's, a dynamics file's)."""
+    return ConfigError(e.field, f"{str(e).removeprefix(f'{e.field}: ')} (in {path})")
+
+
 class LTLSyntaxError(UserError, ValueError):
     """A formula does not parse. `column` is 1-based; str() shows the formula with a caret."""
 

@@ -19,7 +19,6 @@ from __future__ import annotations
 import dataclasses
 import io
 import json
-import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -37,7 +36,7 @@ from d2spo.envs import geodesic
 from d2spo.errors import ConfigError, RunDirError
 from d2spo.fields import check_choice, check_fields
 from d2spo.run import POLICY_CHOICES, build, check_layout_unchanged, load_policy, load_run_config
-from d2spo.runio import atomic_write_bytes, atomic_write_json, make_run_dir
+from d2spo.runio import atomic_write_bytes, atomic_write_json, make_run_dir, temporary_of
 
 ACTIVATION_NAMES = {nn.relu: "relu", nn.tanh: "tanh"}
 """The hidden activations an exported network may use, by name (``deploy.nets.ACTIVATIONS``)."""
@@ -79,9 +78,7 @@ def check_out(out: Path) -> None:
 
 def _an_exports_file(path: Path) -> bool:
     """Whether ``path`` is a file an export writes before its manifest (or one's temporary file)."""
-    name = path.name
-    temporary = re.fullmatch(r"\.(.+)\.\d+-[0-9a-f]{8}\.tmp", name)  # runio.atomic_write_bytes's
-    return path.is_file() and (temporary.group(1) if temporary else name) in (WEIGHTS, "policy.onnx", "cbf.onnx")
+    return path.is_file() and (temporary_of(path.name) or path.name) in (WEIGHTS, "policy.onnx", "cbf.onnx")
 
 
 def export_run(run_dir: Path, out: Path, ecfg: ExportConfig = ExportConfig()) -> dict:

@@ -33,7 +33,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from d2spo import replay
-from d2spo.certify import CBFRun, CertifyConfig, _compiled, certify_run, load_cbf_run, policy_of, write_outputs
+from d2spo.certify import CertifyConfig, _compiled, certify_run, write_outputs
+from d2spo.certify_load import CBFRun, load_cbf_run, policy_of
 from d2spo.checkpoint import Checkpoints, run_fingerprint
 from d2spo.errors import RunDirError
 from d2spo.evaluate import EvalConfig, evaluate_run

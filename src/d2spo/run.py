@@ -14,6 +14,7 @@ import json
 import warnings
 import weakref
 from pathlib import Path
+from typing import Any
 
 import jax
 from flax import serialization
@@ -339,10 +340,17 @@ def load_policy(run_dir: Path, which: str = "best", learner=None, layout: str | 
             raise
         warnings.warn(f"{e}; the validated policy and summary.json are used", RunDirWarning, stacklevel=2)
         return cfg, learner, load_best_policy(run_dir, learner), shared
+    policy, meta = checkpoint_policy(run_dir, which, learner, carry, meta)
+    return cfg, learner, policy, meta
+
+
+def checkpoint_policy(run_dir: Path, which: str, learner, carry, meta: dict) -> tuple[Any, dict]:
+    """(policy, meta) of a run whose newest checkpoint (``carry``, ``meta``) is loaded: the validated
+    policy for "best" where the run kept one, else the checkpoint's; ``meta["policy"]`` says which."""
     meta = dict(meta)
     best = meta.get("best")
     if which == "best" and best is not None and best_policy_path(run_dir).is_file():
         meta["policy"] = f"best on validation (after {best['episodes']} episodes)"
-        return cfg, learner, load_best_policy(run_dir, learner), meta
+        return load_best_policy(run_dir, learner), meta
     meta["policy"] = f"last (after {meta.get('episodes')} episodes)"
-    return cfg, learner, learner.policy(carry), meta
+    return learner.policy(carry), meta

@@ -21,6 +21,7 @@ import errno
 import io
 import json
 import os
+import re
 import secrets
 import socket
 import stat
@@ -56,7 +57,7 @@ def _named(e: OSError, path: Path) -> OSError:
 def atomic_write_bytes(path: Path, data: bytes) -> None:
     """Write ``data`` to ``path`` so that a reader sees the old file or the new one, never half."""
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}-{secrets.token_hex(4)}.tmp")
+    tmp = path.with_name(f".{path.name}.{os.getpid()}-{secrets.token_hex(4)}.tmp")  # as temporary_of reads it
     try:
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)  # the umask applies
         with os.fdopen(fd, "wb") as f:
@@ -85,6 +86,13 @@ def _fsync_dir(path: Path) -> None:
 
 def atomic_write_json(path: Path, obj: Any) -> None:
     atomic_write_bytes(path, (json.dumps(obj, indent=2, sort_keys=True) + "\n").encode())
+
+
+def temporary_of(name: str) -> str | None:
+    """The file name a temporary of ``atomic_write_bytes`` (``.NAME.PID-HEX.tmp``) stands for; None
+    for any other name."""
+    m = re.fullmatch(r"\.(.+)\.\d+-[0-9a-f]{8}\.tmp", name)
+    return m.group(1) if m else None
 
 
 def remove_file(path: Path) -> None:

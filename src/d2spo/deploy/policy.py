@@ -171,13 +171,7 @@ class Policy:
         """float32 [observation_size]: the env's observation from the lidar ``ranges`` [K] (m, ray k at
         heading + 2πk/K counter-clockwise from the robot centre; above H or +inf read H), the pose
         (x, y, θ) in the layout's frame and the automaton state q (``TaskTracker.q``)."""
-        ranges = numbers(ranges, "ranges", self.n_rays, f"{self.n_rays} lidar ranges (m), one per ray")
-        if np.isnan(ranges).any():  # a driver's "no return" is +inf (read as H), never NaN
-            raise ValueError(f"lidar ranges {np.flatnonzero(np.isnan(ranges)).tolist()} are NaN; "
-                             "give +inf for a ray with no return")
-        if (ranges < 0).any():
-            raise ValueError(f"lidar ranges {np.flatnonzero(ranges < 0).tolist()} are negative "
-                             f"({ranges[ranges < 0][:3].tolist()}); a range is a distance >= 0 (m), +inf for no return")
+        ranges = self.ranges(ranges)
         q = self.state(q)
         pose = self.pose(pose)
         xy, c, s = pose[:2], np.cos(pose[2]), np.sin(pose[2])
@@ -199,6 +193,18 @@ class Policy:
         for name, part in self.parts.items():
             obs[part] = values[name]
         return obs
+
+    def ranges(self, ranges) -> np.ndarray:
+        """``ranges`` checked: float32 [K] lidar ranges (m), each >= 0 or +inf (no return). ValueError
+        otherwise: a count other than K, a NaN, a negative range."""
+        ranges = numbers(ranges, "ranges", self.n_rays, f"{self.n_rays} lidar ranges (m), one per ray")
+        if np.isnan(ranges).any():  # a driver's "no return" is +inf (read as H), never NaN
+            raise ValueError(f"lidar ranges {np.flatnonzero(np.isnan(ranges)).tolist()} are NaN; "
+                             "give +inf for a ray with no return")
+        if (ranges < 0).any():
+            raise ValueError(f"lidar ranges {np.flatnonzero(ranges < 0).tolist()} are negative "
+                             f"({ranges[ranges < 0][:3].tolist()}); a range is a distance >= 0 (m), +inf for no return")
+        return ranges
 
     def pose(self, pose) -> np.ndarray:
         """``pose`` checked: float32 (x, y, θ), three finite numbers, (x, y) in metres in the layout's
@@ -334,10 +340,7 @@ class Policy:
         is from what the map predicts at its pose. Near 0 on a good map and localisation; a large value
         means the pose is off, the map out of date or the ranges in another unit (millimetres clip to H
         and read as free space), which ``act`` cannot tell by itself."""
-        got = numbers(ranges, "ranges", self.n_rays, f"{self.n_rays} lidar ranges (m), one per ray")
-        if np.isnan(got).any():
-            raise ValueError("lidar ranges are NaN; give +inf for a ray with no return")
-        want = self.scan(pose)
+        got, want = self.ranges(ranges), self.scan(pose)
         return float(np.median(np.abs(np.clip(got, 0.0, self.H) - np.clip(want, 0.0, self.H))))
 
     def scan(self, pose) -> np.ndarray:

@@ -26,7 +26,7 @@ import numpy as np
 from d2spo.envs import generator
 from d2spo.envs.workspace import PROPOSITION_RULE, Area, DiskObstacle, Layout, Obstacle, is_proposition, validate
 from d2spo.envs.zones import zones_layout
-from d2spo.errors import ConfigError, json_trouble
+from d2spo.errors import ConfigError, in_file, json_trouble
 from d2spo.inputs import read_regular
 
 BUILTIN = ("paper", "relaxed", "open", "physical-1", "physical-2", "physical-3", "physical-4")
@@ -231,7 +231,7 @@ def load(name_or_path: str | os.PathLike) -> Layout:
         try:
             return from_json(data, default_name=path.stem)
         except ConfigError as e:  # which file, as the JSON errors above say
-            raise ConfigError(e.field, f"{str(e).removeprefix(f'{e.field}: ')} (in {path})") from None
+            raise in_file(e, path) from None
     raise ConfigError("layout", f"unknown layout {name_or_path!r}; use one of {list(BUILTIN)}, "
                       "'random[:SEED]', 'random5[:SEED]', 'zones[:SEED]', 'world[:SEED]' or a path to a .json file")
 

@@ -37,7 +37,7 @@ from d2spo.envs.compiled_task import CompiledTask, compile_task
 from d2spo.envs.env_config import EnvConfig
 from d2spo.envs.params import EnvParams, env_params
 from d2spo.envs.workspace import Layout
-from d2spo.errors import ConfigError
+from d2spo.errors import ConfigError, in_file
 from d2spo.ltl import task_automaton, task_formula
 from d2spo.ltl.automaton import Automaton
 from d2spo.ltl.labelling import accepting_visit, next_state
@@ -334,7 +334,7 @@ def checked_layout(cfg: EnvConfig) -> tuple[EnvConfig, Layout]:
     except ConfigError as e:  # a file's fault: which file, as its schema errors say (layouts.load)
         if layouts.layout_file(str(cfg.layout)) is None or "(in " in str(e):
             raise
-        raise ConfigError(e.field, f"{str(e).removeprefix(f'{e.field}: ')} (in {cfg.layout})") from None
+        raise in_file(e, cfg.layout) from None
     return cfg, layout
 
 
