@@ -107,6 +107,7 @@ def test_export_command_and_bad_input(tiny, tmp_path, capsys):
     (tmp_path / "partial").mkdir()
     (tmp_path / "partial" / "weights.npz").write_bytes(b"half")
     (tmp_path / "partial" / ".weights.npz.123-0a1b2c3d.tmp").write_bytes(b"half")
+    (tmp_path / "partial" / "nominal.onnx").write_bytes(b"half")  # --onnx's third graph
     assert cli.main(["export", str(run), "--out", str(tmp_path / "partial")]) == 0
     Policy.load(tmp_path / "partial")
     (tmp_path / "mine").mkdir()

@@ -78,7 +78,8 @@ def check_out(out: Path) -> None:
 
 def _an_exports_file(path: Path) -> bool:
     """Whether ``path`` is a file an export writes before its manifest (or one's temporary file)."""
-    return path.is_file() and (temporary_of(path.name) or path.name) in (WEIGHTS, "policy.onnx", "cbf.onnx")
+    name = temporary_of(path.name) or path.name
+    return path.is_file() and (name == WEIGHTS or name.endswith(".onnx"))  # export_onnx's graphs: policy, cbf, nominal
 
 
 def export_run(run_dir: Path, out: Path, ecfg: ExportConfig = ExportConfig()) -> dict:
