@@ -129,6 +129,27 @@ def test_a_config_json_that_is_not_an_object_is_one_line(tmp_path, capsys, no_bu
     assert one_error(capsys, "eval", run / "config.json").endswith("config.json: is a file, not a run directory")
 
 
+def test_a_folder_that_holds_runs_names_them(tmp_path, capsys, no_build):
+    """`d2spo eval demo_out` (make demo's folder, whose run is demo_out/d2spo-relaxed) or a reproduce
+    OUT: the refusal names the runs inside to give instead; an empty folder gets no such clause."""
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert one_error(capsys, "eval", empty).endswith("is this a d2spo run directory?")
+    demo = tmp_path / "demo_out"
+    (demo / "d2spo-relaxed").mkdir(parents=True)
+    (demo / "d2spo-relaxed" / "config.json").write_text("{}")
+    line = one_error(capsys, "eval", demo)
+    assert line.endswith(f"It holds a run: give it instead ({demo / 'd2spo-relaxed'})"), line
+    out = tmp_path / "repro"
+    for name in ("d2spo-phi1-paper-s0", "d2spo-phi1-paper-s1", "cpo-phi1-paper-s0", "rcrl-phi1-paper-s0"):
+        (out / "runs" / name).mkdir(parents=True)
+        (out / "runs" / name / "config.json").write_text("{}")
+    (out / "runs" / "not-a-run").mkdir()
+    line = one_error(capsys, "certify", out)
+    assert f"It holds runs: give one instead ({out / 'runs' / 'cpo-phi1-paper-s0'}, " in line, line
+    assert line.endswith(" and 1 more)") and "not-a-run" not in line, line
+
+
 # -------------------------------------------------------------- 5. report on reproduce.json
 
 

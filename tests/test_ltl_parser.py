@@ -82,6 +82,13 @@ a, b, c, d = Prop("a"), Prop("b"), Prop("c"), Prop("d")
         ("a <=> b", Iff(a, b)),
         ("a<->b", Iff(a, b)),
         ("<>a|[]b", Or(Eventually(a), Always(b))),
+        # the textbook's Unicode symbols
+        ("□◇a ∧ □¬b", And(Always(Eventually(a)), Always(Not(b)))),
+        ("◻◊a ∨ ○b", Or(Always(Eventually(a)), Next(b))),
+        ("◯a→b⇒c", Implies(Next(a), Implies(b, c))),
+        ("a ↔ b ⇔ c", Iff(Iff(a, b), c)),
+        ("⊤ ∧ ¬⊥", And(TRUE, Not(FALSE))),
+        ("¬a U b", Until(Not(a), b)),
     ],
 )
 def test_precedence_and_associativity(text, tree):
@@ -153,6 +160,8 @@ def test_round_trip(tree):
         ("[ a", 1, "unknown character '['"),
         ("a <- b", 3, "unknown character '<'"),
         ("A1 & Ä", 6, "unknown character 'Ä'"),
+        ("□ ∧ A1", 3, "a formula"),  # a Unicode operator's column is its character's
+        ("A1 ≠ A2", 4, "unknown character '≠'"),
         ("F dock-west", 7, "'dock-west' is no proposition name: a formula names an area by its label"),
         ("(a & (b | c)", 13, "')' to close the '(' at column 1"),
     ],

@@ -113,7 +113,8 @@ def read_json(path: Path, what: str) -> dict:
         if (path.parent / "manifest.json").is_file():  # what `d2spo export` writes (d2spo.deploy.policy.MANIFEST)
             raise RunDirError(f"{path.parent}: is an exported policy (`d2spo export`), not a run directory; give "
                               "the run it was exported from, or load it with d2spo.deploy.Policy.load")
-        raise RunDirError(f"{path.parent}: no {path.name} ({what}); is this a d2spo run directory?")
+        raise RunDirError(f"{path.parent}: no {path.name} ({what}); is this a d2spo run directory?"
+                          + _runs_hint(path.parent, path.name))
     data = read_regular(path, RunDirError)  # not /dev/zero, a FIFO or a directory in its place
     try:
         value = json.loads(data)
@@ -125,6 +126,20 @@ def read_json(path: Path, what: str) -> dict:
         kind = {list: "array", str: "string", bool: "boolean", type(None): "null"}.get(type(value), "number")
         raise RunDirError(f"{path}: holds a JSON {kind} where {what} is an object")
     return value
+
+
+def _runs_hint(directory: Path, name: str) -> str:
+    """For a folder that holds runs rather than being one (`make demo`'s demo_out, `d2spo reproduce`'s
+    OUT): the runs to give instead, as a clause to end the error with; '' when it holds none."""
+    try:
+        found = sorted(d for base in (directory, directory / "runs") if base.is_dir()
+                       for d in base.iterdir() if d.is_dir() and (d / name).is_file())
+    except OSError:
+        return ""
+    if not found:
+        return ""
+    shown = ", ".join(str(d) for d in found[:3]) + (f" and {len(found) - 3} more" if len(found) > 3 else "")
+    return f" It holds {'a run' if len(found) == 1 else 'runs'}: give {'it' if len(found) == 1 else 'one'} instead ({shown})"
 
 
 def make_run_dir(path: Path) -> None:

@@ -11,7 +11,9 @@ Grammar, loosest binding first (see docs/ltl.md)::
     atom    := 'true' | 'false' | NAME | '(' iff ')'
 
 Accepted alternates: ``~`` for ``!``, ``&&`` for ``&``, ``||`` for ``|``, ``=>`` for ``->``,
-``<=>`` for ``<->``, ``[]`` for ``G``, ``<>`` for ``F``. A NAME is ``[A-Za-z_][A-Za-z0-9_]*``
+``<=>`` for ``<->``, ``[]`` for ``G``, ``<>`` for ``F``, and the textbook's symbols: ``□ ◻`` for
+``G``, ``◇ ◊`` for ``F``, ``○ ◯`` for ``X``, ``¬ ∧ ∨`` for ``! & |``, ``→ ⇒`` for ``->``, ``↔ ⇔`` for
+``<->``, ``⊤ ⊥`` for ``true false``. A NAME is ``[A-Za-z_][A-Za-z0-9_]*``
 other than the keywords ``true false X F G U R W`` and the words made of the letters X, F and G only,
 which are chains of those operators (``GF a`` is ``G F a``, ``FG a`` is ``F G a``); names are read
 greedily, so ``XA1`` is the proposition ``XA1`` while ``X A1`` and ``X(A1)`` are "next A1".
@@ -53,7 +55,11 @@ _KEYWORDS = {"true": "true", "false": "false", "X": "X", "F": "F", "G": "G", "U"
 _SYMBOLS = [
     ("<->", "<->"), ("<=>", "<->"), ("->", "->"), ("=>", "->"), ("&&", "&"), ("||", "|"),
     ("[]", "G"), ("<>", "F"), ("!", "!"), ("~", "!"), ("&", "&"), ("|", "|"), ("(", "("), (")", ")"),
+    ("\u25a1", "G"), ("\u25fb", "G"), ("\u25c7", "F"), ("\u25ca", "F"), ("\u25cb", "X"), ("\u25ef", "X"),
+    ("\u00ac", "!"), ("\u2227", "&"), ("\u2228", "|"),
+    ("\u2192", "->"), ("\u21d2", "->"), ("\u2194", "<->"), ("\u21d4", "<->"), ("\u22a4", "true"), ("\u22a5", "false"),
 ]  # fmt: skip
+"""The Unicode ones: □ ◻ ◇ ◊ ○ ◯ ¬ ∧ ∨ → ⇒ ↔ ⇔ ⊤ ⊥ (written as escapes so that no editor mistakes them)."""
 _UNARY = {"!": Not, "X": Next, "F": Eventually, "G": Always}
 _TEMPORAL = {"U": Until, "R": Release, "W": WeakUntil}
 
