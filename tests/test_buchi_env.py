@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 from functools import cache
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -211,8 +212,26 @@ def test_a_recurrence_whose_next_visit_is_a_step_away_is_refused(capsys, task, r
     lines = [ln for ln in captured.err.splitlines() if ln.strip()]
     if refused:
         assert status == 2 and len(lines) == 1 and "so its visits would count moves at an area's edge" in lines[0]
+    else:  # a patrol's count is to its first accepting visit, not to an end it never reaches
+        assert status == 0 and not lines and "to its first accepting visit (a patrol" in captured.out, captured
+
+
+@pytest.mark.parametrize("task, refused", [("G (A1 -> F A2) & GF A1", True), ("GF A1 & GF A2", True),
+                                           ("GF A1 & GF A3", False)])
+def test_a_later_lap_a_step_long_is_refused_too(capsys, task, refused):
+    """On two overlapping areas (a user's layout, kept as test data) `respond`'s first lap is 0.55 m
+    and every later one 0.05 m, crossing from A1 alone into the lens where A1 and A2 meet: the check
+    once compared only the first two visits, let it train, and counted 548 visits in 300 steps."""
+    from d2spo.cli import main
+
+    lens = Path(__file__).parent / "data" / "layouts" / "lens.json"
+    status = main(["env", "check", "--layout", str(lens), "--task", task])
+    captured = capsys.readouterr()
+    lines = [ln for ln in captured.err.splitlines() if ln.strip()]
+    if refused:
+        assert status == 2 and len(lines) == 1 and "so its visits would count moves at an area's edge" in lines[0]
     else:
-        assert status == 0 and not lines and "area visit" in captured.out, captured
+        assert status == 0 and not lines, captured
 
 
 def test_a_tiny_training_on_a_never_part_writes_no_visits(tmp_path, capsys):

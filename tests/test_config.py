@@ -96,3 +96,27 @@ def test_the_learner_table_says_reward_annealing_sections_and_filter():
     # the registry, not the learner, switches the annealing off (td3 and tlgrl are one class)
     assert not build(TrainConfig(algo="td3", num_envs=2))[2].schedule.cfg.enabled
     assert build(TrainConfig(algo="tlgrl", num_envs=2))[2].schedule.cfg.enabled
+
+
+def test_a_formula_s_default_run_directory_names_the_formula_not_its_spelling():
+    """Every formula once trained into runs/d2spo-custom-paper-s0, so a second one was refused there."""
+    from d2spo.run import default_out
+
+    def out(task):
+        return default_out(TrainConfig(task=task)).name
+
+    assert out("phi1") == "d2spo-phi1-paper-s0"
+    patrol = out("GF A1 & GF A3 & G !A4")
+    assert patrol.startswith("d2spo-custom-") and patrol.endswith("-paper-s0") and len(patrol) == len("d2spo-custom--paper-s0") + 8
+    assert out("□◇A1 ∧ □◇A3 ∧ □¬A4") == out("G F A1&G F A3&G !A4") == patrol
+    assert out("GF A1 & GF A2") != patrol
+
+
+def test_snapshots_from_python_and_past_the_run():
+    """`TrainConfig(snapshots=[50])` was refused as "must be a list of positive integers, got [50]";
+    a snapshot past the run's episodes was accepted, never written, and failed the figure at the end."""
+    assert TrainConfig(episodes=100, snapshots=[50, 100]).check().snapshots == (50, 100)
+    with pytest.raises(ConfigError, match="snapshots: 500 is past the run's 100 episodes"):
+        TrainConfig(episodes=100, snapshots=(50, 500)).check()
+    with pytest.raises(ConfigError, match="snapshots: must be a list of positive integers, got \\(0,\\)"):
+        TrainConfig(episodes=100, snapshots=[0]).check()

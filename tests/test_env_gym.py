@@ -130,6 +130,23 @@ def test_human_rendering_without_a_display_is_a_config_error(monkeypatch):
     with pytest.raises(ConfigError) as e:
         NavEnv(render_mode="human", **SMALL)
     assert e.value.field == "render_mode" and "display" in str(e.value)
+    with pytest.raises(ConfigError, match="needs a display"):  # not gymnasium's pygame wrapper instead
+        gym.make("d2spo/Nav-v0", render_mode="human", **SMALL)
+
+
+def test_a_nan_action_is_a_value_error_not_a_safe_episode():
+    """A NaN action once moved the robot to a NaN pose that every later step reported collision-free."""
+    env = NavEnv(**SMALL)
+    env.reset(seed=0)
+    for bad in ([np.nan, 0.0], [0.0, np.inf]):
+        with pytest.raises(ValueError, match="not finite"):
+            env.step(np.array(bad, np.float32))
+    _, _, _, _, info = env.step(np.array([0.5, 0.0], np.float32))  # the env is unharmed
+    assert np.isfinite(env._pose).all() and info["cost"] == 0.0
+    envs = gym.make_vec("d2spo/Nav-v0", num_envs=2, **SMALL)
+    envs.reset(seed=0)
+    with pytest.raises(ValueError, match="not finite"):
+        envs.step(np.array([[0.0, 0.0], [np.nan, 0.0]], np.float32))
 
 
 def test_seeded_vector_envs_repeat_and_unknown_options_are_config_errors():

@@ -262,6 +262,11 @@ def test_env_check_and_show_accept_the_office(tmp_path, capsys):
                                          "kitchen; did you mean desk for Desk?)"),
     (["--task", "F (desk & F kitchn)"], "always false: ['kitchn']; its labels: desk, kitchen; did you mean kitchen "
                                         "for kitchn?)"),
+    # no run satisfies it: not the layout's fault
+    (["--task", "F desk & G !desk"], "F desk & G !desk is unsatisfiable: no run satisfies it, on any layout"),
+    # an area's name written as a proposition: a formula names areas by label
+    (["--task", "F desk_2 & F kitchen"], "always false: ['desk_2']; its labels: desk, kitchen; did you mean desk "
+                                         "(area desk-2's label) for desk_2?)"),
     # operators run into a label: one proposition to the parser
     (["--task", "GFdesk"], "always false: ['GFdesk']; its labels: desk, kitchen; did you mean G F desk for GFdesk?)"),
     (["--task", "F desk | F lounge"], "proposition 'lounge' names no area of layout 'office' (no area has that label; "

@@ -143,6 +143,12 @@ def test_pack_refuses_what_a_bank_cannot_hold():
         lb.pack([Layout("r", (5.0, 5.0), (4.0, 4.0, 0.0), (), overlap)])
     with pytest.raises(ConfigError, match="no task states"):
         lb.with_fields(lb.pack([HAND]))
+    # a Layout built in Python gets a file's checks too (it once reached the fields unchecked)
+    for area, message in ((Area("a", (2.0, 2.0), -0.5), r"areas\[0\]\.radius: layout 'r': must be positive"),
+                          (Area("a", (math.nan, 2.0), 0.5), r"areas\[0\]: layout 'r': holds a number that is not finite"),
+                          (Area("a", (2.0, 2.0), 0.5), "area a overlaps obstacle 0")):
+        with pytest.raises(ConfigError, match=message):
+            lb.pack([Layout("r", (5.0, 5.0), (0.6, 0.6, 0.0), (DiskObstacle((2.2, 2.0), 0.3),), (area,))])
 
 
 def test_a_slots_field_is_the_same_bit_for_bit_alone_and_among_others():

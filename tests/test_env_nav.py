@@ -166,6 +166,17 @@ def test_collision_without_termination_blocks_the_robot():
     assert float(state.ep_cost) == 25 - first and bool(state.ep_collided)
 
 
+def test_a_nan_action_is_a_collision():
+    """The JAX env cannot raise: a position that is not a number counts as a collision (it once
+    counted as safe, and the NaN pose went on unnoticed)."""
+    env, params, step, _ = scripted()
+    state, _ = jax.jit(env.reset)(jax.random.key(0), params)
+    state, _, _, cost, done, info = step(jax.random.key(1), state, jnp.array([jnp.nan, 0.0]), params)
+    assert float(cost) == 1.0 and bool(info["collided"]) and bool(done)
+    assert bool(geometry.collides(jnp.array([jnp.nan, 0.6]), params.geom, params.robot_radius))
+    assert not bool(geometry.collides(jnp.array([0.6, 0.6]), params.geom, params.robot_radius))
+
+
 def test_actions_are_clipped():
     env, params, step, _ = scripted()
     state, _ = jax.jit(env.reset)(jax.random.key(0), params)

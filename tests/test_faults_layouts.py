@@ -15,7 +15,7 @@ from _faults import Built, cli, layout_file, one_error, started_run
 from d2spo.cli import main
 from d2spo.config import TrainConfig
 from d2spo.envs import EnvConfig
-from d2spo.errors import ConfigError
+from d2spo.errors import ConfigError, RunDirError
 
 # ------------------------------------------------------------------------ eval file names
 
@@ -44,6 +44,17 @@ def test_two_layouts_never_share_an_evaluation_file(tmp_path, capsys, fake_rollo
     by_layout = {json.loads(p.read_text())["layout"]: p.name for p in run.glob("eval-*.json")}
     assert by_layout[str(a)] != by_layout[str(b)]
     assert by_layout["random:55"] != by_layout["random5:5"]
+
+
+def test_a_specialist_evaluates_its_own_task_however_spelt(tmp_path, capsys, no_build):
+    """`eval --task` on a specialist once compared strings: its own formula in other words (the
+    Unicode symbols, other spaces) was refused as 'another task than it learnt'."""
+    run = started_run(tmp_path / "run", "paper")  # learnt phi1
+    for spelt in ("phi1", "(¬A3 U A2) ∧ (¬A2 U A1) ∧ ◇A1 ∧ ◇A3", "(!A3 U A2)&(!A2 U A1)&F A1&F A3"):
+        with pytest.raises(Built):
+            cli(capsys, "eval", run, "--task", spelt)
+    line = one_error(capsys, "eval", run, "--task", "(¬A3 U A2) ∧ (¬A2 U A1) ∧ ◇A1")
+    assert "only a generalist (d2spo train --generalist) runs another task than it learnt" in line
 
 
 def test_evaluation_file_names_of_built_in_and_random_layouts_are_kept():
@@ -106,6 +117,10 @@ def test_a_layout_file_edited_since_the_run_started_is_refused(tmp_path, capsys,
     assert f"its layout file {lab} changed since the run started" in line and "checked against another map" in line
     recorded = json.loads((run / "inputs.json").read_text())["layout"]
     assert recorded["file"] == str(lab) and len(recorded["sha256"]) == 64
+    # from Python too: load_policy (what the figures call) once built the learner on the edited file
+    from d2spo.run import load_policy
+    with pytest.raises(RunDirError, match="changed since the run started.*train a new run on it as it is now"):
+        load_policy(run)
 
 
 def test_the_training_layout_file_is_known_by_its_content_not_its_spelling(tmp_path, monkeypatch):

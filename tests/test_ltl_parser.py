@@ -89,6 +89,8 @@ a, b, c, d = Prop("a"), Prop("b"), Prop("c"), Prop("d")
         ("a ↔ b ⇔ c", Iff(Iff(a, b), c)),
         ("⊤ ∧ ¬⊥", And(TRUE, Not(FALSE))),
         ("¬a U b", Until(Not(a), b)),
+        ("⋄a ⟶ b ⟹ c", Implies(Eventually(a), Implies(b, c))),
+        ("a ⟷ b ⟺ c", Iff(Iff(a, b), c)),
     ],
 )
 def test_precedence_and_associativity(text, tree):
@@ -162,6 +164,8 @@ def test_round_trip(tree):
         ("A1 & Ä", 6, "unknown character 'Ä'"),
         ("□ ∧ A1", 3, "a formula"),  # a Unicode operator's column is its character's
         ("A1 ≠ A2", 4, "unknown character '≠'"),
+        ("F A₁", 4, "unknown character '₁' (write the digit 1: names are of letters, digits and _)"),
+        ("a ⊃ b", 3, "unknown character '⊃' (write ->)"),
         ("F dock-west", 7, "'dock-west' is no proposition name: a formula names an area by its label"),
         ("(a & (b | c)", 13, "')' to close the '(' at column 1"),
     ],
@@ -192,3 +196,4 @@ def test_error_pretty_shows_the_formula_and_a_caret_under_the_token():
 def test_parse_rejects_non_strings():
     with pytest.raises(TypeError):
         parse(None)  # type: ignore[arg-type]
+

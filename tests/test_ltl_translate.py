@@ -325,3 +325,23 @@ def test_automaton_checks_its_invariants():
         Automaton(aps=("a",), initial=0, accepting=frozenset(), rejecting=frozenset(), delta=((0,),))
     with pytest.raises(ValueError, match="sorted"):
         Automaton(aps=("b", "a"), initial=0, accepting=frozenset(), rejecting=frozenset(), delta=((0,) * 4,))
+
+
+def test_reading_a_word_checks_its_states_and_letters():
+    """`aut.status(42)` said 'undecided', `aut.run([-1])` read the letter from the end (every
+    proposition true) and accepted, `aut.run([99])` was a bare IndexError."""
+    from d2spo.ltl import to_dba, translate
+
+    aut = translate("F (A1 & F A2)")
+    dba = to_dba("GF A1 & GF A2")
+    for bad in (42, -1, True):
+        with pytest.raises(ValueError, match="no state"):
+            aut.status(bad)
+    for reader in (aut.run, dba.run, lambda w: dba.accepts_lasso([], w)):
+        for bad in (-1, 99, 1.0):
+            with pytest.raises(ValueError, match="no letter"):
+                reader([bad])
+    with pytest.raises(TypeError, match=r"write letter\(\['A1'\]\)"):
+        aut.letter("A1")
+    assert aut.run([aut.letter(["A1"]), aut.letter(["A2"])]) == [0, 1, 2] and aut.status(2) == "accepting"
+    assert dba.accepts_lasso([], [dba.letter(["A1"]), dba.letter(["A2"])])

@@ -47,6 +47,7 @@ from d2spo.errors import ConfigError, D2SPOWarning, LTLSyntaxError, NaNError, Ta
 from d2spo.evaluate import EvalConfig, evaluate_run, write_evaluation
 from d2spo.fields import check_choice, check_fields
 from d2spo.ltl import task_automaton, task_formula
+from d2spo.ltl.buchi_task import is_recurrence
 from d2spo.ltl.labelling import LABEL_MODES
 from d2spo.ltl.tasks import close_task_names
 from d2spo.plotstyle import check_picture_path
@@ -119,7 +120,8 @@ class LtlCmd:
             print(aut.to_dot())
         else:
             print(aut.pretty(feasible))
-            print(f"distance: area visits (letters) still needed to accept, over {letters}")
+            goal = "the next accepting visit" if is_recurrence(aut) else "accept"
+            print(f"distance: area visits (letters) still needed to {goal}, over {letters}")
         if self.plot is not None:
             from d2spo.map_plots import state_fields_figure  # matplotlib: imported only to draw
 
@@ -275,7 +277,8 @@ class EnvCheckCmd:
         env, params = make_env(EnvConfig(layout=self.layout, preset=self.preset), task=self.task)
         preflight(env, params, repr(self.task))  # what `d2spo train` checks before it starts, but the barrier's margin
         n = int(params.aut.distance[int(params.aut.initial)])
-        print(f"task {self.task!r}: needs {n} area visit{'s' * (n != 1)} on this layout; observation size "
+        goal = " to its first accepting visit (a patrol: then again and again)" if is_recurrence(env.automaton) else ""
+        print(f"task {self.task!r}: needs {n} area visit{'s' * (n != 1)}{goal} on this layout; observation size "
               f"{env.observation_size}")
         return 0
 

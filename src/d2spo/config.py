@@ -173,6 +173,10 @@ class TrainConfig:
                      natural=("eval_episodes", "generalist_tasks", "generalist_patrols", "validation_layouts",
                               "patrol_validation"),
                      flag=("fast", "wandb"))
+        late = [n for n in self.snapshots if n > self.episodes]
+        if late:  # it would never be written, and the figure that wants it would fail at the end
+            raise ConfigError("snapshots", f"{late[0]} is past the run's {self.episodes} episodes; a snapshot is "
+                              "taken after that many episodes")
         if self.generalist_patrols and not self.generalist:
             raise ConfigError("generalist_patrols", "trains the generalist's task mixture; add --generalist")
         if self.generalist_patrols > MAX_PATROLS:

@@ -29,6 +29,7 @@ from d2spo.envs.layouts import load as load_layout
 from d2spo.errors import ConfigError, NaNError, TaskWarning
 from d2spo.fields import check_choice, check_fields, field_docstring
 from d2spo.inputs import sha256_of
+from d2spo.ltl.tasks import same_task
 from d2spo.memory import check_eval_memory
 from d2spo.rollout import make_rollout, rates, visit_optimum
 from d2spo.run import (
@@ -203,7 +204,7 @@ def evaluate_run(run_dir: Path, ecfg: EvalConfig = EvalConfig(), keep_paths: int
     n layouts (the first also compiles) and once more with k = n when they are done (a progress display)."""
     cfg = load_run_config(run_dir, ecfg.layout)
     overrides = given(ecfg.overrides)
-    if ecfg.task is not None and not cfg.generalist and ecfg.task != cfg.task:
+    if ecfg.task is not None and not cfg.generalist and not same_task(ecfg.task, cfg.task):
         raise ConfigError("task", f"only a generalist (d2spo train --generalist) runs another task than it "
                           f"learnt; this run learnt {cfg.task!r}")
     if cfg.generalist and ecfg.layout is None:

@@ -55,6 +55,8 @@ KINDS: dict[str, tuple[Any, str]] = {
 }
 """Kind -> (predicate, what the value must be). ``discount`` (a gamma), ``rate`` (tau, a fraction
 of a run) and ``fraction`` (GAE lambda) differ only in whether 0 is allowed."""
+SEQUENCES = ("widths", "counts")
+"""The kinds held as tuples; ``check_fields`` takes a list for one (``TrainConfig(snapshots=[50])``)."""
 
 
 def check_fields(obj: Any, section: str = "", nullable: tuple[str, ...] = (), **kinds: tuple[str, ...]) -> None:
@@ -69,6 +71,9 @@ def check_fields(obj: Any, section: str = "", nullable: tuple[str, ...] = (), **
             value = getattr(obj, name)
             if value is None and name in nullable:
                 continue
+            if kind in SEQUENCES and isinstance(value, list):  # from Python, as config.json and the flags give
+                value = tuple(value)
+                object.__setattr__(obj, name, value)  # the configs are frozen dataclasses
             if not ok(value):
                 raise ConfigError(f"{section}.{name}" if section else name, f"must be {what}, got {value!r}")
 

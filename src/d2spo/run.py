@@ -10,6 +10,7 @@ checkpoints, the lock) are described in docs/runs.md.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import warnings
 import weakref
@@ -27,8 +28,9 @@ from d2spo.config import TrainConfig, config_from_dict, config_to_dict
 from d2spo.config_diff import config_differences
 from d2spo.envs import layouts, make_env
 from d2spo.envs.preflight import preflight
-from d2spo.errors import ConfigError, RunDirError, RunDirWarning
+from d2spo.errors import ConfigError, RunDirError, RunDirWarning, UserError
 from d2spo.inputs import sha256_of
+from d2spo.ltl.parser import parse
 from d2spo.runio import atomic_write_bytes, atomic_write_json, read_json, remove_file, remove_tmp_files
 
 
@@ -193,12 +195,23 @@ def barrier_margin(cfg: TrainConfig) -> float | None:
 
 
 def default_out(cfg: TrainConfig) -> Path:
-    """Where `d2spo train` writes a run without --out: runs/ALGO-TASK-LAYOUT-sSEED."""
-    task = cfg.task if cfg.task.replace("-", "").isalnum() else "custom"
+    """Where `d2spo train` writes a run without --out: runs/ALGO-TASK-LAYOUT-sSEED; a formula's TASK
+    is ``custom-`` and 8 hex digits of its parse tree's hash, so that two formulas get two
+    directories and one formula, however spelt, the same."""
+    task = cfg.task if cfg.task.replace("-", "").isalnum() else f"custom-{formula_tag(cfg.task)}"
     layout = Path(cfg.layout).stem if cfg.layout.endswith(".json") else cfg.layout.replace(":", "")
     if cfg.generalist:
         layout = f"generalist{cfg.generalist_layouts}"
     return Path("runs") / f"{cfg.algo}-{task}-{layout}-s{cfg.seed}"
+
+
+def formula_tag(formula: str) -> str:
+    """8 hex digits naming a formula by its parse tree (``str(parse(formula))``), not its spelling."""
+    try:
+        text = str(parse(formula))
+    except UserError:  # refused later, with its column; a name is still needed now
+        text = formula
+    return hashlib.sha256(text.encode()).hexdigest()[:8]
 
 
 def load_run_config(run_dir: Path, layout: str | None = None) -> TrainConfig:
@@ -321,10 +334,13 @@ def load_policy(run_dir: Path, which: str = "best", learner=None, layout: str | 
     layout, ``TrainConfig.patrol_validation``) where there is one, else the last; "last" is the
     newest checkpoint's. ``meta["policy"]`` says which was taken.
     ``learner``: one already built with this run's array shapes (an evaluation's, elsewhere); by
-    default one is built from config.json. ``layout``: as ``load_run_config``'s."""
+    default one is built from config.json, and a layout file changed since the run started is refused
+    (``check_layout_unchanged``, as `d2spo eval` and `export` do). ``layout``: as ``load_run_config``'s."""
     if which not in POLICY_CHOICES:
         raise ConfigError("policy", f"expected one of {', '.join(POLICY_CHOICES)}, got {which!r}")
     cfg = load_run_config(run_dir, layout)
+    if learner is None and layout is None:  # built from config.json's layout file: as it was, or refused
+        check_layout_unchanged(run_dir, cfg, "restore it, or train a new run on it as it is now")
     if learner is None:
         # a generalist's checkpoint holds no layout: a one-layout bank gives the same shapes, fast
         _, _, learner = build(dataclasses.replace(cfg, generalist_layouts=1, generalist_tasks=0, generalist_patrols=0,

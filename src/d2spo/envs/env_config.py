@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field, fields, replace
 
 from d2spo.envs import dynamics
@@ -106,5 +107,6 @@ class EnvConfig:
         if self.observe_path and self.reward.shaping_metric != PER_STATE:
             raise ConfigError("observe_path", f"needs --shaping-metric {PER_STATE} (the path is its field), got "
                               f"{self.reward.shaping_metric!r}")
-        if not isinstance(self.layout, str):
-            raise ConfigError("layout", f"expected a layout name or a JSON path, got {self.layout!r}")
+        if not isinstance(self.layout, str):  # a config.json holds the string
+            hint = f"; give it as a string, str({self.layout!r})" if isinstance(self.layout, os.PathLike) else ""
+            raise ConfigError("layout", f"expected a layout name or a JSON path, got {self.layout!r}{hint}")

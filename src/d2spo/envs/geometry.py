@@ -103,8 +103,9 @@ def clearance(pos: jnp.ndarray, geom: Geometry) -> jnp.ndarray:
 
 
 def collides(pos: jnp.ndarray, geom: Geometry, robot_radius: jnp.ndarray) -> jnp.ndarray:
-    """bool []: the robot disk touches an obstacle or leaves the arena (clearance - radius <= 0)."""
-    return clearance(pos, geom) - robot_radius <= 0.0
+    """bool []: the robot disk touches an obstacle or leaves the arena (clearance - radius <= 0), or
+    its position is not a number (a NaN action's): a pose nobody knows is not a safe one."""
+    return ~(clearance(pos, geom) - robot_radius > 0.0)
 
 
 def sensed_mask(pos: jnp.ndarray, geom: Geometry, sensing_radius: jnp.ndarray) -> jnp.ndarray:

@@ -67,6 +67,16 @@ _INFO_KEYS = ("collided", "completed", "completed_relaxed", "q", "q_next")
 _EPISODE_KEYS = ("ep_return", "ep_cost", "ep_length", "ep_collided", "ep_completed", "ep_completed_relaxed")
 
 
+def _finite(action, what: str) -> np.ndarray:
+    """``action`` as an array, or ValueError where an entry is NaN or infinite: out-of-range actions
+    are clipped (docs/env.md), but a policy that outputs NaN has a bug the episode should not hide."""
+    a = np.asarray(action, np.float32)
+    if not np.isfinite(a).all():
+        raise ValueError(f"{what} {np.array2string(a, precision=3)} is not finite (NaN or infinite); a policy's "
+                         "bug, not an action: the env clips out-of-range actions but cannot step on these")
+    return a
+
+
 def _step_masked(env: Env, key, state, actions, params, autoreset):
     """``env.step_batch``, except that the sub-environments in ``autoreset`` (whose state is
     already a fresh episode's, from the previous step) keep that state and report nothing."""
@@ -162,7 +172,10 @@ class NavEnv(gymnasium.Env):
     """One navigation environment with Gymnasium's single-env contract: after ``terminated`` or
     ``truncated``, ``step`` has returned the episode's last observation and the caller resets."""
 
-    metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array", "human"] if _has_display() else ["rgb_array"], "render_fps": 10}
+    metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array", "human"], "render_fps": 10}
+    """The class lists "human" with or without a display, so that `gym.make(..., render_mode="human")`
+    reaches the constructor, which says in a ConfigError that it needs one (left out, `gym.make`
+    wrapped the env in its pygame ``HumanRendering`` instead); an instance lists what it can do here."""
 
     def __init__(self, task: Any = "phi1", config: EnvConfig | None = None, render_mode: str | None = None,
                  max_episode_steps: int | None = None, **overrides):
@@ -174,7 +187,8 @@ class NavEnv(gymnasium.Env):
         self.env, self.params = self._fns.env, self._fns.params
         self.observation_space, self.action_space = _spaces(self.env)
         self.render_mode = render_mode
-        self.metadata = {**self.metadata, "render_fps": round(1.0 / self.env.config.dt)}
+        self.metadata = {**self.metadata, "render_fps": round(1.0 / self.env.config.dt),
+                         "render_modes": ["rgb_array", "human"] if _has_display() else ["rgb_array"]}
         self._key = jax.random.key(0)
         self._state = None
         self._pose = np.asarray(self.env.layout.start, np.float32)
@@ -200,7 +214,7 @@ class NavEnv(gymnasium.Env):
         """Returns (obs, reward, terminated, truncated, info) with the cost in ``info["cost"]``."""
         if self._state is None:
             raise RuntimeError("call reset() before step()")
-        action = jnp.asarray(action, jnp.float32).reshape(self.env.action_size)
+        action = jnp.asarray(_finite(action, "action"), jnp.float32).reshape(self.env.action_size)
         self._state, _, reward, cost, done, info = self._fns.step(self._next_key(), self._state, action, self.params)
         reward, cost, done, info = jax.device_get((reward, cost, done, info))
         self._pose = info["next_pose"]
@@ -295,7 +309,7 @@ class NavVectorEnv(VectorEnv):
         """Step all sub-environments; returns (obs, reward, terminated, truncated, info), cost in info."""
         if self._state is None:
             raise RuntimeError("call reset() before step()")
-        actions = jnp.asarray(actions, jnp.float32).reshape(self.num_envs, self.env.action_size)
+        actions = jnp.asarray(_finite(actions, "actions"), jnp.float32).reshape(self.num_envs, self.env.action_size)
         next_step = self.metadata["autoreset_mode"] == AutoresetMode.NEXT_STEP
         autoreset = jnp.asarray(self._autoreset if next_step else np.zeros(self.num_envs, bool))
         self._state, *out = self._fns.step_masked(self._next_key(), self._state, actions, self.params, autoreset)

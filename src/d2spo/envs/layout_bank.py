@@ -50,7 +50,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from d2spo.envs.bank_fields import G, fields_batch, fields_numpy
-from d2spo.envs.workspace import Layout
+from d2spo.envs.workspace import Layout, validate
 from d2spo.errors import ConfigError
 
 N_AREAS = 16
@@ -121,7 +121,9 @@ class LayoutBank(NamedTuple):
 
 
 def check_fits(lay: Layout) -> None:
-    """ConfigError (one line) when ``lay`` exceeds what a bank slot holds."""
+    """ConfigError (one line) when ``lay`` is no valid layout (``workspace.validate``: a ``Layout``
+    built in Python reaches the generalist without a file's checks) or exceeds what a bank slot
+    holds."""
     where = f"layout {lay.name!r}"
     w, h = lay.arena
     if max(w, h) > MAX_SIDE + TOL_SIDE:
@@ -137,6 +139,10 @@ def check_fits(lay: Layout) -> None:
             if math.dist(a.center, b.center) < a.radius + b.radius:
                 raise ConfigError("layout.areas", f"{where}: areas {a.name} and {b.name} overlap; a generalist "
                                   "plans one area at a time")
+    try:
+        validate(lay)
+    except ConfigError as e:
+        raise ConfigError(e.field, f"{where}: {str(e).removeprefix(f'{e.field}: ')}") from None
 
 
 def pack(layouts: Sequence[Layout], tasks: Sequence[int] | None = None) -> LayoutBank:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import difflib
 import math
+import re
 import warnings
 
 from d2spo.envs import routes
@@ -41,6 +42,10 @@ def check_letters(task: CompiledTask, what: str) -> None:
                           "(a formula already true, or a 'never' part alone), so there is nothing to learn; add a "
                           f"goal, e.g. 'F {goal}' (with a never part: 'G !x & F {goal}')")
     if int(arrays.distance[int(arrays.initial)]) >= UNREACHABLE:
+        aut = task.automaton
+        if aut.initial in getattr(aut, "rejecting", ()):  # no layout is to blame: no run satisfies it
+            raise ConfigError("task", f"{what} is unsatisfiable: no run satisfies it, on any layout (its automaton "
+                              "starts in its rejecting state; `d2spo ltl` shows it)")
         layout = task.layout
         missing = sorted(set(task.automaton.aps) - set(layout.labels))
         hint = ""
@@ -61,15 +66,21 @@ def missing_labels(aps, layout) -> str:
     missing = sorted(set(aps) - set(layout.labels))
     if not missing:
         return ""
-    meant = [f"{label} for {p}" for p in missing if (label := _label_meant(p, layout.labels))]
+    meant = [f"{label} for {p}" for p in missing if (label := _label_meant(p, layout))]
     guess = f"; did you mean {', '.join(meant)}?" if meant else ""
     return f"propositions with no area, always false: {missing}; its labels: {', '.join(layout.labels) or 'none'}{guess}"
 
 
-def _label_meant(prop: str, labels: tuple[str, ...]) -> str | None:
-    """The label ``prop`` was likely meant to be: the one it equals but for case; operators run into a
-    label (``GFdock``: ``G F dock``, one proposition to the parser); else the closest."""
+def _label_meant(prop: str, layout) -> str | None:
+    """The label ``prop`` was likely meant to be: the one it equals but for case; an area's name
+    written as a proposition (``lab_bench`` for the area ``lab-bench``, whose label is ``lab``: a
+    formula names areas by label); operators run into a label (``GFdock``: ``G F dock``, one
+    proposition to the parser); else the closest."""
+    labels = layout.labels
     same = [lab for lab in labels if lab.lower() == prop.lower()]
+    named = [a for a in layout.areas if re.sub(r"[^0-9a-z]", "_", a.name.lower()) == prop.lower()]
+    if not same and named:
+        return f"{named[0].label} (area {named[0].name}'s label)"
     if not same:
         ops = len(prop) - len(prop.lstrip("GFX"))
         if 0 < ops < len(prop) and prop[ops:] in labels:
@@ -203,12 +214,19 @@ def preflight(env, params, name: str, margin: float = 0.0, episode_time: bool = 
 
 
 def check_lap(task: CompiledTask, robot_radius: float, name: str) -> None:
-    """ConfigError when a recurrence's second accepting visit can follow its first within the robot's
+    """ConfigError when a recurrence's accepting visit can follow the one before within the robot's
     diameter (``GF dock``: leave the dock and enter it again): its visits would count jitter at an
-    area's edge, not laps, and its route-optimal count nearly one per step."""
+    area's edge, not laps, and its route-optimal count nearly one per step. Every lap of the first
+    2 n + 2 visits is checked (n: the automaton's states), not only the first: on overlapping areas
+    ``G (A1 -> F A2) & GF A1``'s first lap is 0.55 m and every later one 0.05 m (crossing from A1
+    alone into A1 and A2)."""
     first = task.route_length
-    lap = task.visits_length(2) - first
-    if math.isfinite(first) and lap < 2 * robot_radius:
+    if not math.isfinite(first):
+        return
+    lengths = routes.visit_lengths(task.automaton, task.layout, task.label_mode, task.robot_radius, math.inf,
+                                   2 * task.automaton.n_states + 2)
+    lap = min((b - a for a, b in zip(lengths, lengths[1:])), default=math.inf)
+    if lap < 2 * robot_radius:
         raise ConfigError("task", f"{name}: on layout {task.layout.name!r} an accepting visit can follow the "
                           f"last after {lap:.2f} m (leaving an area and entering it again), so its visits would "
                           "count moves at an area's edge, not laps; give two areas to alternate between, e.g. "

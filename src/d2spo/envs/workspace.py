@@ -154,7 +154,8 @@ def _signed_distance(xy: np.ndarray, o: Obstacle | DiskObstacle) -> np.ndarray:
     return np.linalg.norm(np.maximum(q, 0.0), axis=-1) + np.minimum(q.max(axis=-1), 0.0)
 
 
-PROPOSITION_RULE = "a letter or _, then letters, digits or _; not one of true false X F G U R W"
+PROPOSITION_RULE = ("a letter or _, then letters, digits or _; not one of true false X F G U R W, nor a word of "
+                    "X, F and G only, which reads as those operators: GF is G F")
 """What ``is_proposition`` accepts, in words (for error messages)."""
 
 
@@ -175,6 +176,13 @@ def validate(layout: Layout) -> None:
     (``is_proposition``). The checks that need the robot's size (start clearance, reachability) are
     in :func:`check_robot_fits`.
     """
+    numbers = [("layout.arena", layout.arena), ("layout.start", layout.start)]
+    numbers += [(f"layout.obstacles[{i}]", (*o.center, *((o.radius,) if isinstance(o, DiskObstacle) else o.half_extents)))
+                for i, o in enumerate(layout.obstacles)]
+    numbers += [(f"layout.areas[{i}]", (*a.center, a.radius)) for i, a in enumerate(layout.areas)]
+    for field, values in numbers:  # a NaN passes every comparison below as if it were in range
+        if not all(math.isfinite(v) for v in values):
+            raise ConfigError(field, f"holds a number that is not finite: {tuple(values)}")
     w, h = layout.arena
     if not (w > 0 and h > 0):
         raise ConfigError("layout.arena", f"sizes must be positive, got {layout.arena}")

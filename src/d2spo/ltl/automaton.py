@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import jax.numpy as jnp
+import numpy as np
 
 from d2spo.errors import UserError
 
@@ -66,8 +67,49 @@ def backward_distances(delta: Sequence[Sequence[int]], letters: Collection[int],
                 frontier.append(q)
     return dist
 
+
+class Words:
+    """Reading words of letters, for the monitor (``Automaton``) and the Büchi automaton
+    (``buchi.BuchiAutomaton``): ``aps``, ``initial``, ``delta``, ``n_states`` and ``n_letters`` are
+    theirs. A state or letter out of range is a ValueError, not a state read from the end."""
+
+    def letter(self, true_aps: Iterable[str]) -> int:
+        """The letter in which exactly ``true_aps`` hold (ValueError for an unknown name)."""
+        if isinstance(true_aps, str):  # letter("A1") would read the names "A" and "1"
+            raise TypeError(f"letter() takes a list of proposition names, got the string {true_aps!r}; "
+                            f"write letter([{true_aps!r}])")
+        letter = 0
+        for name in true_aps:
+            if name not in self.aps:
+                raise ValueError(f"unknown atomic proposition {name!r}; the automaton has {self.aps}")
+            letter |= 1 << self.aps.index(name)
+        return letter
+
+    def run(self, letters: Iterable[int], start: int | None = None) -> list[int]:
+        """States visited while reading ``letters``, starting (and including) ``start``."""
+        q = self.initial if start is None else self._state(start)
+        visited = [q]
+        for letter in letters:
+            q = self.delta[q][self._letter(letter)]
+            visited.append(q)
+        return visited
+
+    def _state(self, q) -> int:
+        """``q`` if it is a state's number, else ValueError (a negative one once read a state from the end)."""
+        if isinstance(q, bool) or not isinstance(q, (int, np.integer)) or not 0 <= q < self.n_states:
+            raise ValueError(f"no state {q!r}: the automaton's states are 0 .. {self.n_states - 1}")
+        return int(q)
+
+    def _letter(self, letter) -> int:
+        """``letter`` if it is a letter's number (``letter(...)`` gives them), else ValueError."""
+        if isinstance(letter, bool) or not isinstance(letter, (int, np.integer)) or not 0 <= letter < self.n_letters:
+            raise ValueError(f"no letter {letter!r}: the letters are 0 .. {self.n_letters - 1}, one bit per "
+                             f"proposition of {self.aps} (letter([...]) gives one)")
+        return int(letter)
+
+
 @dataclass(frozen=True, eq=False)
-class Automaton:
+class Automaton(Words):
     """A complete deterministic automaton over the letters 0 .. 2**len(aps) - 1."""
 
     aps: tuple[str, ...]
@@ -118,30 +160,13 @@ class Automaton:
     def n_letters(self) -> int:
         return 1 << len(self.aps)
 
-    def letter(self, true_aps: Iterable[str]) -> int:
-        """The letter in which exactly ``true_aps`` hold (ValueError for an unknown name)."""
-        letter = 0
-        for name in true_aps:
-            if name not in self.aps:
-                raise ValueError(f"unknown atomic proposition {name!r}; the automaton has {self.aps}")
-            letter |= 1 << self.aps.index(name)
-        return letter
-
     def letter_aps(self, letter: int) -> tuple[str, ...]:
         """The propositions that hold in ``letter``."""
         return tuple(name for i, name in enumerate(self.aps) if letter >> i & 1)
 
-    def run(self, letters: Iterable[int], start: int | None = None) -> list[int]:
-        """States visited while reading ``letters``, starting (and including) ``start``."""
-        q = self.initial if start is None else start
-        visited = [q]
-        for letter in letters:
-            q = self.delta[q][letter]
-            visited.append(q)
-        return visited
-
     def status(self, q: int) -> str:
         """'accepting', 'rejecting' or 'undecided'."""
+        q = self._state(q)
         return "accepting" if q in self.accepting else "rejecting" if q in self.rejecting else "undecided"
 
     def _letters(self, feasible_letters: Collection[int] | None) -> list[int]:

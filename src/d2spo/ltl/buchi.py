@@ -21,12 +21,19 @@ Acceptance is on transitions: a run is accepted iff it takes accepting transitio
 
 from __future__ import annotations
 
-from collections.abc import Collection, Iterable, Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 from functools import cached_property
 
 from d2spo.errors import UserError
-from d2spo.ltl.automaton import UNREACHABLE, AutomatonTooLarge, _dot_escape, backward_distances, letters_to_guard
+from d2spo.ltl.automaton import (
+    UNREACHABLE,
+    AutomatonTooLarge,
+    Words,
+    _dot_escape,
+    backward_distances,
+    letters_to_guard,
+)
 from d2spo.ltl.buchi_reduce import dead_states, product, reduce, universal_states
 from d2spo.ltl.determinise import buchi_marks, determinise
 from d2spo.ltl.formula import And, Formula, Or, check_size
@@ -65,7 +72,7 @@ class NoDeterministicBuchi(UserError):
 
 
 @dataclass(frozen=True, eq=False)
-class BuchiAutomaton:
+class BuchiAutomaton(Words):
     """A complete deterministic Büchi automaton with accepting transitions, over the letters
     0 .. 2**len(aps) - 1 (bit i <=> aps[i] holds). A run is accepted iff it takes accepting
     transitions infinitely often."""
@@ -141,29 +148,12 @@ class BuchiAutomaton:
         """'accepting sink', 'rejecting sink' or 'live'."""
         return "accepting sink" if q in self.accepting_sinks else "rejecting sink" if q in self.rejecting else "live"
 
-    def letter(self, true_aps: Iterable[str]) -> int:
-        """The letter in which exactly ``true_aps`` hold (ValueError for an unknown name)."""
-        letter = 0
-        for name in true_aps:
-            if name not in self.aps:
-                raise ValueError(f"unknown atomic proposition {name!r}; the automaton has {self.aps}")
-            letter |= 1 << self.aps.index(name)
-        return letter
-
-    def run(self, letters: Iterable[int], start: int | None = None) -> list[int]:
-        """States visited while reading ``letters``, starting (and including) ``start``."""
-        q = self.initial if start is None else start
-        visited = [q]
-        for letter in letters:
-            q = self.delta[q][letter]
-            visited.append(q)
-        return visited
-
     def accepts_lasso(self, prefix: Sequence[int], loop: Sequence[int]) -> bool:
         """Whether the word prefix·loop^ω is accepted (``loop`` must not be empty)."""
         if not loop:
             raise ValueError("the loop of a lasso word must not be empty")
         q = self.run(prefix)[-1]
+        loop = [self._letter(a) for a in loop]
         first_seen: dict[int, int] = {}
         hits: list[bool] = []  # per pass through the loop: an accepting transition was taken
         while q not in first_seen:
@@ -246,7 +236,8 @@ def to_dba(formula: Formula | str, max_states: int = 1000) -> BuchiAutomaton:
         raise NoDeterministicBuchi(
             f"{f} has no deterministic Büchi automaton: it can demand that something holds forever from some "
             "unknown time on (a persistence property, like F G a), which no deterministic Büchi automaton "
-            "recognises; state that part as a recurrence (G F a), a safety (G a) or a reach (F a) property",
+            "recognises; state that part as a recurrence between two areas (G F a & G F b), a safety (G a) or a reach "
+            "(F a) property",
             e.args[0]) from None
     dead, done = dead_states(delta, accepting), universal_states(delta, accepting)
     return BuchiAutomaton(aps, 0, delta, accepting, frozenset(dead), _names(f, aps, delta, dead, done))

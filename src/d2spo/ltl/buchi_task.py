@@ -25,8 +25,8 @@ from d2spo.ltl.translate import NeverCompletedWarning, translate
 
 COMPLETED_MEANS = ("completed: the goal is met with nothing violated and only a never part is left (the state's "
                    "formula); the episode ends there, so the automaton holds it (absorbing) and does not watch that "
-                   "never part further. A monitor of the whole formula, which rejects a later violation: "
-                   "d2spo.ltl.to_dba (docs/ltl.md)")
+                   "never part further. For an automaton that keeps watching it, and rejects a later violation, "
+                   "see d2spo.ltl.to_dba (docs/ltl.md)")
 """What a ``BuchiTask``'s accepting (completed) state means, as ``d2spo ltl`` prints it."""
 
 

@@ -12,8 +12,8 @@ Grammar, loosest binding first (see docs/ltl.md)::
 
 Accepted alternates: ``~`` for ``!``, ``&&`` for ``&``, ``||`` for ``|``, ``=>`` for ``->``,
 ``<=>`` for ``<->``, ``[]`` for ``G``, ``<>`` for ``F``, and the textbook's symbols: ``□ ◻`` for
-``G``, ``◇ ◊`` for ``F``, ``○ ◯`` for ``X``, ``¬ ∧ ∨`` for ``! & |``, ``→ ⇒`` for ``->``, ``↔ ⇔`` for
-``<->``, ``⊤ ⊥`` for ``true false``. A NAME is ``[A-Za-z_][A-Za-z0-9_]*``
+``G``, ``◇ ◊ ⋄`` for ``F``, ``○ ◯`` for ``X``, ``¬ ∧ ∨`` for ``! & |``, ``→ ⇒ ⟶ ⟹`` for ``->``,
+``↔ ⇔ ⟷ ⟺`` for ``<->``, ``⊤ ⊥`` for ``true false``. A NAME is ``[A-Za-z_][A-Za-z0-9_]*``
 other than the keywords ``true false X F G U R W`` and the words made of the letters X, F and G only,
 which are chains of those operators (``GF a`` is ``G F a``, ``FG a`` is ``F G a``); names are read
 greedily, so ``XA1`` is the proposition ``XA1`` while ``X A1`` and ``X(A1)`` are "next A1".
@@ -58,8 +58,14 @@ _SYMBOLS = [
     ("\u25a1", "G"), ("\u25fb", "G"), ("\u25c7", "F"), ("\u25ca", "F"), ("\u25cb", "X"), ("\u25ef", "X"),
     ("\u00ac", "!"), ("\u2227", "&"), ("\u2228", "|"),
     ("\u2192", "->"), ("\u21d2", "->"), ("\u2194", "<->"), ("\u21d4", "<->"), ("\u22a4", "true"), ("\u22a5", "false"),
+    ("\u22c4", "F"), ("\u27f6", "->"), ("\u27f9", "->"), ("\u27f7", "<->"), ("\u27fa", "<->"),
 ]  # fmt: skip
-"""The Unicode ones: □ ◻ ◇ ◊ ○ ◯ ¬ ∧ ∨ → ⇒ ↔ ⇔ ⊤ ⊥ (written as escapes so that no editor mistakes them)."""
+"""The Unicode ones: □ ◻ ◇ ◊ ⋄ ○ ◯ ¬ ∧ ∨ → ⇒ ⟶ ⟹ ↔ ⇔ ⟷ ⟺ ⊤ ⊥ (written as escapes so that no editor
+mistakes them)."""
+_HINTS = {"\u2283": "->", "\U0001d4b0": "U", "\U0001d4b2": "W", "\U0001d445": "R", "\u223c": "!"}
+"""Symbols some papers use, not accepted (⊃ is also "superset"; the script letters are many): the
+ASCII to write instead, named in the error."""
+_SUBSCRIPTS = str.maketrans("\u2080\u2081\u2082\u2083\u2084\u2085\u2086\u2087\u2088\u2089", "0123456789")
 _UNARY = {"!": Not, "X": Next, "F": Eventually, "G": Always}
 _TEMPORAL = {"U": Until, "R": Release, "W": WeakUntil}
 
@@ -96,6 +102,10 @@ def _tokenize(text: str) -> list[_Token]:
                 break
         else:
             expected = f"a proposition, constant, operator or parenthesis, found unknown character {c!r}"
+            if c in _HINTS:
+                expected += f" (write {_HINTS[c]})"
+            elif c.translate(_SUBSCRIPTS) != c:  # A₁: a name is of ASCII letters, digits and _
+                expected += f" (write the digit {c.translate(_SUBSCRIPTS)}: names are of letters, digits and _)"
             if c in "-." and tokens and tokens[-1].kind == "name" and tokens[-1].column + len(tokens[-1].text) == i + 1:
                 # `F dock-west`: an area's name, which a formula names by its label (docs/layouts.md)
                 word = re.match(r"[\w.-]+", text[tokens[-1].column - 1:]).group()

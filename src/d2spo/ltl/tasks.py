@@ -7,6 +7,8 @@ import re
 
 import numpy as np
 
+from d2spo.ltl.parser import parse
+
 TASKS: dict[str, str] = {
     # Visit A1, then A2, then A3, and enter no area early. The paper's text says so, but its printed
     # formula (below) lacks the conjunct "F A3"; this is the intended task.
@@ -66,6 +68,13 @@ deterministic Büchi automaton and is refused."""
 def task_formula(name_or_formula: str) -> str:
     """The formula of a named task, or the argument itself when it is not a task name."""
     return TASKS.get(name_or_formula, name_or_formula)
+
+
+def same_task(a: str, b: str) -> bool:
+    """Whether two task names or formulas say the same formula, however spelt (``patrol2``,
+    ``GF A1 & GF A3 & G !A4``, ``□◇A1 ∧ □◇A3 ∧ □¬A4``): equal parse trees. A formula that does not
+    parse raises its LTLSyntaxError."""
+    return a == b or parse(task_formula(a)) == parse(task_formula(b))
 
 
 def reach_avoid_tasks(n: int, seed: int = 0, areas: int = 4, longest: int = 4) -> list[str]:
