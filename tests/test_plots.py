@@ -76,3 +76,17 @@ def test_figs_4_and_5_render_from_one_short_d2spo_run(tmp_path, short_d2spo_run)
     height, width, _ = imread(fig4).shape  # surfaces over level sets, four layouts, one colourbar
     assert png_dpi(fig4) == 300 and width > 0.9 * 16 * 300 and height > 0.9 * 8 * 300
     assert fig4.stat().st_size > 20_000
+
+
+def test_fig5_of_a_run_without_snapshots_is_refused(tmp_path):
+    """It once drew the layout alone under a legend of trajectory marks it never drew."""
+    from d2spo.config import TrainConfig
+    from d2spo.errors import RunDirError
+    from d2spo.run import prepare_dir
+
+    run = tmp_path / "run"
+    run.mkdir()
+    prepare_dir(run, TrainConfig(), resume=False)
+    with pytest.raises(RunDirError, match="trained without policy snapshots"):
+        plots.snapshot_figure(tmp_path / "fig5.png", run)
+    assert not (tmp_path / "fig5.png").exists()

@@ -32,6 +32,7 @@ from matplotlib.ticker import MaxNLocator
 
 from d2spo.envs import geometry
 from d2spo.envs.render import add_legend, draw_layout, draw_trajectory
+from d2spo.errors import RunDirError
 from d2spo.plotstyle import (
     BLACK,
     BLUISH_GREEN,
@@ -43,7 +44,7 @@ from d2spo.plotstyle import (
     save_figure,
 )
 from d2spo.rollout import make_rollout
-from d2spo.run import load_policy, load_snapshot
+from d2spo.run import load_policy, load_run_config, load_snapshot
 from d2spo.runio import read_episodes
 
 OUTCOME_COLORS = {"completed": BLUISH_GREEN, "collided": VERMILLION, "neither": REDDISH_PURPLE}
@@ -370,6 +371,10 @@ def snapshot_figure(path: Path, run_dir: Path, trajectories: int = 8) -> Path:
     """Fig. 5: the layout, then the executed policy's trajectories at each of the run's policy
     snapshots (``TrainConfig.snapshots``), ``trajectories`` episodes each (seed: the panel's index);
     one legend under the panels names every mark."""
+    cfg = load_run_config(run_dir)
+    if not cfg.snapshots:  # a figure of the layout alone, under a legend of marks it does not draw
+        raise RunDirError(f"{run_dir}: trained without policy snapshots (TrainConfig.snapshots, "
+                          "`d2spo reproduce fig5` trains with them); nothing to draw")
     cfg, learner, _, _ = load_policy(run_dir)
     snapshots = tuple(cfg.snapshots)
     env, params = learner.env, learner.params
