@@ -7,6 +7,7 @@ import csv
 import shutil
 
 import numpy as np
+import pytest
 from _reproduce import FIG5_EPISODES
 from matplotlib.image import imread
 
