@@ -77,3 +77,51 @@ def test_completed_states_on_random_formulas(data, aps):
     except NoDeterministicBuchi:
         return
     check_completed_states(f, dba, dba.aps)
+
+
+# --- A task that completes, satisfied by a run that never completes it (``endless_branch``) ---------
+
+
+def completes_on(monitor, u: list[int], v: list[int]) -> bool:
+    """Whether the monitor reaches an accepting state on u·v^ω (within |u| + n·|v| letters: by then
+    the state at the loop's start has repeated)."""
+    return any(q in monitor.accepting for q in monitor.run(u + v * (monitor.n_states + 1)))
+
+
+def check_endless_branch(f: Formula) -> None:
+    """Against the reference evaluator: not flagged, every short or random lasso word that satisfies
+    ``f`` completes it; flagged, some word does not (searched among the same words)."""
+    import warnings
+
+    from d2spo.ltl import translate
+    from d2spo.ltl.buchi_task import endless_branch
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        monitor = translate(f)
+    if not monitor.accepting:
+        assert not endless_branch(str(f))
+        return
+    aps = monitor.aps
+    endless = [(u, v) for u, v in lassos(monitor.n_letters, 300, seed=7)
+               if holds(f, aps, u, v) and not completes_on(monitor, u, v)]
+    if endless_branch(str(f)):
+        assert endless, str(f)
+    else:
+        assert not endless, (str(f), endless[:3])
+
+
+@pytest.mark.parametrize("text, flagged", [("G F A1 & G F A3 | F A2", True), ("F A1 | G !A2", True),
+                                           ("F A1 | G A2", True), ("F (A1 & F A2)", False), ("A1 U A2", False),
+                                           ("(!A3 U A2) & (!A2 U A1) & F A1 & F A3", False), ("F A1 | G F A2", True),
+                                           ("F (A1 | G A2)", True)])
+def test_endless_branch_on_named_formulas(text, flagged):
+    from d2spo.ltl.buchi_task import endless_branch
+
+    assert endless_branch(text) == flagged
+    check_endless_branch(parse(text))
+
+
+@settings(max_examples=80, deadline=None)
+@given(data=st.data(), aps=st.sampled_from([("p", "q"), ("p", "q", "r")]))
+def test_endless_branch_on_random_formulas(data, aps):
+    check_endless_branch(data.draw(formulas(aps, 3), label="formula"))

@@ -343,5 +343,8 @@ def test_reading_a_word_checks_its_states_and_letters():
                 reader([bad])
     with pytest.raises(TypeError, match=r"write letter\(\['A1'\]\)"):
         aut.letter("A1")
+    for build in (translate, to_dba):  # an AttributeError from deep inside, before
+        with pytest.raises(TypeError, match="parse expects a str, got NoneType"):
+            build(None)
     assert aut.run([aut.letter(["A1"]), aut.letter(["A2"])]) == [0, 1, 2] and aut.status(2) == "accepting"
     assert dba.accepts_lasso([], [dba.letter(["A1"]), dba.letter(["A2"])])

@@ -42,7 +42,7 @@ from d2spo.envs import EnvConfig, layouts, make_env
 from d2spo.envs.compiled_task import default_task
 from d2spo.envs.dynamics import load_dynamics
 from d2spo.envs.nav import checked_layout
-from d2spo.envs.preflight import check_feasible, check_lap, missing_labels, preflight
+from d2spo.envs.preflight import check_feasible, check_lap, missing_labels, preflight, warn_if_endless_branch
 from d2spo.errors import ConfigError, D2SPOWarning, LTLSyntaxError, NaNError, TaskWarning, UserError
 from d2spo.evaluate import EvalConfig, evaluate_run, write_evaluation
 from d2spo.fields import check_choice, check_fields
@@ -102,6 +102,7 @@ class LtlCmd:
         if aut.initial in aut.rejecting:  # the empty prefix is already bad: unsatisfiable
             warnings.warn(f"{self.formula!r} is unsatisfiable: no run satisfies it (its automaton starts in "
                           "its rejecting state), so no policy can be trained on it", TaskWarning, stacklevel=2)
+        warn_if_endless_branch(aut, repr(self.formula))
         if self.all_letters:
             feasible, letters = None, "every letter (all areas may hold at once)"
         elif self.layout is not None:

@@ -17,6 +17,7 @@ from d2spo.envs.compiled_task import CompiledTask
 from d2spo.envs.state_fields import FORBIDDEN, TARGET, named_areas
 from d2spo.errors import ConfigError, TaskWarning
 from d2spo.ltl.automaton import UNREACHABLE
+from d2spo.ltl.buchi_task import endless_branch
 from d2spo.ltl.tasks import close_task_names
 
 TIGHT_FRACTION = 0.6
@@ -200,6 +201,7 @@ def preflight(env, params, name: str, margin: float = 0.0, episode_time: bool = 
     task = env.task
     if task is None or task.distance is None or not (task.automaton.accepting or task.recurrence):
         return
+    warn_if_endless_branch(task.automaton, name)
     cfg = env.config
     if task.fields is not None:
         check_feasible(task, name)
@@ -211,6 +213,18 @@ def preflight(env, params, name: str, margin: float = 0.0, episode_time: bool = 
         check_cycle(task, int(params.max_steps), cfg.dt, cfg.v_max * cfg.v_gain, name)
     elif episode_time:
         check_time(task, int(params.max_steps), cfg.dt, cfg.v_max * cfg.v_gain, name)
+
+
+def warn_if_endless_branch(aut, name: str) -> None:
+    """A TaskWarning when a task that completes can also be satisfied forever without completing
+    (``ltl.buchi_task.endless_branch``: ``GF A1 & GF A3 | F A2``'s patrol, ``F A1 | G !A2``'s
+    avoidance): it trains as a task that completes, and a run on that branch scores nothing."""
+    formulas = getattr(aut, "state_formulas", ())
+    if aut.accepting and not getattr(aut, "visits", None) and formulas and endless_branch(formulas[aut.initial]):
+        warnings.warn(TaskWarning(
+            f"{name} can also be satisfied forever without ever completing it (a branch with no finite end, "
+            "such as a patrol or a 'never' in a disjunction); it trains as a task that completes, so a robot on "
+            "that branch scores nothing and is not rewarded for it: to train that branch, give it alone"))
 
 
 def check_lap(task: CompiledTask, robot_radius: float, name: str) -> None:

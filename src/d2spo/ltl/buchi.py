@@ -225,7 +225,7 @@ def to_dba(formula: Formula | str, max_states: int = 1000) -> BuchiAutomaton:
     ``LTLSyntaxError`` for an unparsable string, ``AutomatonTooLarge`` beyond a size limit
     (``max_states`` states of a parity or product automaton before reduction, ``MAX_APS``,
     ``MAX_TABLEAU_NODES``)."""
-    f = parse(formula) if isinstance(formula, str) else formula
+    f = formula if isinstance(formula, Formula) else parse(formula)  # parse: a TypeError for None, a number
     check_size(f)
     aps = tuple(sorted(f.aps()))
     if len(aps) > MAX_APS:

@@ -12,6 +12,7 @@ task, with no completed state, runs to the episode limit and is scored by its ac
 
 from __future__ import annotations
 
+import functools
 import warnings
 from collections.abc import Collection
 from dataclasses import dataclass
@@ -119,6 +120,62 @@ def buchi_task(dba: BuchiAutomaton) -> BuchiTask:
     visits = [[bool(dba.accepting[q][a]) and q in live and delta[q][a] in live for a in range(width)]
               for q in range(dba.n_states)]
     return BuchiTask(dba.aps, dba.initial, done, dba.rejecting, delta, dba.state_formulas, visits)
+
+
+PRODUCT_LIMIT = 200_000
+"""``endless_branch`` gives up (False) beyond this many product transitions (states x letters)."""
+
+
+@functools.cache
+def endless_branch(formula: str) -> bool:
+    """Whether ``formula`` completes (its monitor has an accepting state, so ``task_automaton``
+    trains it as a task that completes) and yet some run satisfies it forever without completing it:
+    a branch with no good prefix, such as the patrol in ``GF A1 & GF A3 | F A2``. A robot on that
+    branch scores nothing. Exact: a cycle through an accepting transition of the formula's DBA, among
+    the product states where the monitor is still undecided and reachable from the start; True where
+    the formula has no DBA (``F A1 | F G A2``: every co-safe formula has one); False where an
+    automaton or the product passes its size limit (``PRODUCT_LIMIT``)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NeverCompletedWarning)
+        try:
+            monitor = translate(formula)
+            if not monitor.accepting:
+                return False
+            dba = to_dba(formula)
+        except NoDeterministicBuchi:  # not a recurrence, so not co-safe: some run satisfies it with no good prefix
+            return True
+        except AutomatonTooLarge:
+            return False
+    if dba.aps != monitor.aps or monitor.n_states * dba.n_states * monitor.n_letters > PRODUCT_LIMIT:
+        return False
+    decided = monitor.accepting | monitor.rejecting
+    start = (monitor.initial, dba.initial)
+    if monitor.initial in decided:
+        return False
+    succ: dict[tuple[int, int], list[tuple[tuple[int, int], bool]]] = {}
+    todo = [start]
+    while todo:  # the undecided part of the product, from the start
+        node = todo.pop()
+        if node in succ:
+            continue
+        m, d = node
+        succ[node] = [((monitor.delta[m][a], dba.delta[d][a]), dba.accepting[d][a]) for a in range(monitor.n_letters)
+                      if monitor.delta[m][a] not in decided]
+        todo.extend(t for t, _ in succ[node] if t not in succ)
+
+    def reaches(src, dst) -> bool:
+        seen, todo = {src}, [src]
+        while todo:
+            node = todo.pop()
+            if node == dst:
+                return True
+            for t, _ in succ[node]:
+                if t not in seen:
+                    seen.add(t)
+                    todo.append(t)
+        return False
+
+    return any(reaches(t, u) for u, edges in succ.items() for t, acc in set(edges) if acc)
 
 
 def task_automaton(formula: Formula | str) -> Automaton:

@@ -285,7 +285,7 @@ def translate(formula: Formula | str, max_states: int = 1000) -> Automaton:
     exactly the good (bad) prefixes. Raises ``LTLSyntaxError`` for an unparsable string and
     ``AutomatonTooLarge`` when a size limit is hit (``max_states`` before minimisation,
     ``MAX_APS``, ``MAX_TABLEAU_NODES``). Warns ``NeverCompletedWarning`` when no prefix is good."""
-    f = parse(formula) if isinstance(formula, str) else formula
+    f = formula if isinstance(formula, Formula) else parse(formula)  # parse: a TypeError for None, a number
     check_size(f)
     aps = tuple(sorted(f.aps()))
     if len(aps) > MAX_APS:
