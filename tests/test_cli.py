@@ -212,7 +212,9 @@ def test_the_help_hints_know_every_subcommand():
 
     names = {typing.get_args(a)[1].name for a in typing.get_args(cli.commands("d2spo"))}
     assert names == {"train", *cli.SUBCOMMANDS}
-    env = {typing.get_args(a)[1].name for a in typing.get_args(cli.EnvCommands)}
+    from d2spo.cli_env import EnvCommands
+
+    env = {typing.get_args(a)[1].name for a in typing.get_args(EnvCommands)}
     assert env == set(cli.ENV_SUBCOMMANDS)
 
 

@@ -120,3 +120,14 @@ def test_snapshots_from_python_and_past_the_run():
         TrainConfig(episodes=100, snapshots=(50, 500)).check()
     with pytest.raises(ConfigError, match="snapshots: must be a list of positive integers, got \\(0,\\)"):
         TrainConfig(episodes=100, snapshots=[0]).check()
+
+
+def test_a_layout_given_to_the_generalist_is_refused_not_recorded():
+    """`train --generalist --layout lab.json` trained on world:0.. without a word and wrote the lab
+    into config.json, so its owner believed the lab was part of training."""
+    from d2spo.envs import EnvConfig
+
+    with pytest.raises(ConfigError, match=r"env.layout: has no effect with --generalist: it trains on generated "
+                                          r"layouts \(world:0..255\); to run it on your layout"):
+        TrainConfig(generalist=True, env=EnvConfig(layout="relaxed")).check()
+    assert TrainConfig(generalist=True).check().generalist

@@ -249,6 +249,12 @@ def test_env_check_and_show_accept_the_office(tmp_path, capsys):
     assert cli.main(["env", "check", "--layout", str(OFFICE), "--task", TASK]) == 0
     out = capsys.readouterr().out
     assert "2 obstacles, areas desk-1 (desk), desk-2 (desk), kitchen" in out and f"task {TASK!r}: needs 2" in out
+    assert "a generalist can be evaluated on it" in out
+    wide = tmp_path / "wide.json"  # what only `eval` of a generalist used to say
+    wide.write_text(json.dumps({**office_json(), "arena": [21.0, 6.0]}))
+    assert cli.main(["env", "check", "--layout", str(wide)]) == 0
+    assert ("a generalist cannot be evaluated on it: layout 'office': arena 21 x 6 m; a generalist reads arenas of "
+            "at most 20 m a side") in capsys.readouterr().out
     png = tmp_path / "office.png"
     assert cli.main(["env", "show", "--layout", str(OFFICE), "--out", str(png)]) == 0
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000

@@ -91,3 +91,21 @@ def test_fig5_of_a_run_without_snapshots_is_refused(tmp_path):
     with pytest.raises(RunDirError, match="trained without policy snapshots"):
         plots.snapshot_figure(tmp_path / "fig5.png", run)
     assert not (tmp_path / "fig5.png").exists()
+
+
+def test_a_rejected_episode_is_told_from_one_out_of_time():
+    """An episode the task rejected (a 'never' part broken) ended early, safe and not complete; the
+    plot drew it as 'out of time' and no number counted it (a trial's lab: 6 of 20 episodes)."""
+    from d2spo.rollout import rates
+
+    nan = np.full(3, np.nan)
+    poses = np.zeros((4, 6, 3))  # T + 1 = 6 poses: the last is NaN when the episode ended earlier
+    poses[0, 3:], poses[1, 4:], poses[2, 5:] = nan, nan, nan
+    collided, completed = np.array([True, False, False, False]), np.array([False, True, False, False])
+    assert plots.outcomes(poses, collided, completed) == ["collided", "completed", "rejected", "neither"]
+    length = np.array([2, 3, 4, 5])
+    r = rates(collided, completed, np.zeros(4), length, poses, max_steps=5)
+    assert r["rejection_rate"] == 0.25 and "rejection_rate" not in rates(collided, completed, np.zeros(4), length)
+    names = [h.get_label() for h in plots.outcome_handles(drawn={"rejected"})]
+    assert "trajectory: the task rejected it (what it forbids entered) (x: end)" in names
+    assert not any("rejected" in h.get_label() for h in plots.outcome_handles())  # no mark that is not drawn

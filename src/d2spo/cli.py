@@ -25,6 +25,7 @@ from d2spo import compile_cache, interrupts
 from d2spo.algos import LEARNERS
 from d2spo.cli_certify import CertifyCmd
 from d2spo.cli_docs import DocsCmd
+from d2spo.cli_env import ENV_SUBCOMMANDS, EnvCmd
 from d2spo.cli_export import ExportCmd
 from d2spo.cli_reproduce import ReportCmd, ReproduceCmd
 from d2spo.config import TrainConfig, algo_named, config_file_named, flags_for, plain
@@ -37,12 +38,11 @@ from d2spo.console import (
     tyro_error_line,
     version,
 )
-from d2spo.demo import random_rollout, run_demo
-from d2spo.envs import EnvConfig, layouts, make_env
+from d2spo.demo import run_demo
+from d2spo.envs import EnvConfig, layouts
 from d2spo.envs.compiled_task import default_task
 from d2spo.envs.dynamics import load_dynamics
-from d2spo.envs.nav import checked_layout
-from d2spo.envs.preflight import check_feasible, check_lap, missing_labels, preflight, warn_if_endless_branch
+from d2spo.envs.preflight import check_feasible, check_lap, missing_labels, warn_if_endless_branch
 from d2spo.errors import ConfigError, D2SPOWarning, LTLSyntaxError, NaNError, TaskWarning, UserError
 from d2spo.evaluate import EvalConfig, evaluate_run, write_evaluation
 from d2spo.fields import check_choice, check_fields
@@ -136,36 +136,6 @@ class LtlCmd:
 
 
 @dataclasses.dataclass
-class EnvShowCmd:
-    """Draw a layout: obstacles, labelled areas, the start and the sensing radius."""
-
-    layout: str = "paper"
-    """Built-in layout name (paper, relaxed, open, physical-1..4), random[:SEED] (5-10 m, three styles),
-    random5[:SEED] (the earlier 5 m generator), world[:SEED] (the generalist's world: 5-20 m, boxes and
-    pillars, 4-12 areas), zones[:SEED] (a ZoneEnv-style layout) or a JSON file (docs/layouts.md)."""
-    out: Path = Path("layout.png")
-    """Where to write the picture: .png (300 dpi), .pdf or .svg."""
-    rollout_steps: int = 0
-    """If > 0, also draw a random-action rollout of this many steps."""
-    seed: int = 0
-    """Seed for the rollout."""
-
-    def run(self) -> int:
-        check_picture_path(self.out, "out")
-        lay = layouts.load(self.layout)
-        trajs, title = None, None
-        if self.rollout_steps > 0:
-            task = f"F {lay.areas[-1].label}"  # the rollout's task: it ends on reaching the last area's label
-            trajs = [random_rollout(self.layout, self.rollout_steps, self.seed, task=task)]
-            title = f"layout {lay.name!r}: a random-action rollout, task {task!r} (seed {self.seed})"
-        from d2spo.envs.render import save_layout_png  # matplotlib: imported only to draw
-
-        save_layout_png(lay, self.out, trajectories=trajs, title=title, trajectory_label="random actions (x: end)")
-        print(f"wrote {self.out}")
-        return 0
-
-
-@dataclasses.dataclass
 class DemoCmd:
     """The main job, short: what `make demo` runs."""
 
@@ -253,50 +223,6 @@ class EvalCmd:
                               f"{self.run_dir.name}: {res['task']} / {res['dynamics']}{filt}")
             print(f"wrote {self.plot}")
         return 0
-
-
-@dataclasses.dataclass
-class EnvCheckCmd:
-    """Validate a layout (built-in or JSON file) for the robot of a preset and print what it holds."""
-
-    layout: str = "paper"
-    """Built-in layout name or a JSON file."""
-    task: str | None = None
-    """Also check that this task (a name or a formula) can be completed on the layout; default: no task."""
-    preset: str = "default"
-    """Robot preset whose size and layout scale the layout is checked with: ideal, default or turtlebot."""
-
-    def run(self) -> int:
-        cfg, lay = checked_layout(EnvConfig(layout=self.layout, preset=self.preset))
-        n_obs = len(lay.obstacles)
-        print(f"layout {lay.name!r}: arena {lay.arena[0]:g} x {lay.arena[1]:g} m, "
-              f"{n_obs} obstacle{'s' * (n_obs != 1)}, areas {lay.describe_areas()}; "
-              f"a robot of radius {cfg.robot_radius:g} m fits at the start and reaches every area")
-        if self.task is None:
-            print("no task checked (--task NAME_OR_FORMULA checks one)")
-            return 0
-        env, params = make_env(EnvConfig(layout=self.layout, preset=self.preset), task=self.task)
-        preflight(env, params, repr(self.task))  # what `d2spo train` checks before it starts, but the barrier's margin
-        n = int(params.aut.distance[int(params.aut.initial)])
-        goal = " to its first accepting visit (a patrol: then again and again)" if is_recurrence(env.automaton) else ""
-        print(f"task {self.task!r}: needs {n} area visit{'s' * (n != 1)}{goal} on this layout; observation size "
-              f"{env.observation_size}")
-        return 0
-
-
-ENV_SUBCOMMANDS = {"show": EnvShowCmd, "check": EnvCheckCmd}
-EnvCommands = Union[tuple(Annotated[cmd, tyro.conf.subcommand(name, prefix_name=False)]
-                          for name, cmd in ENV_SUBCOMMANDS.items())]
-
-
-@dataclasses.dataclass
-class EnvCmd:
-    """Environment tools."""
-
-    cmd: tyro.conf.OmitSubcommandPrefixes[EnvCommands]
-
-    def run(self) -> int:
-        return self.cmd.run()
 
 
 def commands(algo: str, base: TrainConfig | None = None):

@@ -249,7 +249,12 @@ class TrainConfig:
         came after generalists had been trained with the anneal settings recorded.
 
         The generalist draws each episode's layout with its areas' true radii
-        (``envs.generalist``), so ``--anneal.*`` would change nothing there: refused, not ignored."""
+        (``envs.generalist``), so ``--anneal.*`` would change nothing there, nor ``--layout`` (it
+        trains on generated layouts): refused, not ignored."""
+        if self.generalist and self.env.layout != EnvConfig().layout:  # it was recorded, and unused
+            raise ConfigError("env.layout", "has no effect with --generalist: it trains on generated layouts "
+                              f"({self.generalist_world}:0..{self.generalist_layouts - 1}); to run it on your "
+                              "layout, train first, then `d2spo eval RUN --layout FILE --task ...` (zero-shot)")
         if self.generalist and self.anneal != AnnealConfig():
             raise ConfigError("anneal", "has no effect with --generalist: every layout it draws is labelled "
                               "with its areas' true radii (docs/config.md); leave --anneal.* out")

@@ -145,6 +145,9 @@ def print_evaluation(res: dict, path: Path, filter_asked: bool | None) -> None:
         counts = {k: per[0][k] for k in ("route_optimal_visits_margin", "margin") if k in per[0]}
         row(per[0]["layout"], {**res, "route_optimal_visits": per[0].get("route_optimal_visits"), **counts})
     Console().print(t)
+    if res.get("rejection_rate"):  # not unsafe, not out of time: what the task forbids was entered
+        print(f"rejected by the task (what it forbids entered, e.g. a 'never' part broken): "
+              f"{100 * res['rejection_rate']:.2f}% of episodes")
     if recurrence:  # a Büchi task: scored by its accepting visits too
         optimum = "" if res.get("visit_fraction") is None else f" ({100 * res['visit_fraction']:.1f}% of the route-optimal count)"
         print(f"accepting visits per episode: {res['accepting_visits_per_episode']:.2f}{optimum}")

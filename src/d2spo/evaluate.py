@@ -253,6 +253,8 @@ def evaluate_run(run_dir: Path, ecfg: EvalConfig = EvalConfig(), keep_paths: int
         **{k: float(np.mean([r[k] for r in results]))
            for k in ("safety_rate", "completion_rate", "mean_return", "mean_distance")},
     }
+    if results and all("rejection_rate" in r for r in results):
+        out["rejection_rate"] = float(np.mean([r["rejection_rate"] for r in results]))
     if results and all("accepting_visits_per_episode" in r for r in results):  # a Büchi task (``ltl.buchi_task``)
         out["accepting_visits_per_episode"] = float(np.mean([r["accepting_visits_per_episode"] for r in results]))
         if all(r.get("visit_fraction") is not None for r in results):  # a recurrence, against its optimum
@@ -303,7 +305,7 @@ def _specialist_rollouts(cfg: TrainConfig, learner, policy, ecfg: EvalConfig, ov
         if shape not in compiled:
             compiled[shape] = make_rollout(other, env, ecfg.episodes, int(params.max_steps))
         res = compiled[shape](params, policy, jax.random.PRNGKey(ecfg.seed))
-        results.append({**rates(*res), "max_steps": int(params.max_steps)})
+        results.append({**rates(*res, max_steps=int(params.max_steps)), "max_steps": int(params.max_steps)})
         results[-1].update(visit_optimum(env.task, params.max_steps, env.config,
                                           results[-1].get("accepting_visits_per_episode"), barrier_margin(cfg)))
         if keep_paths:

@@ -47,9 +47,12 @@ from d2spo.rollout import make_rollout
 from d2spo.run import load_policy, load_run_config, load_snapshot
 from d2spo.runio import read_episodes
 
-OUTCOME_COLORS = {"completed": BLUISH_GREEN, "collided": VERMILLION, "neither": REDDISH_PURPLE}
-"""Trajectory colours: the task completed (true labelling), a collision, or the episode ran out."""
-OUTCOME_NAMES = {"completed": "task completed", "collided": "collision", "neither": "out of time"}
+OUTCOME_COLORS = {"completed": BLUISH_GREEN, "collided": VERMILLION, "neither": REDDISH_PURPLE, "rejected": ORANGE}
+"""Trajectory colours: the task completed (true labelling), a collision, the episode ran out, or it
+ended before its step limit with none of these (the task rejected it: a 'never' part broken, an
+area entered out of order)."""
+OUTCOME_NAMES = {"completed": "task completed", "collided": "collision", "neither": "out of time",
+                 "rejected": "the task rejected it (what it forbids entered)"}
 """How the legends name each outcome of ``OUTCOME_COLORS``."""
 
 
@@ -111,13 +114,23 @@ ZERO_LINE = Line2D([], [], color=BLACK, linewidth=1.5, label="h = 0 (edge of the
 """The legend entry of ``draw_cbf``'s zero level set."""
 
 
-def draw_trajectories(ax, poses, collided, completed) -> None:
-    """Each episode's path (poses [E, T+1, 3], NaN after its end) coloured by its outcome."""
-    for i in range(poses.shape[0]):
+def outcomes(poses, collided, completed) -> list[str]:
+    """Each episode's outcome (a key of ``OUTCOME_COLORS``) from its poses [E, T+1, 3] (NaN after its
+    end): an episode that ended before the last step, neither collided nor completed, was rejected."""
+    ended_early = ~np.all(np.isfinite(np.asarray(poses)[:, -1, :2]), axis=-1)
+    return ["collided" if c else "completed" if d else "rejected" if e else "neither"
+            for c, d, e in zip(collided, completed, ended_early)]
+
+
+def draw_trajectories(ax, poses, collided, completed) -> set[str]:
+    """Each episode's path (poses [E, T+1, 3], NaN after its end) coloured by its outcome; returns the
+    outcomes drawn."""
+    drawn = outcomes(poses, collided, completed)
+    for i, outcome in enumerate(drawn):
         xy = poses[i, :, :2]
         xy = xy[np.all(np.isfinite(xy), axis=-1)]
-        outcome = "collided" if collided[i] else ("completed" if completed[i] else "neither")
         draw_trajectory(ax, xy, color=OUTCOME_COLORS[outcome])
+    return set(drawn)
 
 
 RECURRENCE_OUTCOME_NAMES = {**OUTCOME_NAMES, "neither": "ran to the step limit, as a patrol does"}
@@ -125,11 +138,13 @@ RECURRENCE_OUTCOME_NAMES = {**OUTCOME_NAMES, "neither": "ran to the step limit, 
 at the step limit, and its score is the accepting visits of the panel titles."""
 
 
-def outcome_handles(recurrence: bool = False) -> list[Line2D]:
-    """Legend entries of ``draw_trajectories``' colours (``recurrence``: a patrol's names)."""
+def outcome_handles(recurrence: bool = False, drawn: set[str] = frozenset()) -> list[Line2D]:
+    """Legend entries of ``draw_trajectories``' colours (``recurrence``: a patrol's names); a rejected
+    trajectory's only where one is ``drawn``."""
     names = RECURRENCE_OUTCOME_NAMES if recurrence else OUTCOME_NAMES
     return [Line2D([], [], color=c, marker="x", markevery=[1], label=f"trajectory: {names[k]} (x: end)")
-            for k, c in OUTCOME_COLORS.items() if not (recurrence and k == "completed")]
+            for k, c in OUTCOME_COLORS.items()
+            if not (recurrence and k == "completed") and (k != "rejected" or k in drawn)]
 
 
 def rates_title(rates: Mapping) -> str:
@@ -162,10 +177,10 @@ def draw_policy_figure(learner, policy, env, params, episodes: int = 8, seed: in
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 2 if has_cbf else 1, 1)
     draw_layout(env.layout, ax, sensing_radius=float(params.sensing_radius))
-    draw_trajectories(ax, poses, collided, completed)
+    drawn = draw_trajectories(ax, poses, collided, completed)
     ax.set_title(title or f"{completed.mean():.0%} completed, {1 - collided.mean():.0%} safe "
                           f"({poses.shape[0]} episodes)")
-    add_legend(ax, outcome_handles())
+    add_legend(ax, outcome_handles(drawn=drawn))
     if has_cbf:
         ax = fig.add_subplot(1, 2, 2)
         xs, ys, h, _ = cbf_grid(learner, policy[1], heading=0.0)
@@ -228,15 +243,15 @@ def draw_evaluation_figure(paths: Sequence[tuple], per_layout: Sequence[dict], s
 def _evaluation_panels(shown, ncols: int, size: tuple[float, float], suptitle: str) -> Figure:
     fig = Figure(figsize=size, layout="constrained")
     FigureCanvasAgg(fig)
-    handles = {}
+    handles, drawn = {}, set()
     for ax, ((layout, poses, collided, completed), rates) in zip(panel_grid(fig, len(shown), ncols), shown):
         draw_layout(layout, ax, show_sensing=False)
-        draw_trajectories(ax, poses, collided, completed)
+        drawn |= draw_trajectories(ax, poses, collided, completed)
         ax.set_title(f"{layout.name}: {rates_title(rates)}\n"
                      f"({rates['episodes']} episodes; {poses.shape[0]} drawn)", fontsize=9)
         handles.update(zip(*reversed(ax.get_legend_handles_labels())))
     recurrence = any("route_optimal_visits" in rates for _, rates in shown)
-    handles.update({h.get_label(): h for h in outcome_handles(recurrence)})
+    handles.update({h.get_label(): h for h in outcome_handles(recurrence, drawn)})
     fig.legend(handles=list(handles.values()), loc="outside lower center", ncol=2, fontsize=8, frameon=False)
     fig.suptitle(suptitle, fontsize=11)
     return fig
@@ -383,16 +398,17 @@ def snapshot_figure(path: Path, run_dir: Path, trajectories: int = 8) -> Path:
     draw_layout(env.layout, ax, sensing_radius=float(params.sensing_radius))
     ax.set_title("(a) layout, start and sensing radius")
     rollout = make_rollout(learner, env, trajectories, int(params.max_steps))  # one compilation for every snapshot
+    drawn = set()
     for i, n in enumerate(snapshots):
         policy = load_snapshot(run_dir, n, learner)
         poses, collided, completed = policy_trajectories(learner, policy, env, params, trajectories, seed=i,
                                                          rollout=rollout)
         ax = fig.add_subplot(1, 1 + len(snapshots), i + 2)
         draw_layout(env.layout, ax, show_sensing=False)
-        draw_trajectories(ax, poses, collided, completed)
+        drawn |= draw_trajectories(ax, poses, collided, completed)
         ax.set_title(f"({chr(ord('b') + i)}) after {n} episodes\n{completed.mean():.0%} complete, "
                      f"{1 - collided.mean():.0%} safe ({poses.shape[0]} runs)")
-    fig.legend(handles=layout_handles(fig.axes) + outcome_handles(), loc="outside lower center", ncol=3,
+    fig.legend(handles=layout_handles(fig.axes) + outcome_handles(drawn=drawn), loc="outside lower center", ncol=3,
                fontsize=8, frameon=False)
     return save_figure(fig, path)
 

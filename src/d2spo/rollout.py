@@ -83,10 +83,13 @@ def _make_rollout(learner: Learner, env, episodes: int, max_steps: int, slot_per
     return jax.jit(run)
 
 
-def rates(collided, completed, ret, length, poses=None, visits=None) -> dict:
+def rates(collided, completed, ret, length, poses=None, visits=None, *, max_steps: int | None = None) -> dict:
     """Safety and completion (true labelling) of finished evaluation episodes; with the [E, T + 1, 3]
     poses of ``make_rollout`` also the mean distance driven (m), which tells a safe policy that
-    moves from one that stands still; with a Büchi task's ``visits`` [E], their mean per episode."""
+    moves from one that stands still; with a Büchi task's ``visits`` [E], their mean per episode;
+    with the episodes' ``max_steps``, ``rejection_rate``: the share that ended before it, neither
+    collided nor completed, so rejected by the task (a 'never' part broken, an area entered out of
+    order; one rejected at the very last step counts as out of time)."""
     collided, completed = np.asarray(collided), np.asarray(completed)
     out = {
         "episodes": int(collided.shape[0]),
@@ -100,6 +103,8 @@ def rates(collided, completed, ret, length, poses=None, visits=None) -> dict:
         out["mean_distance"] = float(np.nansum(step, axis=1).mean())
     if visits is not None:
         out["accepting_visits_per_episode"] = float(np.asarray(visits).mean())
+    if max_steps is not None:
+        out["rejection_rate"] = float(((np.asarray(length) < max_steps) & ~collided & ~completed).mean())
     return out
 
 

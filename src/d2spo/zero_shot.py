@@ -90,7 +90,7 @@ def rollouts(env, params, learner, policy, checked: list[tuple[Layout, int]], ep
         if k > 0:
             params = view(params.replace(bank=env.bank([lay], max_steps=limit)), jnp.zeros((), jnp.int32))
         res = run(params, policy, jax.random.PRNGKey(seed))
-        results.append(rates(*res))
+        results.append(rates(*res, max_steps=limit))
         if params.aut.visit is not None and isinstance(env.automaton, Automaton):  # a Büchi task's visits
             # against what a perfect robot would make on this layout in ``limit`` steps
             task = compile_task(env.automaton, lay, env.config.label_mode, env.config.robot_radius)

@@ -1,0 +1,100 @@
+"""The ``d2spo env`` commands (``cli.commands`` lists them): draw a layout (``env show``) and check a
+layout, and a task on it, as training would (``env check``)."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Annotated, Union
+
+import tyro
+
+from d2spo.demo import random_rollout
+from d2spo.envs import EnvConfig, layouts, make_env
+from d2spo.envs.layout_bank import check_fits
+from d2spo.envs.nav import checked_layout
+from d2spo.envs.preflight import preflight
+from d2spo.errors import ConfigError
+from d2spo.ltl.buchi_task import is_recurrence
+from d2spo.plotstyle import check_picture_path
+from d2spo.safety.cbf import CBFConfig
+
+
+@dataclasses.dataclass
+class EnvShowCmd:
+    """Draw a layout: obstacles, labelled areas, the start and the sensing radius."""
+
+    layout: str = "paper"
+    """Built-in layout name (paper, relaxed, open, physical-1..4), random[:SEED] (5-10 m, three styles),
+    random5[:SEED] (the earlier 5 m generator), world[:SEED] (the generalist's world: 5-20 m, boxes and
+    pillars, 4-12 areas), zones[:SEED] (a ZoneEnv-style layout) or a JSON file (docs/layouts.md)."""
+    out: Path = Path("layout.png")
+    """Where to write the picture: .png (300 dpi), .pdf or .svg."""
+    rollout_steps: int = 0
+    """If > 0, also draw a random-action rollout of this many steps."""
+    seed: int = 0
+    """Seed for the rollout."""
+
+    def run(self) -> int:
+        check_picture_path(self.out, "out")
+        lay = layouts.load(self.layout)
+        trajs, title = None, None
+        if self.rollout_steps > 0:
+            task = f"F {lay.areas[-1].label}"  # the rollout's task: it ends on reaching the last area's label
+            trajs = [random_rollout(self.layout, self.rollout_steps, self.seed, task=task)]
+            title = f"layout {lay.name!r}: a random-action rollout, task {task!r} (seed {self.seed})"
+        from d2spo.envs.render import save_layout_png  # matplotlib: imported only to draw
+
+        save_layout_png(lay, self.out, trajectories=trajs, title=title, trajectory_label="random actions (x: end)")
+        print(f"wrote {self.out}")
+        return 0
+
+
+@dataclasses.dataclass
+class EnvCheckCmd:
+    """Validate a layout (built-in or JSON file) for the robot of a preset and print what it holds."""
+
+    layout: str = "paper"
+    """Built-in layout name or a JSON file."""
+    task: str | None = None
+    """Also check that this task (a name or a formula) can be completed on the layout; default: no task."""
+    preset: str = "default"
+    """Robot preset whose size and layout scale the layout is checked with: ideal, default or turtlebot."""
+
+    def run(self) -> int:
+        cfg, lay = checked_layout(EnvConfig(layout=self.layout, preset=self.preset))
+        n_obs = len(lay.obstacles)
+        print(f"layout {lay.name!r}: arena {lay.arena[0]:g} x {lay.arena[1]:g} m, "
+              f"{n_obs} obstacle{'s' * (n_obs != 1)}, areas {lay.describe_areas()}; "
+              f"a robot of radius {cfg.robot_radius:g} m fits at the start and reaches every area")
+        try:  # a layout of the user's own, for a generalist trained elsewhere (`eval` refuses it otherwise)
+            check_fits(lay)
+            print("a generalist can be evaluated on it (`d2spo eval GENERALIST --layout ... --task ...`)")
+        except ConfigError as e:
+            print(f"a generalist cannot be evaluated on it: {str(e).removeprefix(f'{e.field}: ')}")
+        if self.task is None:
+            print("no task checked (--task NAME_OR_FORMULA checks one)")
+            return 0
+        env, params = make_env(EnvConfig(layout=self.layout, preset=self.preset), task=self.task)
+        # what `d2spo train` checks before it starts, with D²SPO's barrier margin d (a warning where no route keeps it)
+        preflight(env, params, repr(self.task), margin=CBFConfig().d)
+        n = int(params.aut.distance[int(params.aut.initial)])
+        goal = " to its first accepting visit (a patrol: then again and again)" if is_recurrence(env.automaton) else ""
+        print(f"task {self.task!r}: needs {n} area visit{'s' * (n != 1)}{goal} on this layout; observation size "
+              f"{env.observation_size}")
+        return 0
+
+
+ENV_SUBCOMMANDS = {"show": EnvShowCmd, "check": EnvCheckCmd}
+EnvCommands = Union[tuple(Annotated[cmd, tyro.conf.subcommand(name, prefix_name=False)]
+                          for name, cmd in ENV_SUBCOMMANDS.items())]
+
+
+@dataclasses.dataclass
+class EnvCmd:
+    """Environment tools."""
+
+    cmd: tyro.conf.OmitSubcommandPrefixes[EnvCommands]
+
+    def run(self) -> int:
+        return self.cmd.run()
