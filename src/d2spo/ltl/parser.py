@@ -130,7 +130,8 @@ class _Parser:
         """Enter (+1) or leave (-1) a nested construct; refuse nesting deeper than ``MAX_DEPTH``."""
         self.depth += step
         if self.depth > MAX_DEPTH:
-            raise FormulaTooLarge(f"the formula is nested more than MAX_DEPTH={MAX_DEPTH} levels deep; simplify it")
+            raise FormulaTooLarge(f"the formula is nested more than MAX_DEPTH={MAX_DEPTH} levels deep (each "
+                                  "operator and each pair of parentheses is a level); simplify it")
 
     def peek(self) -> _Token:
         return self.tokens[self.pos]
