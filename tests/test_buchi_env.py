@@ -197,6 +197,7 @@ def test_a_formula_without_a_dba_is_refused_in_one_line_at_the_cli(capsys):
     err = capsys.readouterr().err
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert status == 2 and len(lines) == 1 and "no deterministic Büchi automaton" in lines[0], err
+    assert lines[0].startswith("d2spo: error: --task: F G A1 has no"), lines  # named as other task refusals are
 
 
 @pytest.mark.parametrize("task, refused", [("GF A1", True), ("G (A1 -> F A2)", True), ("GF A1 & GF A3", False),

@@ -38,7 +38,7 @@ from d2spo.envs.env_config import EnvConfig
 from d2spo.envs.params import EnvParams, env_params
 from d2spo.envs.workspace import Layout
 from d2spo.errors import ConfigError, in_file
-from d2spo.ltl import task_automaton, task_formula
+from d2spo.ltl import NoDeterministicBuchi, task_automaton, task_formula
 from d2spo.ltl.automaton import Automaton
 from d2spo.ltl.labelling import accepting_visit, next_state
 from d2spo.ltl.reward import PER_STATE, distance_to_progress, step_reward
@@ -351,7 +351,10 @@ def make_env(cfg: EnvConfig, task: Any = "phi1") -> tuple[Env, EnvParams]:
     (``preflight.default_max_steps``).
     """
     cfg, layout = checked_layout(cfg)
-    automaton = task_automaton(task_formula(task)) if isinstance(task, str) else task
+    try:
+        automaton = task_automaton(task_formula(task)) if isinstance(task, str) else task
+    except NoDeterministicBuchi as e:  # named as the task's other refusals are (`--task: ...`)
+        raise ConfigError("task", str(e)) from None
     name = task if isinstance(task, str) else "the task"
     per_state = cfg.reward.shaping_metric == PER_STATE
     compiled = compile_task(automaton, layout, cfg.label_mode, cfg.robot_radius,
