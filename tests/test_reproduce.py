@@ -7,6 +7,7 @@ from __future__ import annotations
 import csv
 import json
 import shutil
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -226,6 +227,12 @@ def test_the_published_runs_are_todays_defaults_and_render_without_training(tmp_
         shutil.copytree(rp.run_dir(published, s), rp.run_dir(tmp_path, s))
     assert main(["reproduce", "table3", "--no-train", "--out", str(tmp_path)]) == 0
     assert "| D²SPO | 3 |" in (tmp_path / "table3.md").read_text()
+    # Fig. 4 needs the networks, which the published runs do not hold: one line, not an empty figure
+    # that said its 4 of 4 runs were finished (a trial)
+    for s in rp.runs_for("fig4", 1, 20_000):
+        shutil.copytree(rp.run_dir(published, s), rp.run_dir(tmp_path, s))
+    assert main(["reproduce", "fig4", "--no-train", "--out", str(tmp_path)]) == 2
+    assert not (tmp_path / "fig4.png").exists()
 
 
 def test_snapshots_are_saved_and_loaded(tmp_path):
@@ -290,3 +297,29 @@ def test_the_report_names_the_cpus_the_process_may_use(monkeypatch):
     assert ", 2 CPU cores, jax " in machine()
     monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0})
     assert ", 1 of 2 CPU cores usable, jax " in machine()
+
+
+def test_a_table_of_stale_runs_states_their_own_episodes(tmp_path):
+    """With --allow-stale, table2.md said "over all 60 training episodes" for rows of 40-episode runs."""
+    from d2spo import tables
+
+    published = Path(__file__).resolve().parent.parent / "docs" / "results"
+    runs = {m: [rp.run_dir(published, s) for s in rp.runs_for("table2", 3, 20_000, [m])] for m in ("td3-lag", "d2spo")}
+    text = tables.write_table(tmp_path, "table2", runs, "phi1", "paper", 20_000).read_text()
+    assert "over the last 2000 of 20000 training episodes, mean" in text
+    text = tables.write_table(tmp_path, "table2", runs, "phi1", "paper", 30_000).read_text()
+    assert ("over the last 2000 of 20000 training episodes (the runs' own: 30000 were asked, and runs trained with "
+            "other settings were used as they are, --allow-stale)") in text
+
+
+def test_a_resumed_run_is_announced(tmp_path, monkeypatch):
+    """After an interrupted call, the next said only "0 of 2 runs already finished; training 2"."""
+    specs = [rp.RunSpec("ppo-lag", "relaxed", "relaxed", s, TINY_EPISODES) for s in (0, 1)]
+    d = rp.run_dir(tmp_path, specs[0])
+    d.mkdir(parents=True)
+    (d / "checkpoint.json").write_text("{}")  # seed 0 was started alone and interrupted
+    monkeypatch.setattr(rp, "train_one", lambda *a, **k: None)
+    logs = []
+    rp.run_local(specs, tmp_path, progress=False, log=logs.append, vmap_seeds=False)
+    assert logs[0] == (f"0 of 2 runs already finished in {tmp_path}; training 2 (1 resuming from a checkpoint an "
+                       "interrupted call left)"), logs

@@ -166,10 +166,12 @@ def run_local(specs: list[RunSpec], out: Path, progress: bool = True, log: Calla
     together as one program (``d2spo.train.train_seeds``); a run that already has a checkpoint of
     its own resumes alone."""
     todo = [s for s in specs if not is_finished(out, s)]
-    log(f"{len(specs) - len(todo)} of {len(specs)} runs already finished in {out}; training {len(todo)}")
     groups: dict[RunSpec, list[RunSpec]] = {}
     for members in started_groups(out, specs):  # resumed as they were, even with --no-vmap-seeds
         groups[members[0]] = members
+    resumed = sum(1 for s in todo if not _fresh_or_resumable(out, s) or any(s in m for m in groups.values()))
+    log(f"{len(specs) - len(todo)} of {len(specs)} runs already finished in {out}; training {len(todo)}"
+        + (f" ({resumed} resuming from a checkpoint an interrupted call left)" if resumed else ""))
     grouped = {m for members in groups.values() for m in members}
     for s in todo:
         if s in grouped:
@@ -268,7 +270,14 @@ def render(target: str, out: Path, seeds: int, episodes: int, methods: Iterable[
                             lambda s: f"{tables.METHOD_NAMES[s.algo]}-{s.task}"))
             for algos, title in FIG3_PANELS])
     if target == "fig4":
-        return plots.cbf_figure(path, [(s.layout, run_dir(out, s)) for s in specs])
+        dirs = [run_dir(out, s) for s in specs]
+        if not any((d / "checkpoint.json").is_file() for d in dirs):  # h is in the networks, not the files
+            kept = [d for d in dirs if (d / "summary.json").is_file()]
+            why = (f"its {len(kept)} finished run{'s' * (len(kept) != 1)} in {out / 'runs'} hold no checkpoint "
+                   "(published or shared without them)" if kept else f"no run of it in {out / 'runs'} has been trained")
+            raise UserError(f"fig4 draws each run's learned barrier h, from its checkpoint: {why}; "
+                            "train them (without --no-train), into a new --out for published runs")
+        return plots.cbf_figure(path, [(s.layout, d) for s, d in zip(specs, dirs)])
     d = run_dir(out, specs[0])
     if not (d / "checkpoint.json").is_file():
         raise UserError(f"{d}: fig5's run has not been trained")

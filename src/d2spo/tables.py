@@ -75,10 +75,17 @@ def write_table(out: Path, target: str, runs: Mapping[str, Iterable[Path]], task
         # rates to 12 significant digits: 1 - 0.95 is 0.050000000000000044 in binary, 0.05 here
         w.writerows([{k: float(f"{v:.12g}") if isinstance(v, float) else v for k, v in r.items() if not k.startswith("_")}
                      for r in rows])
-    window = min(next((g["window"] for gs in by.values() for g in gs), 2000), episodes)  # a short run: all of it
+    ran = sorted({int(g.get("episodes", episodes)) for gs in by.values() for g in gs}) or [episodes]
+    trained = ran[0] if len(ran) == 1 else None  # runs of another length: used with --allow-stale
+    window = min(next((g["window"] for gs in by.values() for g in gs), 2000), trained or episodes)  # a short run: all
+    span = (f"{f'the last {window} of' if window < (trained or episodes) else 'all'} {trained or episodes} "
+            "training episodes")
+    if ran != [episodes]:  # say what the rows are, not what was asked
+        span = (f"{'the last ' + str(window) + ' of ' if trained is None or window < trained else 'all '}"
+                f"{' or '.join(map(str, ran))} training episodes (the runs' own: {episodes} were asked, and "
+                "runs trained with other settings were used as they are, --allow-stale)")
     lines = [f"### {TITLES[target]}", "",
-             f"Safety and completion rate (%) over {f'the last {window} of' if window < episodes else 'all'} "
-             f"{episodes} training episodes, mean ± std "
+             f"Safety and completion rate (%) over {span}, mean ± std "
              f"over seeds; task `{task}`, layout `{layout}`; the paper's figures beside them. \"Collisions, all "
              f"episodes\": the share of every training episode that collided (mean over seeds).", "",
              "| method | seeds | safety | completion | paper safety | paper completion | collisions, all episodes | wall time / run |",
