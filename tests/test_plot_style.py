@@ -12,7 +12,7 @@ from matplotlib.colors import to_hex
 from matplotlib.figure import Figure
 from PIL import Image
 
-from d2spo import cli, map_plots, plots, plotstyle
+from d2spo import cli, map_plots, plot_outcomes, plots, plotstyle
 from d2spo.envs import layouts, render
 from d2spo.envs.compiled_task import default_task
 from d2spo.errors import ConfigError
@@ -180,7 +180,7 @@ def test_reward_curves_name_every_line_and_band_with_units(tmp_path):
 def test_layout_colours_are_the_colour_blind_safe_palette_or_the_labels_own():
     palette = {to_hex(c) for c in plotstyle.PALETTE}
     assert to_hex(render.AREA_COLOR) in palette and {to_hex(c) for c in render.LABEL_COLORS} <= palette
-    assert {to_hex(c) for c in plots.OUTCOME_COLORS.values()} <= palette
+    assert {to_hex(c) for c in plot_outcomes.OUTCOME_COLORS.values()} <= palette
     zones = layouts.load("zones:3")
     assert render.area_colors(zones) == [a.label for a in zones.areas]  # green, yellow, ...: the labels
     ax = Figure().add_subplot()

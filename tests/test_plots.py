@@ -11,7 +11,7 @@ import pytest
 from _reproduce import FIG5_EPISODES
 from matplotlib.image import imread
 
-from d2spo import plots
+from d2spo import plot_outcomes, plots
 from d2spo import reproduce as rp
 
 
@@ -102,10 +102,10 @@ def test_a_rejected_episode_is_told_from_one_out_of_time():
     poses = np.zeros((4, 6, 3))  # T + 1 = 6 poses: the last is NaN when the episode ended earlier
     poses[0, 3:], poses[1, 4:], poses[2, 5:] = nan, nan, nan
     collided, completed = np.array([True, False, False, False]), np.array([False, True, False, False])
-    assert plots.outcomes(poses, collided, completed) == ["collided", "completed", "rejected", "neither"]
+    assert plot_outcomes.outcomes(poses, collided, completed) == ["collided", "completed", "rejected", "neither"]
     length = np.array([2, 3, 4, 5])
     r = rates(collided, completed, np.zeros(4), length, poses, max_steps=5)
     assert r["rejection_rate"] == 0.25 and "rejection_rate" not in rates(collided, completed, np.zeros(4), length)
-    names = [h.get_label() for h in plots.outcome_handles(drawn={"rejected"})]
+    names = [h.get_label() for h in plot_outcomes.outcome_handles(drawn={"rejected"})]
     assert "trajectory: the task rejected it (what it forbids entered) (x: end)" in names
-    assert not any("rejected" in h.get_label() for h in plots.outcome_handles())  # no mark that is not drawn
+    assert not any("rejected" in h.get_label() for h in plot_outcomes.outcome_handles())  # no mark that is not drawn

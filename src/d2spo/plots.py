@@ -8,8 +8,8 @@
 * maps over one layout (``d2spo certify``'s picture, ``d2spo ltl --plot``'s shaping fields) are in
   ``d2spo.map_plots``.
 
-Each thing is drawn by one function (``draw_trajectories``, ``draw_cbf``, ``draw_reward_curves``)
-that the figures share. ``d2spo.reproduce`` only chooses which run directories go into which
+Each thing is drawn by one function (``draw_trajectories``, in ``d2spo.plot_outcomes`` with the
+outcomes' colours and names; ``draw_cbf``, ``draw_reward_curves``) that the figures share. ``d2spo.reproduce`` only chooses which run directories go into which
 figure. Colours, colour maps and the file writer come from ``d2spo.plotstyle`` (Okabe–Ito colours,
 one colour scale per figure, PNG at 300 dpi or PDF/SVG by the suffix). Matplotlib only, with
 Figure objects (no pyplot global state), so it is safe in tests and servers.
@@ -31,8 +31,9 @@ from matplotlib.lines import Line2D
 from matplotlib.ticker import MaxNLocator
 
 from d2spo.envs import geometry
-from d2spo.envs.render import add_legend, draw_layout, draw_trajectory
+from d2spo.envs.render import add_legend, draw_layout
 from d2spo.errors import RunDirError
+from d2spo.plot_outcomes import draw_trajectories, outcome_handles
 from d2spo.plotstyle import (
     BLACK,
     BLUISH_GREEN,
@@ -46,14 +47,6 @@ from d2spo.plotstyle import (
 from d2spo.rollout import make_rollout
 from d2spo.run import load_policy, load_run_config, load_snapshot
 from d2spo.runio import read_episodes
-
-OUTCOME_COLORS = {"completed": BLUISH_GREEN, "collided": VERMILLION, "neither": REDDISH_PURPLE, "rejected": ORANGE}
-"""Trajectory colours: the task completed (true labelling), a collision, the episode ran out, or it
-ended before its step limit with none of these (the task rejected it: a 'never' part broken, an
-area entered out of order)."""
-OUTCOME_NAMES = {"completed": "task completed", "collided": "collision", "neither": "out of time",
-                 "rejected": "the task rejected it (what it forbids entered)"}
-"""How the legends name each outcome of ``OUTCOME_COLORS``."""
 
 
 def policy_trajectories(learner, policy, env, params, episodes: int, seed: int, rollout=None):
@@ -112,39 +105,6 @@ CBF_LABEL = "h, the learned CBF (h ≥ 0: safe set)"
 """The colourbar label of every picture of h."""
 ZERO_LINE = Line2D([], [], color=BLACK, linewidth=1.5, label="h = 0 (edge of the safe set)")
 """The legend entry of ``draw_cbf``'s zero level set."""
-
-
-def outcomes(poses, collided, completed) -> list[str]:
-    """Each episode's outcome (a key of ``OUTCOME_COLORS``) from its poses [E, T+1, 3] (NaN after its
-    end): an episode that ended before the last step, neither collided nor completed, was rejected."""
-    ended_early = ~np.all(np.isfinite(np.asarray(poses)[:, -1, :2]), axis=-1)
-    return ["collided" if c else "completed" if d else "rejected" if e else "neither"
-            for c, d, e in zip(collided, completed, ended_early)]
-
-
-def draw_trajectories(ax, poses, collided, completed) -> set[str]:
-    """Each episode's path (poses [E, T+1, 3], NaN after its end) coloured by its outcome; returns the
-    outcomes drawn."""
-    drawn = outcomes(poses, collided, completed)
-    for i, outcome in enumerate(drawn):
-        xy = poses[i, :, :2]
-        xy = xy[np.all(np.isfinite(xy), axis=-1)]
-        draw_trajectory(ax, xy, color=OUTCOME_COLORS[outcome])
-    return set(drawn)
-
-
-RECURRENCE_OUTCOME_NAMES = {**OUTCOME_NAMES, "neither": "ran to the step limit, as a patrol does"}
-"""``OUTCOME_NAMES`` for a recurrence (a patrol), which no episode completes: its safe episodes end
-at the step limit, and its score is the accepting visits of the panel titles."""
-
-
-def outcome_handles(recurrence: bool = False, drawn: set[str] = frozenset()) -> list[Line2D]:
-    """Legend entries of ``draw_trajectories``' colours (``recurrence``: a patrol's names); a rejected
-    trajectory's only where one is ``drawn``."""
-    names = RECURRENCE_OUTCOME_NAMES if recurrence else OUTCOME_NAMES
-    return [Line2D([], [], color=c, marker="x", markevery=[1], label=f"trajectory: {names[k]} (x: end)")
-            for k, c in OUTCOME_COLORS.items()
-            if not (recurrence and k == "completed") and (k != "rejected" or k in drawn)]
 
 
 def rates_title(rates: Mapping) -> str:

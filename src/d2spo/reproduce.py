@@ -169,10 +169,10 @@ def run_local(specs: list[RunSpec], out: Path, progress: bool = True, log: Calla
     groups: dict[RunSpec, list[RunSpec]] = {}
     for members in started_groups(out, specs):  # resumed as they were, even with --no-vmap-seeds
         groups[members[0]] = members
-    resumed = sum(1 for s in todo if not _fresh_or_resumable(out, s) or any(s in m for m in groups.values()))
+    grouped = {m for members in groups.values() for m in members}
+    resumed = sum(1 for s in todo if s in grouped or not _fresh_or_resumable(out, s))
     log(f"{len(specs) - len(todo)} of {len(specs)} runs already finished in {out}; training {len(todo)}"
         + (f" ({resumed} resuming from a checkpoint an interrupted call left)" if resumed else ""))
-    grouped = {m for members in groups.values() for m in members}
     for s in todo:
         if s in grouped:
             continue

@@ -87,9 +87,7 @@ def rates(collided, completed, ret, length, poses=None, visits=None, *, max_step
     """Safety and completion (true labelling) of finished evaluation episodes; with the [E, T + 1, 3]
     poses of ``make_rollout`` also the mean distance driven (m), which tells a safe policy that
     moves from one that stands still; with a Büchi task's ``visits`` [E], their mean per episode;
-    with the episodes' ``max_steps``, ``rejection_rate``: the share that ended before it, neither
-    collided nor completed, so rejected by the task (a 'never' part broken, an area entered out of
-    order; one rejected at the very last step counts as out of time)."""
+    with the episodes' ``max_steps``, ``rejection_rate``: the share the task rejected (``rejected``)."""
     collided, completed = np.asarray(collided), np.asarray(completed)
     out = {
         "episodes": int(collided.shape[0]),
@@ -104,8 +102,15 @@ def rates(collided, completed, ret, length, poses=None, visits=None, *, max_step
     if visits is not None:
         out["accepting_visits_per_episode"] = float(np.asarray(visits).mean())
     if max_steps is not None:
-        out["rejection_rate"] = float(((np.asarray(length) < max_steps) & ~collided & ~completed).mean())
+        out["rejection_rate"] = float(rejected(collided, completed, length, max_steps).mean())
     return out
+
+
+def rejected(collided, completed, length, max_steps: int) -> np.ndarray:
+    """bool [E]: the episodes the task rejected (a 'never' part broken, an area entered out of
+    order): ended before ``max_steps``, neither collided nor completed. One rejected at the very
+    last step is taken for out of time."""
+    return (np.asarray(length) < max_steps) & ~np.asarray(collided, bool) & ~np.asarray(completed, bool)
 
 
 def visit_optimum(task, max_steps: int, cfg, visits: float | None, margin: float | None = None) -> dict:

@@ -75,15 +75,12 @@ def write_table(out: Path, target: str, runs: Mapping[str, Iterable[Path]], task
         # rates to 12 significant digits: 1 - 0.95 is 0.050000000000000044 in binary, 0.05 here
         w.writerows([{k: float(f"{v:.12g}") if isinstance(v, float) else v for k, v in r.items() if not k.startswith("_")}
                      for r in rows])
-    ran = sorted({int(g.get("episodes", episodes)) for gs in by.values() for g in gs}) or [episodes]
-    trained = ran[0] if len(ran) == 1 else None  # runs of another length: used with --allow-stale
-    window = min(next((g["window"] for gs in by.values() for g in gs), 2000), trained or episodes)  # a short run: all
-    span = (f"{f'the last {window} of' if window < (trained or episodes) else 'all'} {trained or episodes} "
-            "training episodes")
-    if ran != [episodes]:  # say what the rows are, not what was asked
-        span = (f"{'the last ' + str(window) + ' of ' if trained is None or window < trained else 'all '}"
-                f"{' or '.join(map(str, ran))} training episodes (the runs' own: {episodes} were asked, and "
-                "runs trained with other settings were used as they are, --allow-stale)")
+    ran = sorted({int(g.get("episodes", episodes)) for gs in by.values() for g in gs}) or [episodes]  # the rows'
+    window = min(next((g["window"] for gs in by.values() for g in gs), 2000), max(ran))  # a short run: all of it
+    span = f"{f'the last {window} of' if window < min(ran) else 'all'} {' or '.join(map(str, ran))} training episodes"
+    if ran != [episodes]:  # runs of another length, used with --allow-stale: say what the rows are
+        span += (f" (the runs' own: {episodes} were asked, and runs trained with other settings were used as "
+                 "they are, --allow-stale)")
     lines = [f"### {TITLES[target]}", "",
              f"Safety and completion rate (%) over {span}, mean ± std "
              f"over seeds; task `{task}`, layout `{layout}`; the paper's figures beside them. \"Collisions, all "

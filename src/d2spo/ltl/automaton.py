@@ -96,16 +96,21 @@ class Words:
 
     def _state(self, q) -> int:
         """``q`` if it is a state's number, else ValueError (a negative one once read a state from the end)."""
-        if isinstance(q, bool) or not isinstance(q, (int, np.integer)) or not 0 <= q < self.n_states:
+        if not _is_index(q, self.n_states):
             raise ValueError(f"no state {q!r}: the automaton's states are 0 .. {self.n_states - 1}")
         return int(q)
 
     def _letter(self, letter) -> int:
         """``letter`` if it is a letter's number (``letter(...)`` gives them), else ValueError."""
-        if isinstance(letter, bool) or not isinstance(letter, (int, np.integer)) or not 0 <= letter < self.n_letters:
+        if not _is_index(letter, self.n_letters):
             raise ValueError(f"no letter {letter!r}: the letters are 0 .. {self.n_letters - 1}, one bit per "
                              f"proposition of {self.aps} (letter([...]) gives one)")
         return int(letter)
+
+
+def _is_index(value, n: int) -> bool:
+    """Whether ``value`` is one of 0 .. n - 1 as an integer (not a bool, a float or a negative)."""
+    return not isinstance(value, bool) and isinstance(value, (int, np.integer)) and 0 <= value < n
 
 
 @dataclass(frozen=True, eq=False)
