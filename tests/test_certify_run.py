@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 import subprocess
 import sys
 
@@ -184,6 +185,43 @@ def test_repair_rule_is_never_worse_in_anything():
     assert not better(s(0.5, 0.9, 4), s(0.4, 0.9, 3))  # one more violated grid point
     assert not better(s(0.4, 0.9, 3), s(0.4, 0.9, 3))  # no change: repair stops
     assert better(s(0.1, 0.0, 0), s(float("nan"), float("nan"), 1))  # an empty net counts as 0
+    # fewer violations in D's explored part do not buy new ones in the ring (they were summed)
+    assert not better(s(1.0, 0.9, 5, 2), s(1.0, 0.9, 0, 36))
+    assert better(s(1.0, 0.9, 0, 2), s(1.0, 0.9, 0, 36))
+
+
+def test_repair_drops_the_kept_policy_so_the_repaired_one_is_used(filled_run, tmp_path):
+    """The repaired run kept the original's policy-best.msgpack and its entry, so `d2spo eval`, `export`
+    and `certify` (which take a kept policy first) read the unrepaired networks."""
+    from flax import serialization
+
+    from d2spo.certify import CertifyConfig
+    from d2spo.certify_load import load_cbf_run, with_policy
+    from d2spo.repair import RepairConfig, repair_run
+    from d2spo.run import best_policy_path
+
+    run = tmp_path / "validated"
+    shutil.copytree(filled_run, run)
+    loaded = load_cbf_run(run)
+    meta = dict(loaded.meta, best={"episodes": 0, "success_rate": 0.0})
+    Checkpoints(run, run_fingerprint(run)).save(loaded.carry, meta)
+    kept = _shifted(loaded, 20.0).carry
+    best_policy_path(run).write_bytes(serialization.to_bytes(jax.device_get((kept.agent.actor, kept.safety))))
+    out = tmp_path / "repaired"
+    repair_run(run, out, CertifyConfig(**CCFG_TINY), RepairConfig(rounds=1, calls=1, copies=1, eval_episodes=0))
+    assert not best_policy_path(out).exists()
+    repaired = load_cbf_run(out)
+    assert "best" not in repaired.meta
+    assert with_policy(repaired, out, "best").meta["policy"].startswith("last")
+
+
+def test_a_search_of_no_steps_is_refused_and_repair_takes_policy_last(capsys, untrained_run, tmp_path):
+    """--search-steps 0 ran no search and said "no counterexample found"; --repair refused --policy last,
+    the policy it repairs."""
+    assert "--search-steps: " in one_error_line(capsys, ["certify", str(untrained_run), "--search-steps", "0"])
+    assert "give last" in one_error_line(capsys, ["certify", str(untrained_run), "--repair", "--policy", "best",
+                                                  "--out", str(tmp_path / "r")])
+    assert not (tmp_path / "r").exists()
 
 
 def test_repair_writes_an_ordinary_run_no_worse_than_before(filled_run, tmp_path):

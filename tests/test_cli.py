@@ -146,6 +146,11 @@ def test_a_field_not_typed_as_a_flag_keeps_its_name():
     assert console.as_typed("episodes: bad", ["train", "--episodes-x", "3"]) == "episodes: bad"
     assert console.as_typed("no field here", ["train", "--episodes", "0"]) == "no field here"
     assert console.as_typed("reward.r_goal: bad", ["train", "--r-goal", "inf"]) == "--r-goal: bad"  # flattened
+    # a section nested in a learner's: its check names the inner path (it read "td3.actor_lr: bad")
+    assert console.as_typed("td3.actor_lr: bad", ["train", "--td3-lag.td3.actor-lr", "1e30"]) == \
+        "--td3-lag.td3.actor-lr: bad"
+    assert console.as_typed("td3.actor_lr: bad", ["train", "--td3-lag.td3.actor-lr=1e30"]) == \
+        "--td3-lag.td3.actor-lr: bad"
 
 
 @pytest.mark.parametrize("args,hint", [

@@ -38,6 +38,11 @@ def test_evaluation_is_named_written_and_shown(tmp_path, capsys):
     out = " ".join(out.split())  # the title is wrapped to the table's width
     assert "runtime filter on (not the training layout/dynamics" in out
     assert "random:1" in out and "75.00%" in out and "all 3" in out and "91.67%" in out
+    # the episode limit is shown whether asked or not (other dynamics change the default one)
+    print_evaluation({**one, "max_steps": 300}, path, filter_asked=None)
+    assert "(4 episodes of 300 steps" in " ".join(capsys.readouterr().out.split())
+    print_evaluation({**three, "max_steps": 450}, path, filter_asked=None)
+    assert "episodes of up to 450 steps" in " ".join(capsys.readouterr().out.split())
     print_evaluation(three, path, filter_asked=True)  # asked for: no note on why it is on
     assert "not the training" not in " ".join(capsys.readouterr().out.split())
     # a generalist's: on everywhere, its own training layouts too; and the task it ran is named

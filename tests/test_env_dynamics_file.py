@@ -62,6 +62,27 @@ def test_train_reads_the_file_and_flags_override_it(tmp_path):
     assert steps(cli.parse(["train", "--dynamics", str(path), "--cbf.updates-per-iter", "5"]).config()) == (10, 5)
 
 
+
+def test_a_file_beside_config_replaces_the_robot_the_config_recorded(tmp_path):
+    """`train --config RUN/config.json --dynamics NEW.json` kept the config's recorded dynamics (every
+    value of a robot given before is in it) and its UPDATE(Ω, Θ) steps; flags still win over the file."""
+    from d2spo.config import config_to_dict
+
+    first = cli.parse(["train", "--dynamics", str(write(tmp_path, SLOW_ROBOT)), "--episodes", "10"]).config()
+    (tmp_path / "config.json").write_text(json.dumps(config_to_dict(first)))
+    fast = write(tmp_path, {**SLOW_ROBOT, "v_max": 1.5, "omega_max": 3.0}, "fast.json")
+    cfg = cli.parse(["train", "--config", str(tmp_path / "config.json"), "--dynamics", str(fast)]).config()
+    assert (cfg.env.v_max, cfg.env.omega_max) == (1.5, 3.0)
+    cfg = cli.parse(["train", "--config", str(tmp_path / "config.json"), "--dynamics", str(fast),
+                     "--v-max", "0.9"]).config()
+    assert (cfg.env.v_max, cfg.env.omega_max) == (0.9, 3.0)
+    # a config of the default robot (5 and 5 steps) with a file: the file's robot's 10 and 10
+    default = cli.parse(["train", "--episodes", "10"]).config()
+    (tmp_path / "default.json").write_text(json.dumps(config_to_dict(default)))
+    cfg = cli.parse(["train", "--config", str(tmp_path / "default.json"), "--dynamics", str(fast)]).config()
+    assert (cfg.cbf.nominal_updates_per_iter, cfg.cbf.updates_per_iter) == (10, 10)
+
+
 @pytest.mark.parametrize("content, field, words", [
     ({k: v for k, v in SLOW_ROBOT.items() if k != "slip"}, "dynamics.slip", "missing"),
     ({**SLOW_ROBOT, "v_max": "fast"}, "dynamics.v_max", "expected a finite number, got 'fast'"),
@@ -108,3 +129,22 @@ def test_the_example_in_the_docs_loads(tmp_path):
     example = text.split("### Custom dynamics", 1)[1].split("```json\n", 1)[1].split("```", 1)[0]
     values = load_dynamics(write(tmp_path, example))
     assert values["actuator_tau"] == 0.12 and EnvConfig(**values).resolved().v_max == 0.5
+
+
+@pytest.mark.parametrize("flags, words", [
+    (["--dt", "1e-9"], "episode limit: relaxed's shortest route needs over 100,000 steps"),  # was an OverflowError
+    (["--dt", "1e-300"], "episode limit: "),
+    (["--v-max", "0.0001"], "episode limit: "),  # was a silent hang: an episode limit of millions of steps
+    (["--v-max", "1e39"], "--v-max: must be at most 1e+06"),  # overflowed float32 and stopped as "non-finite"
+])
+def test_dynamics_that_no_episode_could_run_are_refused_in_one_line(tmp_path, capsys, flags, words):
+    try:  # a flag's value is refused while parsing (SystemExit 2), the derived limit when the env is built
+        rc = cli.main(["train", "--task", "relaxed", "--layout", "relaxed", *flags, "--episodes", "4",
+                       "--out", str(tmp_path / "run")])
+    except SystemExit as e:
+        rc = e.code
+    assert rc == 2
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(err) == 1 and words in err[0], err
+    with pytest.raises(ConfigError, match="must be at most"):
+        load_dynamics(write(tmp_path, {**SLOW_ROBOT, "noise_xy": 1e300}))

@@ -260,3 +260,23 @@ def test_scan_error_tells_a_scan_the_map_predicts_from_one_it_does_not(tiny):
     assert policy.scan_error(policy.scan((4.0, 4.0, 1.0)), pose) > 0.1  # another pose's scan
     with pytest.raises(ValueError, match="ranges must be"):
         policy.scan_error(ranges[:3], pose)
+
+
+def test_a_policy_with_non_finite_weights_is_not_exported(tmp_path):
+    """A checkpoint whose actor held NaN (hand-edited, its checksums fixed) was exported, exit 0, while
+    `d2spo eval` and `train --resume` refused it."""
+    import jax
+    import jax.numpy as jnp
+
+    from d2spo.errors import NaNError
+    from d2spo.run import build
+    from d2spo.train import learner_program
+
+    cfg = tiny_cfg()
+    _, _, learner = build(cfg)
+    carry = learner_program(learner, "init")(jax.random.PRNGKey(0))
+    actor = jax.tree_util.tree_map(lambda a: a.at[(0,) * a.ndim].set(jnp.nan), carry.agent.actor)
+    write_run(tmp_path / "run", cfg, carry.replace(td3=carry.td3.replace(agent=carry.agent.replace(actor=actor))))
+    with pytest.raises(NaNError, match="non-finite weights; nothing exported"):
+        export_run(tmp_path / "run", tmp_path / "out")
+    assert not (tmp_path / "out").exists()

@@ -58,6 +58,16 @@ def test_interrupted_reproduce_resumes_its_seed_group_exactly(tmp_path, monkeypa
     runs = tmp_path / "b" / "runs"
     assert len(list(runs.glob(".group-*/checkpoint.json"))) == 1
     assert list(runs.glob("ppo-lag-*/checkpoint.json"))  # what made a seed resume alone, the other restart
+    # `d2spo train --resume` of one seed would go on alone (a solo run): refused, the group untouched
+    from d2spo.errors import RunDirError
+    from d2spo.run import load_run_config
+    from d2spo.train import train
+
+    seed0 = rp.run_dir(tmp_path / "b", rp.runs_for("table3", 2, TINY_EPISODES, ["ppo-lag"])[0])
+    before = (seed0 / "episodes.csv").read_bytes()
+    with pytest.raises(RunDirError, match="one of the seeds trained together in .group-"):
+        train(load_run_config(seed0), seed0, resume=True)
+    assert (seed0 / "episodes.csv").read_bytes() == before
     rp.reproduce(["table3"], tmp_path / "b", **kw)
     for name in ("table3.md", "table3.csv"):
         assert _table(tmp_path / "b" / name) == _table(tmp_path / "a" / name), name

@@ -130,7 +130,7 @@ def test_a_patrols_panels_give_its_visits_not_a_completion_no_episode_reaches():
               "visit_fraction": 14.83 / 26} for r in rates]
     fig = plots.draw_evaluation_figure(paths, rates, "run")
     titles = [ax.get_title() for ax in fig.axes]
-    assert all(": 67% safe\n14.8 of 26 route-optimal visits (57%)\n" in t for t in titles), titles
+    assert all(": 66.7% safe\n14.8 of 26 route-optimal visits (57.0%)\n" in t for t in titles), titles
     assert not any("completed" in t for t in titles)
     legend = _legend_texts(fig)
     assert "trajectory: ran to the step limit, as a patrol does (x: end)" in legend
@@ -140,7 +140,7 @@ def test_a_patrols_panels_give_its_visits_not_a_completion_no_episode_reaches():
         assert ax.title.get_window_extent().width <= 1.05 * ax.get_window_extent().width, ax.get_title()
     # a co-safe task's panels are as before
     co = plots.draw_evaluation_figure(*_paths(1), "run")
-    assert co.axes[0].get_title().startswith("random:11: 33% completed, 67% safe")
+    assert co.axes[0].get_title().startswith("random:11: 33.3% completed, 66.7% safe")
 
 
 @pytest.mark.parametrize("n, layout", [(1, None), (2, None), (3, None), (4, None), (1, "rooms-12x8.json"),

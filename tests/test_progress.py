@@ -76,6 +76,25 @@ def test_a_patrols_line_shows_visits_and_no_completion():
     assert patrol == "2.0 ep/s · safe 99.0% · visits 3.25/ep"
 
 
+def test_the_line_names_its_window_and_the_rejected_share():
+    d = {"safety_rate": 1.0, "completion_rate": 0.5, "completion_rate_relaxed": 0.5, "window_episodes": 200,
+         "rejection_rate": 0.25}
+    assert progress._stats(d, 2.0) == "2.0 ep/s · last 200: safe 100.0% · done 50.0% (relaxed 50.0%) · rejected 25.0%"
+    assert "rejected" not in progress._stats({**d, "rejection_rate": 0.0}, 2.0)
+
+
+def test_the_summary_table_shows_the_rejected_share_only_when_some_were():
+    base = {"episodes": 300, "env_steps": 3000, "wall_seconds": 1.0, "env_steps_per_second": 3000.0,
+            "safety_rate": 1.0, "completion_rate": 0.5, "completion_rate_relaxed": 0.5, "window_episodes": 300}
+    def text(summary):
+        out = io.StringIO()
+        Console(file=out, width=200).print(progress.summary_table(summary, "t"))
+        return out.getvalue()
+    assert "rejected by the task (last 300)" in text({**base, "rejection_rate": 0.21})
+    assert "21.00%" in text({**base, "rejection_rate": 0.21})
+    assert "rejected" not in text({**base, "rejection_rate": 0.0}) and "rejected" not in text(base)
+
+
 def test_no_progress_prints_nothing():
     display = progress.progress_display(Console(file=io.StringIO()), show=False)
     with display:

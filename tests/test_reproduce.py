@@ -323,3 +323,25 @@ def test_a_resumed_run_is_announced(tmp_path, monkeypatch):
     rp.run_local(specs, tmp_path, progress=False, log=logs.append, vmap_seeds=False)
     assert logs[0] == (f"0 of 2 runs already finished in {tmp_path}; training 2 (1 resuming from a checkpoint an "
                        "interrupted call left)"), logs
+
+
+def test_a_table_of_runs_with_other_windows_says_each_row_is_over_its_own(tmp_path):
+    """The heading took the first run's window for every row (mixing runs with --allow-stale)."""
+    import json
+    import shutil
+
+    from d2spo import tables
+
+    published = Path(__file__).resolve().parent.parent / "docs" / "results"
+    dirs = []
+    for s, window in ((0, 2000), (1, 100)):
+        src = rp.run_dir(published, rp.RunSpec("d2spo", "phi1", "paper", s, 20_000))
+        d = tmp_path / "runs" / src.name
+        d.mkdir(parents=True)
+        shutil.copy(src / "episodes.csv", d)
+        summary = json.loads((src / "summary.json").read_text())
+        (d / "summary.json").write_text(json.dumps({**summary, "window": window}))
+        dirs.append(d)
+    text = tables.write_table(tmp_path, "table2", {"d2spo": dirs}, "phi1", "paper", 20_000).read_text()
+    assert "over each run's own window, the last 100 or 2000 of its 20000 training episodes" in text
+    assert "(the population std, ddof 0)" in text

@@ -240,3 +240,19 @@ def test_run_files_get_the_permissions_the_umask_allows(tmp_path):
         os.umask(old)
     assert [(tmp_path / n).stat().st_mode & 0o777 for n in ("a", "episodes.csv", "b")] == [0o644, 0o644, 0o600]
     assert not (tmp_path / "run" / ".lock").exists(), "the lock is removed when released"
+
+
+def test_a_dead_tensorboard_writer_stops_the_run_instead_of_hanging_it(tmp_path):
+    """tensorboardX's writer thread dies on a write error (a full disk) and its 10-event queue then
+    blocked every later scalar forever: the run hung with the error printed once."""
+    import pytest
+
+    from d2spo.record import TB_QUEUE, _tensorboard, check_tensorboard
+
+    writer = _tensorboard(tmp_path / "tb")
+    assert writer.file_writer.event_writer._event_queue._maxsize == TB_QUEUE  # puts never wait on a live thread
+    check_tensorboard(writer, tmp_path / "tb")  # alive: nothing
+    writer.file_writer.event_writer._event_queue.put(writer.file_writer.event_writer._worker._shutdown_signal)
+    writer.file_writer.event_writer._worker.join(timeout=10)  # the thread has ended, as after its OSError
+    with pytest.raises(OSError, match="TensorBoard's event writer stopped"):
+        check_tensorboard(writer, tmp_path / "tb")

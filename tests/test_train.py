@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import hashlib
 import json
 
 import numpy as np
@@ -55,6 +56,9 @@ def test_outputs_and_summary(tmp_path, capsys):
     end = np.array([[float(r[7]), float(r[8])] for r in table[1:]])
     assert np.all((end >= 0.0) & (end <= 5.0)) and len(np.unique(end, axis=0)) > 1  # where each episode ended
     assert summary["safety_rate"] == pytest.approx(1.0 - collided[-50:].mean())
+    # rejected: ended before the 40-step limit, neither collided nor done under training's (relaxed) labelling
+    relaxed, length = (np.array([int(r[i]) for r in table[1:]]) for i in (5, 6))
+    assert summary["rejection_rate"] == pytest.approx(((length < 40) & (collided == 0) & (relaxed == 0))[-50:].mean())
     assert summary["episodes"] == 60 and summary["window"] == 50
     assert 0.0 <= summary["eval"]["safety_rate"] <= 1.0
     assert json.loads((run / "summary.json").read_text()) == summary
@@ -106,8 +110,9 @@ def test_outputs_and_summary(tmp_path, capsys):
                  "--no-progress"]) == 0
     quiet = capsys.readouterr()
     assert "layouts evaluated" not in quiet.out + quiet.err
-    ev = json.loads((run / "eval-relaxed-slow-slip0.2.json").read_text())
-    assert ev["dynamics"] == "slow-slip0.2" and ev["dynamics_values"] == {**robot, "slip": 0.2}
+    tag = "slow-" + hashlib.sha256((tmp_path / "slow.json").read_bytes()).hexdigest()[:12]  # two slow.json never meet
+    ev = json.loads((run / f"eval-relaxed-{tag}-slip0.2.json").read_text())
+    assert ev["dynamics"] == f"{tag}-slip0.2" and ev["dynamics_values"] == {**robot, "slip": 0.2}
     (tmp_path / "bad.json").write_text(json.dumps({**robot, "v_gain": -1}))
     assert main(["eval", str(run), "--dynamics", str(tmp_path / "bad.json")]) == 2
     assert main(["eval", str(run), "--noise-xy", "-1"]) == 2
@@ -151,6 +156,26 @@ def test_same_seed_same_run_and_resume_is_exact(tmp_path):
     with pytest.warns(RunDirWarning, match="the run finished .*nothing was trained or evaluated again"):
         assert train(cfg, tmp_path / "b", resume=True) == b
     assert (tmp_path / "b" / "summary.json").read_bytes() == before
+    # a damaged summary.json is written again (the final evaluation again), not a warning and an error
+    (tmp_path / "b" / "summary.json").write_bytes(before[:100])
+    with pytest.warns(RunDirWarning, match="not valid JSON.*evaluating it again"):
+        again = train(cfg, tmp_path / "b", resume=True)
+    assert again["eval"] == b["eval"] and json.loads((tmp_path / "b" / "summary.json").read_text()) == again
+
+
+def test_a_new_run_refuses_a_folder_of_other_files_and_leaves_them(tmp_path):
+    """`train --out proj` deleted proj's hidden .*.tmp and policy-*.msgpack files and wrote config.json
+    over proj's own."""
+    from d2spo.errors import RunDirError
+
+    proj = tmp_path / "proj"
+    proj.mkdir()
+    files = {"config.json": '{"my": "project settings"}', ".draft.tmp": "d", "policy-final.msgpack": "m"}
+    for name, text in files.items():
+        (proj / name).write_text(text)
+    with pytest.raises(RunDirError, match="not empty and holds no d2spo run"):
+        train(tiny(), proj)
+    assert {p.name: p.read_text() for p in proj.iterdir()} == files  # no .lock either
 
 
 def test_a_checkpoint_taken_before_an_interrupt_is_written_and_resumes_exactly(tmp_path, monkeypatch):
@@ -321,3 +346,14 @@ def test_the_generalists_episodes_default_and_validation_seeds():
     old = config_to_dict(TrainConfig(generalist=True))
     del old["validation_layouts"]  # a generalist trained before validation kept its last policy
     assert config_from_dict(old).validation_layouts == 0
+
+
+def test_window_rates_count_an_episode_rejected_only_when_nothing_else_ended_it():
+    from d2spo.runio import window_rates
+
+    table = [(0, 0.0, 0.0, 0, 0, 0, 40), (1, 0.0, 0.0, 1, 0, 0, 10),  # out of time; collided
+             (2, 0.0, 0.0, 0, 0, 1, 12), (3, 0.0, 0.0, 0, 0, 0, 7),   # relaxed completion; rejected
+             (4, 0.0, 0.0, 0, 1, 1, 30)]                             # completed
+    assert window_rates(table, 5, max_steps=40)["rejection_rate"] == pytest.approx(0.2)
+    assert window_rates(table, 2, max_steps=40)["rejection_rate"] == pytest.approx(0.5)
+    assert "rejection_rate" not in window_rates(table, 5)

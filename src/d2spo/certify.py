@@ -69,7 +69,7 @@ class CertifyConfig:
 
     def __post_init__(self):
         check_fields(self, positive=("eps_unsafe", "eps_safe", "grid_step"), count=("headings", "residual_episodes",
-                     "search_starts"), natural=("search_steps",), rate=("residual_quantile",), seed=("seed",),
+                     "search_starts", "search_steps"), rate=("residual_quantile",), seed=("seed",),
                      flag=("free_grid",))
 
 

@@ -28,7 +28,7 @@ from d2spo.cli_docs import DocsCmd
 from d2spo.cli_env import ENV_SUBCOMMANDS, EnvCmd
 from d2spo.cli_export import ExportCmd
 from d2spo.cli_reproduce import ReportCmd, ReproduceCmd
-from d2spo.config import TrainConfig, algo_named, config_file_named, flags_for, plain
+from d2spo.config import TrainConfig, algo_named, config_file, config_file_named, flags_for, plain
 from d2spo.config_diff import flags_given, other_learners_flag
 from d2spo.console import (
     as_typed,
@@ -179,9 +179,20 @@ class TrainCmd:
         if self.dynamics is None:
             return cfg
         values = load_dynamics(self.dynamics)
-        env = dataclasses.replace(cfg.env, **{k: v for k, v in values.items() if getattr(cfg.env, k) is None})
+        # A field no flag set takes the file's value: None, or with --config the file's default (its
+        # config.json records every value of a robot given before, which the new file replaces)
+        base = config_file(self.from_config) if self.from_config is not None else None
+
+        def unset(section: str, k: str) -> bool:
+            now = getattr(getattr(cfg, section), k)
+            return now is None or (base is not None and now == getattr(getattr(base, section), k))
+
+        env = dataclasses.replace(cfg.env, **{k: v for k, v in values.items() if unset("env", k)})
         # UPDATE(Ω, Θ)'s step counts the flags left unset follow the file's robot, not the preset's
-        cbf = dataclasses.replace(cfg.cbf, **dict.fromkeys(getattr(cfg, "filled_update_steps", ())))
+        steps = set(getattr(cfg, "filled_update_steps", ()))
+        if base is not None:
+            steps |= {k for k in ("updates_per_iter", "nominal_updates_per_iter") if unset("cbf", k)}
+        cbf = dataclasses.replace(cfg.cbf, **dict.fromkeys(sorted(steps)))
         return dataclasses.replace(cfg, env=env, cbf=cbf)
 
     def run(self) -> int:

@@ -35,10 +35,10 @@ class CertifyCmd:
     out: Path | None = None
     """With --repair: the new run directory (default: RUN-repaired)."""
     fix: Annotated[RepairConfig, tyro.conf.arg(name="")] = dataclasses.field(default_factory=RepairConfig)
-    policy: str = "best"
-    """Which policy's barrier, π_Ω and actor to check: best (a validated run's kept policy, where there is
-    one; the newest checkpoint's otherwise) or last (the newest checkpoint's), as d2spo eval and d2spo export
-    take it. --repair trains on from the newest checkpoint."""
+    policy: str | None = None
+    """Which policy's barrier, π_Ω and actor to check: best (the default: a validated run's kept policy, where
+    there is one; the newest checkpoint's otherwise) or last (the newest checkpoint's), as d2spo eval and
+    d2spo export take it. --repair trains on from the newest checkpoint: last."""
     progress: bool = True
     """Show which stage runs (a spinner on a terminal, a line per stage if not)."""
 
@@ -47,17 +47,23 @@ class CertifyCmd:
         if not console.is_terminal and "COLUMNS" not in os.environ:  # a log or a pipe: rich's 80 columns cut
             console = Console(width=160)  # the table's numbers short ("0.0005…"); a file has room for them all
         if self.repair:
-            if self.policy != "best":
-                raise UserError("--policy: --repair trains on from the newest checkpoint; leave --policy out")
+            if self.policy not in (None, "last"):
+                raise UserError("--policy: --repair trains on from the newest checkpoint (last), not a kept "
+                                "policy; leave --policy out or give last")
             out = self.out or self.run_dir.with_name(self.run_dir.name + "-repaired")
             res = repair_run(self.run_dir, out, self.check, self.fix,
                              progress=lambda r: print_repair_round(console, r, self.fix.eval_episodes))
             print_certify(console, res["after"])
-            print(f"wrote the repaired run {out} (round {res['kept']} kept; certify.json, certify.png, checkpoint)")
+            if res["kept"]:
+                print(f"wrote the repaired run {out} (round {res['kept']} kept; certify.json, certify.png, checkpoint)")
+            else:  # no round was better in something and worse in nothing, or the kept one evaluated worse
+                print(f"no round improved on the original: {out} holds its h, π_Ω and f_n unchanged "
+                      "(certify.json, certify.png, checkpoint)")
             return 0
         self._refuse_repair_flags()
-        check_choice(self, "policy", POLICY_CHOICES)
-        run = with_policy(load_cbf_run(self.run_dir), self.run_dir, self.policy)
+        if self.policy is not None:
+            check_choice(self, "policy", POLICY_CHOICES)
+        run = with_policy(load_cbf_run(self.run_dir), self.run_dir, self.policy or "best")
         with StageProgress(Console(stderr=True), self.progress, f"certify {self.run_dir.name}") as on_stage:
             summary, nets = certify_run(self.run_dir, self.check, run=run, on_stage=on_stage)
             if on_stage is not None:

@@ -18,7 +18,14 @@ from typing import Annotated, Any
 
 import tyro
 
-from d2spo.algos import all_config_sections, config_sections, has_runtime_filter, known_algos, reward_mode
+from d2spo.algos import (
+    all_config_sections,
+    config_sections,
+    has_runtime_filter,
+    known_algos,
+    learner_anneals,
+    reward_mode,
+)
 from d2spo.algos.cpo import CPOConfig
 from d2spo.algos.d2spo import D2SPOConfig
 from d2spo.algos.ppo_lag import PPOLagConfig
@@ -258,6 +265,15 @@ class TrainConfig:
         if self.generalist and self.anneal != AnnealConfig():
             raise ConfigError("anneal", "has no effect with --generalist: every layout it draws is labelled "
                               "with its areas' true radii (docs/config.md); leave --anneal.* out")
+        if self.env.label_radius is not None:
+            if self.generalist:
+                raise ConfigError("label_radius", "has no effect with --generalist: every layout it draws is "
+                                  "labelled with its areas' true radii; leave --label-radius out")
+            if self.anneal.enabled and learner_anneals(self.algo):
+                raise ConfigError("label_radius", f"is a fixed relaxed radius for a learner that does not anneal; "
+                                  f"{self.algo} anneals its labelling radius from d_bar / k1 (Sec. IV-C): set that "
+                                  "with --anneal.d-bar and --anneal.k1, or turn annealing off with "
+                                  "--anneal.enabled False to use --label-radius")
         check_memory(self, seeds)
         return self
 

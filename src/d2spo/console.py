@@ -100,7 +100,11 @@ def as_typed(msg: str, args: list[str] = ()) -> str:
             flag = f"--{head}{'.' if head else ''}{stem}{parts[-1]}".replace("_", "-")
             if any(a == flag or a.startswith(flag + "=") for a in args):
                 return f"{flag}: {rest}"
-    return msg
+    # a section nested in a learner's (``--td3-lag.td3.actor-lr`` raises as ``td3.actor_lr``): the typed
+    # flag whose path ends with the field's
+    tail = "." + field.replace("_", "-")
+    typed = [a.split("=", 1)[0] for a in args if a.startswith("--") and a.split("=", 1)[0].endswith(tail)]
+    return f"{typed[0]}: {rest}" if len(typed) == 1 else msg
 
 
 # ------------------------------------------------------------------------------------ d2spo eval
@@ -117,7 +121,10 @@ def print_evaluation(res: dict, path: Path, filter_asked: bool | None) -> None:
     if not task and res.get("generalist"):  # its training mixture's task: say which one ran
         task = f", task {res['task']!r}"
     which = f", {res['policy']} policy" if str(res.get("policy", "")).startswith("best") else ""
-    limit = f" of {res['max_steps']} steps" if res.get("max_steps_given") else ""
+    # the limit always: under other dynamics (--dt, --v-max, a file) the default follows the evaluated
+    # robot's speed, as training's does, and differs from the trained one
+    limit = "" if res.get("max_steps") is None else (
+        f" of {'up to ' if len(res['per_layout']) > 1 and not res.get('max_steps_given') else ''}{res['max_steps']} steps")
     t = Table(title=f"{res['run']}{which} on {res['layout']} / {res['dynamics']} ({res['episodes']} episodes{limit}{filt}{task})")
     recurrence = "accepting_visits_per_episode" in res  # a patrol completes nothing: its visits instead
     score = "visits / optimum" if recurrence else "completed"

@@ -23,10 +23,12 @@ from rich.table import Table
 from d2spo.algos.td3 import TD3Config
 from d2spo.config import TrainConfig
 from d2spo.envs import EnvConfig, layouts, make_env
+from d2spo.errors import RunInUseError
 from d2spo.ltl import TASKS, translate
 from d2spo.ltl.tasks import BUCHI_SUITE
 from d2spo.progress import train_with_progress
 from d2spo.run import load_policy
+from d2spo.runio import make_run_dir, run_holder
 
 
 def random_rollout(layout: str, steps: int, seed: int, task: str | None = None) -> np.ndarray:
@@ -65,7 +67,7 @@ def run_demo(out: Path, seed: int = 0, episodes: int = 500) -> int:
 
     console = Console()
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    make_run_dir(out)  # a file in the way: one line, exit 2
     paper = layouts.load("paper")
     table = Table(title="The paper's tasks as automata (distances on the 'paper' layout)")
     for col in ("task", "formula", "states", "area visits needed"):
@@ -79,7 +81,10 @@ def run_demo(out: Path, seed: int = 0, episodes: int = 500) -> int:
     console.print(table)
 
     run = out / "d2spo-relaxed"
-    if run.exists():
+    if run.exists():  # the last demo's run, unless a demo is training it now
+        holder = run_holder(run)
+        if holder is not None:
+            raise RunInUseError(f"{run}: in use by another training ({holder}); wait for it to end, or use another --out")
         shutil.rmtree(run)
     cfg = TrainConfig(algo="d2spo", task=DEMO_TASK, episodes=episodes, seed=seed, window=min(200, episodes),
                       eval_episodes=50, env=EnvConfig(layout="relaxed"), fast=True,

@@ -155,9 +155,16 @@ def eval_env_config(cfg: TrainConfig, layout: str | None, dynamics: str | None =
 
 def dynamics_label(dynamics: str | None, overrides: dict[str, float] | None, trained: str) -> str:
     """How an evaluation's dynamics are named in its output and file name: the preset, or the file's
-    stem, or the trained preset, then each override, e.g. ``default-slip0.2``."""
-    base = trained if dynamics is None else (dynamics if "/" not in dynamics and not dynamics.endswith(".json")
-                                             else Path(dynamics).stem)
+    stem and the first 12 hex digits of its content's SHA-256 (as a layout file's, ``layout_tag``: two
+    files of one name in two folders never share an evaluation file), or the trained preset, then
+    each override, e.g. ``default-slip0.2``, ``robot-3f9a0c2b71de``."""
+    if dynamics is None:
+        base = trained
+    elif dynamics in dyn.PRESETS:
+        base = dynamics
+    else:
+        digest = sha256_of(Path(dynamics), lambda message: ConfigError("dynamics", message))
+        base = f"{Path(dynamics).stem}-{digest[:12]}"
     return base + "".join(f"-{k}{v:g}" for k, v in sorted((overrides or {}).items()))
 
 

@@ -33,7 +33,7 @@ from d2spo.config import config_to_dict
 from d2spo.console import version
 from d2spo.deploy.policy import CONTENT_KEY, FORMAT, FORMAT_VERSION, MANIFEST, WEIGHTS, content_sha256, file_sha256
 from d2spo.envs import geodesic
-from d2spo.errors import ConfigError, RunDirError
+from d2spo.errors import ConfigError, NaNError, RunDirError
 from d2spo.fields import check_choice, check_fields
 from d2spo.run import POLICY_CHOICES, build, check_layout_unchanged, load_policy, load_run_config
 from d2spo.runio import atomic_write_bytes, atomic_write_json, make_run_dir, temporary_of
@@ -103,9 +103,13 @@ def export_run(run_dir: Path, out: Path, ecfg: ExportConfig = ExportConfig()) ->
     check_out(out)
     env, params, learner = build(cfg)
     _, _, policy, meta = load_policy(run_dir, ecfg.policy, learner)
+    policy = jax.device_get(policy)
+    if not all(np.isfinite(np.asarray(leaf)).all() for leaf in jax.tree_util.tree_leaves(policy)
+               if np.issubdtype(np.asarray(leaf).dtype, np.floating)):  # a robot must never get NaN weights
+        raise NaNError(f"{run_dir}: the {meta['policy']} policy has non-finite weights; nothing exported")
     source = {"run": str(run_dir.resolve()), "algo": cfg.algo, "task": cfg.task, "layout": cfg.layout,
               "policy": meta["policy"], "episodes": meta.get("episodes"), "config_sha256": run_fingerprint(run_dir)}
-    return write_export(out, cfg, (env, params, learner), jax.device_get(policy), source, ecfg)
+    return write_export(out, cfg, (env, params, learner), policy, source, ecfg)
 
 
 def write_export(out: Path, cfg, built, policy, source: dict, ecfg: ExportConfig = ExportConfig()) -> dict:

@@ -8,7 +8,7 @@ from matplotlib.lines import Line2D
 
 from d2spo.envs.render import draw_trajectory
 from d2spo.plotstyle import BLUISH_GREEN, ORANGE, REDDISH_PURPLE, VERMILLION
-from d2spo.rollout import rejected
+from d2spo.runio import rejected
 
 OUTCOME_COLORS = {"completed": BLUISH_GREEN, "collided": VERMILLION, "neither": REDDISH_PURPLE, "rejected": ORANGE}
 """Trajectory colours: the task completed (true labelling), a collision, the episode ran out, or it

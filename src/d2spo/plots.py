@@ -109,13 +109,14 @@ ZERO_LINE = Line2D([], [], color=BLACK, linewidth=1.5, label="h = 0 (edge of the
 
 def rates_title(rates: Mapping) -> str:
     """A panel's outcome in words: "C% completed, S% safe", or for a recurrence (``rates`` with
-    ``route_optimal_visits``) "S% safe" and, on a second line, "V of N route-optimal visits (F%)"."""
-    safe = f"{rates['safety_rate']:.0%} safe"
+    ``route_optimal_visits``) "S% safe" and, on a second line, "V of N route-optimal visits (F%)".
+    Rates to 0.1%: whole percents would draw 99.5% safe as "100% safe"."""
+    safe = f"{rates['safety_rate']:.1%} safe"
     best = rates.get("route_optimal_visits")
     if best is None:
-        return f"{rates['completion_rate']:.0%} completed, {safe}"
+        return f"{rates['completion_rate']:.1%} completed, {safe}"
     frac = rates.get("visit_fraction")
-    share = "" if frac is None else f" ({frac:.0%})"
+    share = "" if frac is None else f" ({frac:.1%})"
     return f"{safe}\n{rates['accepting_visits_per_episode']:.1f} of {best} route-optimal visits{share}"
 
 

@@ -43,6 +43,8 @@ def summary_table(summary: dict, title: str):
     if not recurrence:
         t.add_row(f"completion rate (last {summary['window_episodes']})", pct(summary["completion_rate"]))
         t.add_row("completion rate, relaxed labelling", pct(summary["completion_rate_relaxed"]))
+    if summary.get("rejection_rate", 0.0) > 0.0:  # what the task forbids entered (a 'never' part, an order)
+        t.add_row(f"rejected by the task (last {summary['window_episodes']})", pct(summary["rejection_rate"]))
     if "accepting_visits_per_episode" in summary:  # a Büchi task
         t.add_row(f"accepting visits per episode (last {summary['window_episodes']})",
                   f"{summary['accepting_visits_per_episode']:.2f}")
@@ -117,7 +119,9 @@ def _stats(d: dict, eps_per_s: float) -> str:
     visits = f" · visits {d['accepting_visits']:.2f}/ep" if "accepting_visits" in d else ""  # a Büchi task
     done = "" if d.get("recurrence") else (  # a patrol: no episode completes it
         f" · done {pct(d['completion_rate'])} (relaxed {pct(d['completion_rate_relaxed'])})")
-    return f"{eps_per_s:.1f} ep/s · safe {pct(d['safety_rate'])}{visits}{done}"
+    rejected = f" · rejected {pct(d['rejection_rate'])}" if d.get("rejection_rate", 0.0) > 0.0 else ""
+    window = f" · last {d['window_episodes']}:" if "window_episodes" in d else " ·"
+    return f"{eps_per_s:.1f} ep/s{window} safe {pct(d['safety_rate'])}{visits}{done}{rejected}"
 
 
 def _clock(seconds: float) -> str:

@@ -8,6 +8,7 @@ counters, the NaN guard, policy snapshots, checkpoints, the kept policy of a val
 
 from __future__ import annotations
 
+import errno
 import math
 import time
 from collections.abc import Callable
@@ -113,7 +114,8 @@ class RunRecord:
 
     def __init__(self, cfg: TrainConfig, out: Path, meta: dict | None, checkpoints: Checkpoints,
                  overhead: dict | None = None, validation: Validation | PatrolValidation | None = None, wandb: WandbRun | None = None,
-                 visits: bool = False, recurrence: bool = False):
+                 visits: bool = False, recurrence: bool = False, max_steps: int | None = None):
+        self.max_steps = max_steps  # the episode limit: an episode that ends before it unfinished was rejected
         self.cfg, self.out, self.checkpoints, self.validation = cfg, Path(out), checkpoints, validation
         self.recurrence = recurrence  # a patrol: no episode completes it, the progress shows no completion
         self.wandb = wandb
@@ -184,7 +186,7 @@ class RunRecord:
             self.scalars(episode, EPISODE, row[0])
         if progress is not None:
             progress({"episodes": len(writer), "total": cfg.episodes, "env_steps": meta["env_steps"],
-                      "wall_seconds": meta["wall_seconds"], **window_rates(writer.rows, 200),
+                      "wall_seconds": meta["wall_seconds"], **window_rates(writer.rows, 200, self.max_steps),
                       **({"accepting_visits": float(np.mean(self.visits[-200:]))} if self.visits else {}),
                       **({"recurrence": True} if self.recurrence else {})})
 
@@ -230,6 +232,7 @@ class RunRecord:
     def scalars(self, scalars: dict[str, float], axis: str, step: int) -> None:
         """Scalars at ``step`` of the x axis ``axis`` (``ENV_STEPS`` or ``EPISODE``): to TensorBoard,
         and to W&B with ``--wandb``."""
+        check_tensorboard(self.tb, self.out / "tb")
         for tag, value in scalars.items():
             self.tb.add_scalar(tag, value, step)
         if self.wandb is not None and scalars:
@@ -251,7 +254,7 @@ class RunRecord:
             "compile_seconds": round(self.meta.get("compile_seconds", 0.0), 2),
             "compile_seconds_saved": round(self.meta.get("compile_seconds_saved", 0.0), 2),
             "env_steps_per_second": round(self.meta["env_steps"] / max(wall, 1e-9), 1),
-            "window": cfg.window, **window_rates(self.writer.rows, cfg.window),
+            "window": cfg.window, **window_rates(self.writer.rows, cfg.window, int(params.max_steps)),
             "device": jax.devices()[0].platform,
         }
         if params.aut.visit is not None:  # a Büchi task: mean over the window
@@ -289,7 +292,24 @@ def _tensorboard(path: Path, part: int = 0) -> SummaryWriter:
     make the name unique, so that a resumed session's files never take (and truncate) the names of
     the files an earlier session of the run opened in the same second: a short run resumed at
     once lost its first chunks' scalars that way. Names sort in the order the files were opened."""
-    return SummaryWriter(str(path), flush_secs=30, filename_suffix=f".{time.time_ns():020d}.{part:06d}")
+    # a queue long enough that a chunk's scalars never wait on it: when the writer thread has died
+    # (a full disk), ``check_tensorboard`` says so at the next call instead of a put that blocks forever
+    return SummaryWriter(str(path), flush_secs=30, max_queue=TB_QUEUE,
+                         filename_suffix=f".{time.time_ns():020d}.{part:06d}")
+
+
+TB_QUEUE = 100_000
+"""Events tensorboardX may hold for its writer thread (its default, 10, blocked the run for good
+once the thread had died on a full disk: a user trial, 2026-12-02)."""
+
+
+def check_tensorboard(writer: SummaryWriter, path: Path) -> None:
+    """OSError when ``writer``'s thread has stopped (tensorboardX's thread dies on a write error, such
+    as a full disk, after printing it): the run stops with one line (exit 1) instead of hanging."""
+    thread = getattr(getattr(getattr(writer, "file_writer", None), "event_writer", None), "_worker", None)
+    if thread is not None and not thread.is_alive():
+        raise OSError(errno.EIO, "TensorBoard's event writer stopped (its error is printed above: a full "
+                      "disk or a file-size limit?); free space and `d2spo train --resume` the run", str(path))
 
 
 def durable_tensorboard(writer: SummaryWriter, path: Path, part: int) -> SummaryWriter:
@@ -301,5 +321,6 @@ def durable_tensorboard(writer: SummaryWriter, path: Path, part: int) -> Summary
     TensorBoard lacked two episodes W&B had). Closing the writer drains the queue first; the run
     goes on in a new event file of the same directory (number ``part``), which TensorBoard reads as
     one run."""
+    check_tensorboard(writer, path)
     writer.close()
     return _tensorboard(path, part)

@@ -39,6 +39,7 @@ from d2spo.checkpoint import Checkpoints, run_fingerprint
 from d2spo.errors import RunDirError
 from d2spo.evaluate import EvalConfig, evaluate_run
 from d2spo.fields import check_fields
+from d2spo.run import best_policy_path
 from d2spo.runio import atomic_write_json, read_json
 from d2spo.safety import certify as cert
 from d2spo.safety import datasets as sd
@@ -47,17 +48,20 @@ from d2spo.safety.nominal import nominal_next
 from d2spo.wandb_log import RUN_ID
 
 
-def _figures(s: dict) -> tuple[float, float, int]:
-    """(certified fraction of ℒ, of D, violated grid points of ℒ and of D's explored part); nan → 0."""
+def _figures(s: dict) -> tuple[float, float, int, int]:
+    """(certified fraction of ℒ, of D, violated grid points of ℒ, of D's explored part); nan → 0."""
     return (float(np.nan_to_num(s["certified_L"])), float(np.nan_to_num(s["certified_D"])),
-            s["grid_L_violated"] + s.get("grid_D_violated", 0))
+            int(s["grid_L_violated"]), int(s.get("grid_D_violated", 0)))
 
 
 def better(s: dict, than: dict) -> bool:
     """True when `s` is better than `than` and worse in nothing: neither certified fraction falls, no
-    more grid points are violated, and one of the three improves."""
-    (l1, d1, v1), (l0, d0, v0) = _figures(s), _figures(than)
-    return l1 >= l0 and d1 >= d0 and v1 <= v0 and (l1 > l0 or d1 > d0 or v1 < v0)
+    more grid points of ℒ are violated and no more of D's (each count on its own: fewer violations in
+    D do not buy new ones in the ring, Proposition 1's), and one of the four improves."""
+    now, was = _figures(s), _figures(than)
+    certified_ok = now[0] >= was[0] and now[1] >= was[1]
+    violated_ok = now[2] <= was[2] and now[3] <= was[3]
+    return certified_ok and violated_ok and (now[0] > was[0] or now[1] > was[1] or now[2] < was[2] or now[3] < was[3])
 
 
 def counterexamples(nets: dict) -> tuple[np.ndarray, list[tuple[np.ndarray, int]]]:
@@ -155,17 +159,20 @@ def _save(run_dir: Path, out: Path, carry, meta: dict, note: dict) -> None:
     if out.exists():
         shutil.rmtree(out)
     # not the W&B run's id (wandb_log.RUN_ID): the repaired run is not the W&B run of the one it repairs
+    # nor the validated policy (best_policy_path) and its entry: the repaired h and π_Ω are the
+    # checkpoint's, and `d2spo eval`, `export` and `certify` take a kept policy before it
     shutil.copytree(run_dir, out, ignore=shutil.ignore_patterns("checkpoint*", "certify.*", "eval-*.json", ".*",
-                                                                RUN_ID))
-    Checkpoints(out, run_fingerprint(out)).save(carry, meta)
-    if (out / "summary.json").is_file():  # training figures stay true; the final evaluation does not
+                                                                RUN_ID, best_policy_path(out).name))
+    Checkpoints(out, run_fingerprint(out)).save(carry, {k: v for k, v in meta.items() if k != "best"})
+    if (out / "summary.json").is_file():  # training figures stay true; the final evaluations do not
         s = read_json(out / "summary.json", "summary")
         s.pop("eval", None)
+        s.pop("eval_best", None)
         atomic_write_json(out / "summary.json", dict(s, **note))
 
 
 def _evaluate(path: Path, episodes: int) -> dict:
-    r = evaluate_run(path, EvalConfig(episodes=episodes))
+    r = evaluate_run(path, EvalConfig(episodes=episodes, policy="last"))  # the checkpoint's: what repair trains
     return {k: r[k] for k in ("safety_rate", "completion_rate", "mean_return", "mean_distance")}
 
 

@@ -16,6 +16,7 @@ import numpy as np
 
 from d2spo import memo
 from d2spo.algos.base import Learner
+from d2spo.runio import rejected
 
 
 def acting_on(learner: Learner, params) -> Learner:
@@ -48,6 +49,9 @@ def _make_rollout(learner: Learner, env, episodes: int, max_steps: int, slot_per
         # other nesting, ``vmap`` of a per-episode scan, computes the same arrays but makes JAX
         # batch the scan's whole body again until its carry settles: tracing it cost seconds per
         # rollout (about 100 s of the test suite's 2-core time, 2026-11-28).
+        # Evaluation reads the task with the areas' true radii: a relaxed radius (``--label-radius``)
+        # is a training aid, and an episode it ended early would pass for one the task rejected.
+        params = params.replace(label_radius=params.area_radius)
         lrn = acting_on(learner, params)
         k0, k1 = jnp.moveaxis(jax.vmap(jax.random.split)(jax.random.split(key, episodes)), 1, 0)
         if slot_per_episode:
@@ -104,13 +108,6 @@ def rates(collided, completed, ret, length, poses=None, visits=None, *, max_step
     if max_steps is not None:
         out["rejection_rate"] = float(rejected(collided, completed, length, max_steps).mean())
     return out
-
-
-def rejected(collided, completed, length, max_steps: int) -> np.ndarray:
-    """bool [E]: the episodes the task rejected (a 'never' part broken, an area entered out of
-    order): ended before ``max_steps``, neither collided nor completed. One rejected at the very
-    last step is taken for out of time."""
-    return (np.asarray(length) < max_steps) & ~np.asarray(collided, bool) & ~np.asarray(completed, bool)
 
 
 def visit_optimum(task, max_steps: int, cfg, visits: float | None, margin: float | None = None) -> dict:

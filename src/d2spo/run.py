@@ -12,6 +12,8 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import re
+import shutil
 import warnings
 import weakref
 from pathlib import Path
@@ -74,10 +76,35 @@ def _build_generalist(cfg: TrainConfig):
 
 
 
+_OWN_TMP = re.compile(r"\..+\.\d+-[0-9a-f]+\.tmp")
+"""The temporary file of an atomic write a kill interrupted (``runio.atomic_write_bytes``' names)."""
+
+
+def check_new_run_dir(out: Path) -> None:
+    """RunDirError when ``out`` is a directory that holds files but no d2spo run (no config.json a run
+    wrote): a new run there would delete its hidden ``.*.tmp`` files and ``policy-*.msgpack`` and write
+    its own config.json over one of the same name. Empty, missing, or a run's (one stopped before its
+    first checkpoint is started again): fine. Checked before the run's lock file is made in it."""
+    out = Path(out)
+    if not out.is_dir():
+        return
+    names = sorted(p.name for p in out.iterdir() if p.name != ".lock" and not _OWN_TMP.fullmatch(p.name))
+    if not names:
+        return
+    try:
+        config_from_dict(read_json(out / "config.json", "the run's config"))
+        return
+    except (UserError, ValueError, TypeError, KeyError):
+        pass
+    shown = ", ".join(names[:3]) + (", …" if len(names) > 3 else "")
+    raise RunDirError(f"{out}: not empty and holds no d2spo run ({shown}); choose another --out, or an empty "
+                      "or new directory")
+
+
 def prepare_dir(out: Path, cfg: TrainConfig, resume: bool) -> None:
     """With the directory's lock held: temporary files a kill left are removed; a resume checks
     ``cfg`` against config.json; a new run writes config.json (over a run killed before its first
-    checkpoint, whose policy snapshots go too)."""
+    checkpoint, whose policy snapshots and TensorBoard files go too)."""
     remove_tmp_files(out)
     cfg_path = out / "config.json"
     if resume:
@@ -92,6 +119,8 @@ def prepare_dir(out: Path, cfg: TrainConfig, resume: bool) -> None:
         raise RunDirError(f"{out}: already holds a run; use --resume {out} or another --out")
     for p in out.glob("policy-*.msgpack"):
         remove_file(p)
+    if (out / "tb").is_dir():  # the stopped start's scalars would mix with this run's in TensorBoard
+        shutil.rmtree(out / "tb")
     atomic_write_json(cfg_path, config_to_dict(cfg))
     record_inputs(out, cfg)
 

@@ -339,17 +339,30 @@ def _parse_row(path: Path, i: int, line: bytes, width: int) -> tuple:
     return row
 
 
-def window_rates(rows: list[tuple], window: int) -> dict[str, float]:
-    """Safety and completion rates over the last ``window`` episodes (the paper's metric)."""
+def rejected(collided, completed, length, max_steps: int) -> np.ndarray:
+    """bool [E]: the episodes the task rejected (a 'never' part broken, an area entered out of
+    order): ended before ``max_steps``, neither collided nor completed. One rejected at the very
+    last step is taken for out of time."""
+    return (np.asarray(length) < max_steps) & ~np.asarray(collided, bool) & ~np.asarray(completed, bool)
+
+
+def window_rates(rows: list[tuple], window: int, max_steps: int | None = None) -> dict[str, float]:
+    """Safety and completion rates over the last ``window`` episodes (the paper's metric); with
+    ``max_steps``, the share the task rejected too (``rejection_rate``: ended before the limit,
+    neither collided nor completed under the labelling that ended it, the relaxed one in training;
+    ``rejected`` with that column)."""
     if not rows:
         nan = float("nan")
         return {"safety_rate": nan, "completion_rate": nan, "completion_rate_relaxed": nan, "mean_return": nan,
-                "window_episodes": 0}
+                "window_episodes": 0, **({"rejection_rate": nan} if max_steps is not None else {})}
     a = np.asarray(rows[-window:], dtype=np.float64)
-    return {
+    out = {
         "safety_rate": float(1.0 - a[:, 3].mean()),
         "completion_rate": float(a[:, 4].mean()),
         "completion_rate_relaxed": float(a[:, 5].mean()),
         "mean_return": float(a[:, 1].mean()),
         "window_episodes": len(a),
     }
+    if max_steps is not None:
+        out["rejection_rate"] = float(rejected(a[:, 3] > 0, a[:, 5] > 0, a[:, 6], max_steps).mean())
+    return out

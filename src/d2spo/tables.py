@@ -76,14 +76,21 @@ def write_table(out: Path, target: str, runs: Mapping[str, Iterable[Path]], task
         w.writerows([{k: float(f"{v:.12g}") if isinstance(v, float) else v for k, v in r.items() if not k.startswith("_")}
                      for r in rows])
     ran = sorted({int(g.get("episodes", episodes)) for gs in by.values() for g in gs}) or [episodes]  # the rows'
-    window = min(next((g["window"] for gs in by.values() for g in gs), 2000), max(ran))  # a short run: all of it
-    span = f"{f'the last {window} of' if window < min(ran) else 'all'} {' or '.join(map(str, ran))} training episodes"
+    # each run's window (a short run: all of it); runs used with --allow-stale may differ
+    windows = sorted({min(int(g["window"]), int(g.get("episodes", episodes))) for gs in by.values() for g in gs
+                      if "window" in g})
+    if len(windows) > 1:
+        span = (f"each run's own window, the last {' or '.join(map(str, windows))} of its "
+                f"{' or '.join(map(str, ran))} training episodes")
+    else:
+        window = windows[0] if windows else min(2000, max(ran))
+        span = f"{f'the last {window} of' if window < min(ran) else 'all'} {' or '.join(map(str, ran))} training episodes"
     if ran != [episodes]:  # runs of another length, used with --allow-stale: say what the rows are
         span += (f" (the runs' own: {episodes} were asked, and runs trained with other settings were used as "
                  "they are, --allow-stale)")
     lines = [f"### {TITLES[target]}", "",
              f"Safety and completion rate (%) over {span}, mean ± std "
-             f"over seeds; task `{task}`, layout `{layout}`; the paper's figures beside them. \"Collisions, all "
+             f"over seeds (the population std, ddof 0); task `{task}`, layout `{layout}`; the paper's figures beside them. \"Collisions, all "
              f"episodes\": the share of every training episode that collided (mean over seeds).", "",
              "| method | seeds | safety | completion | paper safety | paper completion | collisions, all episodes | wall time / run |",
              "|---|---:|---:|---:|---:|---:|---:|---:|"]

@@ -25,15 +25,17 @@ from d2spo.algos.base import schedule_values, with_schedule
 from d2spo.algos.generalist import Redraw
 from d2spo.checkpoint import Checkpoints, fingerprint, has_checkpoint, run_fingerprint
 from d2spo.config import TrainConfig, config_to_dict
-from d2spo.errors import ConfigError, RunDirWarning
+from d2spo.errors import ConfigError, RunDirError, RunDirWarning
 from d2spo.pipelined import Pipelined
 from d2spo.record import ProgressFn, RunRecord
 from d2spo.rollout import acting_on
 from d2spo.run import (
+    GROUP_PREFIX,
     RESUME_REMEDY,
     build,
     carry_template,
     check_layout_unchanged,
+    check_new_run_dir,
     group_dir,
     preflight_checks,
     prepare_dir,
@@ -60,13 +62,30 @@ def train(
         require_wandb()
     if resume:  # before the build reads the layout file
         check_layout_unchanged(out, cfg, RESUME_REMEDY)
+        _refuse_a_group_member(out)
     built = build(cfg)  # a config that cannot be built is refused before anything is written
     preflight_checks(cfg, *built[:2])
     if resume and cfg.eval_untrained and has_checkpoint(out):
         raise ConfigError("eval_untrained", "the initial policy of a resumed run is gone; "
                           "evaluate it in a run that starts from its first episode")
+    if not resume:  # a user's folder: not emptied of its files (before the lock file is made in it)
+        check_new_run_dir(out)
     with RunLock(out):
         return _train_locked(cfg, out, built, resume, progress, stop_after_chunks, t_enter)
+
+
+def _refuse_a_group_member(out: Path) -> None:
+    """RunDirError when ``out`` is an unfinished seed of an unfinished group (``train_seeds``, as
+    ``d2spo reproduce`` trains seeds together), whose checkpoint holds it: resumed alone, from the
+    seed's own checkpoint or from its first episode, it would go on as a solo run, which rounds
+    differently, where the group's other seeds are the group's (a user trial, 2026-12-02)."""
+    if (out / "summary.json").is_file():
+        return
+    for group in sorted(out.parent.glob(GROUP_PREFIX + "*")):
+        if out.name in group.name[len(GROUP_PREFIX):].split("+") and has_checkpoint(group):
+            raise RunDirError(f"{out}: one of the seeds trained together in {group.name}, whose checkpoint holds "
+                              "them; resume them together with the same `d2spo reproduce` command (resumed alone "
+                              "it would go on as a solo run, which rounds differently)")
 
 
 def _train_locked(cfg: TrainConfig, out: Path, built, resume: bool, progress: ProgressFn | None,
@@ -82,9 +101,15 @@ def _train_locked(cfg: TrainConfig, out: Path, built, resume: bool, progress: Pr
         checkpoints.tidy()
         if meta["episodes"] >= cfg.episodes and (out / "summary.json").is_file():
             # finished: compiling, evaluating and rewriting summary.json again would add to its times
-            warnings.warn(f"{out}: the run finished ({meta['episodes']} episodes); its summary.json stands, "
-                          "nothing was trained or evaluated again", RunDirWarning, stacklevel=3)
-            return read_json(out / "summary.json", "the run's summary")
+            try:
+                summary = read_json(out / "summary.json", "the run's summary")
+            except RunDirError as e:  # damaged: written again below, as when a kill came before it
+                warnings.warn(f"{e}; the run finished ({meta['episodes']} episodes): evaluating it again to write "
+                              "a new one", RunDirWarning, stacklevel=3)
+            else:
+                warnings.warn(f"{out}: the run finished ({meta['episodes']} episodes); its summary.json stands, "
+                              "nothing was trained or evaluated again", RunDirWarning, stacklevel=3)
+                return summary
         carry = jax.tree_util.tree_map(jnp.asarray, carry)
     with wandb_run(cfg, out, continuing=meta is not None) as wandb:  # None without --wandb
         started = _compiling([progress], [meta], cfg)
@@ -99,7 +124,7 @@ def _train_locked(cfg: TrainConfig, out: Path, built, resume: bool, progress: Pr
         overhead = _compiled(chunk, carry, t_enter, started, [progress], [meta], cfg)
         validation = validation_for(cfg, env, params, learner)
         run = RunRecord(cfg, out, meta, checkpoints, overhead, validation, wandb, visits=params.aut.visit is not None,
-                        recurrence=runs_a_recurrence(env))
+                        recurrence=runs_a_recurrence(env), max_steps=int(params.max_steps))
         redraw = Redraw(cfg, env) if cfg.generalist and cfg.generalist_redraw else None
         if redraw is not None:  # a resumed run's bank as its checkpoint left it
             chunk.params = redraw.apply(chunk.params, run.meta.get("redrawn", {}))
@@ -284,7 +309,8 @@ def _train_seeds_locked(cfgs: list[TrainConfig], outs: list[Path], built, progre
         runs = [None if s_ is not None else RunRecord(c, o, m, Checkpoints(o, p), overhead,
                                                       validation_for(c, env, params, learner), wandb=w,
                                                       visits=params.aut.visit is not None,
-                                                      recurrence=runs_a_recurrence(env))
+                                                      recurrence=runs_a_recurrence(env),
+                                                      max_steps=int(params.max_steps))
                 for c, o, m, s_, p, w in zip(cfgs, outs, metas, summaries, prints, sinks)]
         chunks_this_call = 0
         while any(s_ is None for s_ in summaries):

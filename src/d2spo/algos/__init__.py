@@ -110,6 +110,11 @@ def reward_mode(algo: str) -> str:
     return LEARNERS[algo].reward
 
 
+def learner_anneals(algo: str) -> bool:
+    """Whether ``algo`` anneals the labelling radius (Sec. IV-C) when ``--anneal.enabled`` is on."""
+    return LEARNERS[algo].anneal
+
+
 def has_runtime_filter(algo: str) -> bool:
     """Whether ``algo`` executes D²SPO's π_Ω, whose runtime filter ``--runtime-filter`` switches."""
     return LEARNERS[algo].runtime_filter

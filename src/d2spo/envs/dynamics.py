@@ -100,6 +100,8 @@ NOT_DYNAMICS = {
 """Keys a robot's description may hold that are not its motion: the flag each is given by."""
 
 _POSITIVE = ("dt", "v_max", "omega_max", "v_gain", "omega_gain")
+LARGEST = 1e6
+"""The largest value a dynamics field takes: far beyond any robot, and far below float32's overflow."""
 
 
 def check_value(name: str, value, where: str = "") -> float:
@@ -111,6 +113,9 @@ def check_value(name: str, value, where: str = "") -> float:
         raise ConfigError(name, f"must be in [0, 1), got {value}{where}")
     if value < 0 or (value == 0 and name in _POSITIVE):
         raise ConfigError(name, f"must be {'positive' if name in _POSITIVE else 'non-negative'}, got {value}{where}")
+    if value > LARGEST:
+        raise ConfigError(name, f"must be at most {LARGEST:g}, got {value:g}{where} (the float32 dynamics overflow "
+                          "long before such values)")
     return float(value)
 
 

@@ -102,6 +102,9 @@ class EnvConfig:
                      flag=("collision_terminates", "observe_path", "reverse"))
         if self.slip is not None and not (isinstance(self.slip, (int, float)) and 0 <= self.slip < 1):
             raise ConfigError("slip", f"must be in [0, 1), got {self.slip!r}")
+        for name in dynamics.DYNAMICS_FIELDS:  # the motion's range as a dynamics file's (at most LARGEST)
+            if getattr(self, name) is not None:
+                dynamics.check_value(name, getattr(self, name))
         check_choice(self, "label_mode", LABEL_MODES)
         check_choice(self, "distance_obs", DISTANCE_OBS)
         if self.observe_path and self.reward.shaping_metric != PER_STATE:

@@ -365,6 +365,10 @@ def make_env(cfg: EnvConfig, task: Any = "phi1") -> tuple[Env, EnvParams]:
         max_steps = cfg.base_max_steps if compiled.distance is None else preflight.default_max_steps(
             compiled, cfg.dt, cfg.v_max * cfg.v_gain, cfg.base_max_steps,
             cfg.recurrence_max_steps)  # an automaton given by arrays(): no routes
+        if max_steps > preflight.MAX_DERIVED_STEPS:  # a tiny --dt or --v-max: an episode would never end
+            raise ConfigError("episode limit", f"{name}'s shortest route needs over {preflight.MAX_DERIVED_STEPS:,} "
+                              f"steps of {cfg.dt:g} s at {cfg.v_max * cfg.v_gain:g} m/s (v_max · v_gain); "
+                              "check --dt and --v-max, or give --max-steps")
     if per_state:
         preflight.check_feasible(compiled, repr(name))
     env = Env(cfg, automaton, compiled.n_states, len(layout.obstacles), len(layout.areas), compiled)

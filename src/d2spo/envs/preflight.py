@@ -152,6 +152,11 @@ def check_margin(task: CompiledTask, margin: float, name: str) -> None:
                       stacklevel=3)
 
 
+MAX_DERIVED_STEPS = 100_000
+"""The longest episode limit ``default_max_steps`` may give: a longer one comes from a time step or
+speed too small for the layout (``--dt 1e-6``), and ``make_env`` refuses it."""
+
+
 def default_max_steps(task: CompiledTask, dt: float, v_max: float, base: int, recurrence_floor: int = 0) -> int:
     """The step limit of ``EnvConfig.max_steps=None``: ``base`` (``EnvConfig.base_max_steps``), or,
     when the task's shortest route at ``v_max`` needs more than ``TIGHT_FRACTION`` of those steps,
@@ -165,7 +170,7 @@ def default_max_steps(task: CompiledTask, dt: float, v_max: float, base: int, re
     if not math.isfinite(need) or need <= TIGHT_FRACTION * base:
         steps = int(base)
     else:
-        steps = int(50 * math.ceil(ROOM * need / 50))
+        steps = int(50 * math.ceil(min(ROOM * need, 2.0 ** 40) / 50))  # bounded: a 1e-300 s step overflowed int
     return max(steps, int(recurrence_floor)) if task.recurrence else steps
 
 

@@ -79,7 +79,11 @@ def label_radius(area_radius: jax.Array, episodes: jax.Array, cfg: AnnealConfig,
 
 
 def annealed_params(params, episodes: jax.Array, cfg: AnnealConfig, k2: float):
-    """Env params whose labelling radius is the annealed one after ``episodes`` finished episodes."""
+    """Env params whose labelling radius is the annealed one after ``episodes`` finished episodes;
+    ``params`` as they are when annealing is off (their ``label_radius``: the areas' true radii, or
+    ``--label-radius``'s fixed relaxed radius)."""
+    if not cfg.enabled:
+        return params
     cap = separation_cap(params.area_center, params.area_radius) if cfg.separate else None
     radius = label_radius(params.area_radius, episodes, cfg, k2, cap)
     if cfg.relax == "targets":
