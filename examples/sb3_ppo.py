@@ -11,11 +11,16 @@ its ``info["episode"]`` (r, l, t) without colliding with the env's own ``info["e
 from __future__ import annotations
 
 import argparse
+import sys
 
 import gymnasium as gym
 import numpy as np
-from stable_baselines3 import PPO
-from stable_baselines3.common.env_util import make_vec_env
+
+try:
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.env_util import make_vec_env
+except ImportError:  # not a d2spo dependency: one line, not a traceback
+    sys.exit("examples/sb3_ppo.py needs Stable-Baselines3 (and torch): pip install stable-baselines3")
 
 import d2spo.envs  # noqa: F401  registers d2spo/Nav-v0
 

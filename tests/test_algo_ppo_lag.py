@@ -121,3 +121,23 @@ def test_ppo_lag_learns_relaxed(tmp_path):
 
     ev = evaluate_run(tmp_path / "run", EvalConfig(episodes=4))
     assert ev["episodes"] == 4 and 0.0 <= ev["safety_rate"] <= 1.0 and ev["max_steps"] > 0
+
+
+def test_cost_advantages_are_centred_only_unless_asked_and_old_runs_keep_their_setting():
+    """OmniSafe's buffer and safety-starter-agents centre the cost advantages without rescaling; d2spo
+    divided them by their std until 2026-12-02, which a config.json without the field still reads."""
+    import json
+    from pathlib import Path
+
+    from d2spo.algos.onpolicy import standardize
+    from d2spo.config import config_from_dict, config_to_dict
+
+    assert PPOLagConfig().scale_cost_advantage is False
+    x = jnp.array([0.01, -0.01, 0.03])
+    np.testing.assert_allclose(np.asarray(standardize(x, scale=False)), np.asarray(x - jnp.mean(x)), atol=1e-7)
+    data = config_to_dict(relaxed())
+    del data["ppo_lag"]["scale_cost_advantage"]
+    assert config_from_dict(data).ppo_lag.scale_cost_advantage is True
+    published = Path(__file__).resolve().parent.parent / "docs" / "results" / "runs" / "ppo-lag-phi1-paper-s0"
+    assert config_from_dict(json.loads((published / "config.json").read_text())).ppo_lag.scale_cost_advantage is \
+        ("scale_cost_advantage" not in (published / "config.json").read_text())

@@ -217,3 +217,45 @@ def test_cleanrl_style_ppo_on_the_gymnasium_api_learns_F_A1_on_open():
     after = _first_episode_success(envs, lambda obs: np.asarray(greedy(agent, obs)))
     assert before <= 0.1 and after >= 0.9, (before, after)
     assert np.mean(lengths[-N_ENVS:]) < MAX_STEPS  # RecordEpisodeStatistics: episodes now end early
+
+
+def test_seeding_follows_gymnasiums_contract():
+    """A reset without a seed drew nothing (every env and process began alike, a vector env's sub-envs
+    too); seeds of 2**32 and above were the low 32 bits' (2**32 was seed 0); a list of seeds was a
+    JAX TypeError."""
+    first = [gym.make("d2spo/Nav-v0", **SMALL).reset()[0] for _ in range(2)]
+    assert not np.array_equal(*first)  # each from entropy
+    env = gym.make("d2spo/Nav-v0", **SMALL)
+    at = {s: env.reset(seed=s)[0] for s in (0, 7, 2**32, 2**32 + 7, 2**63)}
+    assert not np.array_equal(at[0], at[2**32]) and not np.array_equal(at[7], at[2**32 + 7])
+    assert np.array_equal(at[7], env.reset(seed=7)[0])  # repeatable
+    with pytest.raises(gym.error.Error, match="greater or equal to zero"):  # Gymnasium's own check
+        env.reset(seed=-1)
+    envs = gym.make_vec("d2spo/Nav-v0", num_envs=3, **SMALL)
+    a, _ = envs.reset(seed=[0, 1, 2])
+    assert np.array_equal(a, envs.reset(seed=[0, 1, 2])[0]) and not np.array_equal(a, envs.reset(seed=[0, 1, 3])[0])
+    with pytest.raises(ValueError, match="a list of 3 seeds"):
+        envs.reset(seed=[0, 1])
+
+
+def test_wrong_shapes_and_counts_are_refused_where_they_are_given():
+    """The functional env stepped [0.7] as (0.7, 0.7) (JAX clamps an index) and ignored a third entry;
+    the Gym env's error came from inside JAX; num_envs=0 was accepted."""
+    from d2spo.envs import EnvConfig, make_env
+
+    fenv, params = make_env(EnvConfig(layout="relaxed"), task="F A1")
+    state, _ = fenv.reset(jax.random.PRNGKey(0), params)
+    for bad in (jnp.array([0.7]), jnp.array([0.7, 0.0, 9.0])):
+        with pytest.raises(ValueError, match=r"action: expected shape \(2,\)"):
+            fenv.step(jax.random.PRNGKey(1), state, bad, params)
+    states, _ = fenv.reset_batch(jax.random.PRNGKey(0), params, 4)
+    with pytest.raises(ValueError, match="expected shape"):
+        fenv.step_batch(jax.random.PRNGKey(1), states, jnp.zeros((4, 1)), params)
+    env = gym.make("d2spo/Nav-v0", **SMALL)
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match=r"action: expected Box.*got shape \(3,\)"):
+        env.step(np.zeros(3, np.float32))
+    with pytest.raises(ConfigError, match="num_envs: must be a whole number >= 1"):
+        gym.make_vec("d2spo/Nav-v0", num_envs=0, **SMALL)
+    with pytest.raises(ConfigError, match="config: expected a d2spo.envs.EnvConfig, got dict"):  # was replace()'s TypeError
+        gym.make("d2spo/Nav-v0", config={"layout": "open"})

@@ -330,6 +330,7 @@ FORMER_DEFAULTS: dict[tuple[str, ...], Any] = {
     ("cbf", "updates_per_iter"): 10,  # every config.json names it; 10 was the default until 2026-11-30
     ("cbf", "nominal_updates_per_iter"): 10,
     ("env", "distance_obs"): "capped",  # a generalist saw every distance beyond 20 m as 20 m until 2026-11-27
+    ("ppo_lag", "scale_cost_advantage"): True,  # PPO-Lagrangian standardised its cost advantages until 2026-12-02
 }
 """Settings whose default has changed, with the value a config.json that does not mention them was
 trained with (the field did not exist yet, and its old behaviour is this value)."""

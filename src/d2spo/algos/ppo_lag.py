@@ -83,6 +83,9 @@ class PPOLagConfig:
     """Gradient-norm clip of policy and critics; None = off."""
     normalize_obs: bool = True
     """Normalise observations with running moments."""
+    scale_cost_advantage: bool = False
+    """Divide the cost advantages by their std too (False: centre them only, as OmniSafe's buffer and
+    safety-starter-agents do; True: the standardisation d2spo used until 2026-12-02)."""
     lagrange: LagrangeConfig = field(default_factory=lambda: LagrangeConfig(cost_limit=0.05))
     """Multiplier; cost_limit: a tolerated collision rate (0.05: 95 % safe)."""
 
@@ -90,7 +93,8 @@ class PPOLagConfig:
         check_fields(self, "ppo_lag", nullable=("max_grad_norm",), widths=("hidden",), finite=("log_std_init",),
                      count=("rollout_steps", "epochs", "n_minibatches"), lr=("lr", "critic_lr"),
                      positive=("clip", "target_kl", "max_grad_norm"), non_negative=("entropy_coef",),
-                     discount=("gamma", "cost_gamma"), fraction=("lam", "cost_lam"), flag=("normalize_obs",))
+                     discount=("gamma", "cost_gamma"), fraction=("lam", "cost_lam"),
+                     flag=("normalize_obs", "scale_cost_advantage"))
 
 
 def ppo_clip_loss(log_prob: jax.Array, old_log_prob: jax.Array, adv: jax.Array, clip: float):
@@ -189,7 +193,10 @@ class PPOLagLearner:
         lam = lagrange.value(lag)
         adv = advantages(self.nets, c.critics, batch, self.rollouts.norm(rs.obs_rms, rs.obs), cfg.gamma, cfg.lam,
                          cfg.cost_gamma, cfg.cost_lam)
-        combined = lagrangian_advantage(standardize(adv.reward), standardize(adv.cost), lam)
+        # reward advantages standardised; cost advantages centred only (OmniSafe, safety-starter-agents):
+        # rescaled, a rollout without collisions (std(A_c) ~ 0.01) blew the cost critic's noise up to unit size
+        combined = lagrangian_advantage(standardize(adv.reward), standardize(adv.cost, scale=cfg.scale_cost_advantage),
+                                        lam)
         flat = flatten_time_env(Samples(batch.obs, batch.action, batch.log_prob, batch.mean, batch.log_std, combined,
                                         adv.reward_target, adv.cost_target))
         nan = jnp.float32(jnp.nan)

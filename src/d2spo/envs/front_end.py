@@ -15,6 +15,9 @@ ENV_ID = "d2spo/Nav-v0"
 
 def env_config(config: EnvConfig | None, overrides: dict[str, Any]) -> EnvConfig:
     """``config`` (or the default) with keyword overrides, e.g. ``layout="relaxed"``."""
+    if config is not None and not isinstance(config, EnvConfig):  # e.g. a dict: its fields are keywords
+        raise ConfigError("config", f"expected a d2spo.envs.EnvConfig, got {type(config).__name__}; pass its "
+                          "fields as keyword arguments instead (layout=..., max_steps=...)")
     config = config or EnvConfig()
     known = {f.name for f in fields(EnvConfig)}
     for name in overrides:

@@ -189,7 +189,7 @@ class NavEnv(gymnasium.Env):
         self.render_mode = render_mode
         self.metadata = {**self.metadata, "render_fps": round(1.0 / self.env.config.dt),
                          "render_modes": ["rgb_array", "human"] if _has_display() else ["rgb_array"]}
-        self._key = jax.random.key(0)
+        self._key = None  # the first reset's seed, or one drawn from entropy (Gymnasium's rule)
         self._state = None
         self._pose = np.asarray(self.env.layout.start, np.float32)
         self._renderer: FrameRenderer | None = None
@@ -203,7 +203,9 @@ class NavEnv(gymnasium.Env):
         """A new episode (``options`` is not used); ``seed`` makes it and every later step repeatable."""
         super().reset(seed=seed)
         if seed is not None:
-            self._key = jax.random.key(seed)
+            self._key = seed_key(seed)
+        elif self._key is None:  # never seeded: a seed from entropy, through Gymnasium's np_random
+            self._key = seed_key(int(self.np_random.integers(2**63)))
         self._state, obs = self._fns.reset(self._next_key(), self.params)
         self._pose = np.asarray(self._state.pose)
         if self.render_mode == "human":
@@ -214,7 +216,11 @@ class NavEnv(gymnasium.Env):
         """Returns (obs, reward, terminated, truncated, info) with the cost in ``info["cost"]``."""
         if self._state is None:
             raise RuntimeError("call reset() before step()")
-        action = jnp.asarray(_finite(action, "action"), jnp.float32).reshape(self.env.action_size)
+        action = jnp.asarray(_finite(action, "action"), jnp.float32)
+        if action.size != self.env.action_size:
+            raise ValueError(f"action: expected {self.action_space} (shape ({self.env.action_size},)), got shape "
+                             f"{action.shape}")
+        action = action.reshape(self.env.action_size)
         self._state, _, reward, cost, done, info = self._fns.step(self._next_key(), self._state, action, self.params)
         reward, cost, done, info = jax.device_get((reward, cost, done, info))
         self._pose = info["next_pose"]
@@ -279,13 +285,15 @@ class NavVectorEnv(VectorEnv):
             overrides["max_steps"] = max_episode_steps
         self._fns = compiled(env_config(config, overrides), task)
         self.env, self.params = self._fns.env, self._fns.params
+        if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
+            raise ConfigError("num_envs", f"must be a whole number >= 1, got {num_envs!r}")
         self.num_envs = num_envs
         self.render_mode = render_mode
         self.metadata = {**self.metadata, "autoreset_mode": mode, "render_fps": round(1.0 / self.env.config.dt)}
         self.single_observation_space, self.single_action_space = _spaces(self.env)
         self.observation_space = gymnasium.vector.utils.batch_space(self.single_observation_space, num_envs)
         self.action_space = gymnasium.vector.utils.batch_space(self.single_action_space, num_envs)
-        self._key = jax.random.key(0)
+        self._key = None  # the first reset's seed, or one drawn from entropy
         self._state = None
         self._autoreset = np.zeros(num_envs, bool)
         self._first_obs = None  # where _autoreset: the first observation of the next episode
@@ -297,9 +305,23 @@ class NavVectorEnv(VectorEnv):
         return key
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
-        """Reset every sub-environment (``options`` is not used)."""
-        if seed is not None:
-            self._key = jax.random.key(seed)
+        """Reset every sub-environment (``options`` is not used). ``seed``: one int for the batch, or a
+        list of one per sub-environment (``num_envs`` ints, as Gymnasium allows), which seeds the batch
+        as a whole: the same list gives the same episodes (sub-environment i is not the single env of
+        seed ``seed[i]``: the batch splits one key)."""
+        if isinstance(seed, (list, tuple, np.ndarray)):
+            seeds = [int(x) for x in seed]
+            if len(seeds) != self.num_envs:
+                raise ValueError(f"seed: a list of {self.num_envs} seeds (one per sub-environment), got {len(seeds)}")
+            key = seed_key(seeds[0])
+            for x in seeds[1:]:
+                for word in _words(x):
+                    key = jax.random.fold_in(key, word)
+            self._key = key
+        elif seed is not None:
+            self._key = seed_key(seed)
+        elif self._key is None:  # never seeded: a seed from entropy
+            self._key = seed_key(int(np.random.default_rng().integers(2**63)))
         self._state, obs = self._fns.reset_batch(self._next_key(), self.params, self.num_envs)
         self._autoreset = np.zeros(self.num_envs, bool)
         self._pose = np.asarray(self._state.pose)
@@ -309,7 +331,11 @@ class NavVectorEnv(VectorEnv):
         """Step all sub-environments; returns (obs, reward, terminated, truncated, info), cost in info."""
         if self._state is None:
             raise RuntimeError("call reset() before step()")
-        actions = jnp.asarray(_finite(actions, "actions"), jnp.float32).reshape(self.num_envs, self.env.action_size)
+        actions = jnp.asarray(_finite(actions, "actions"), jnp.float32)
+        if actions.size != self.num_envs * self.env.action_size:
+            raise ValueError(f"actions: expected {self.action_space} (shape ({self.num_envs}, "
+                             f"{self.env.action_size})), got shape {actions.shape}")
+        actions = actions.reshape(self.num_envs, self.env.action_size)
         next_step = self.metadata["autoreset_mode"] == AutoresetMode.NEXT_STEP
         autoreset = jnp.asarray(self._autoreset if next_step else np.zeros(self.num_envs, bool))
         self._state, *out = self._fns.step_masked(self._next_key(), self._state, actions, self.params, autoreset)
@@ -349,6 +375,28 @@ class VectorCostTuple(VectorWrapper):
     def step(self, actions):
         obs, reward, terminated, truncated, info = self.env.step(actions)
         return obs, reward, info["cost"], terminated, truncated, info
+
+
+def seed_key(seed: int) -> jax.Array:
+    """The JAX key of a Gymnasium seed, any int >= 0: ``jax.random.key(seed)`` below 2**32 (as it always
+    was), its higher 32-bit words folded in above (``key`` alone keeps the low 32 bits: 2**32 was seed 0)."""
+    low, *high = _words(seed)
+    key = jax.random.key(low)
+    for word in high:
+        key = jax.random.fold_in(key, word)
+    return key
+
+
+def _words(seed: int) -> list[int]:
+    """``seed`` (an int >= 0) as 32-bit words, lowest first, at least one."""
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"seed: expected an int >= 0, got {seed!r}")
+    seed, words = int(seed), []
+    while True:
+        words.append(seed & 0xFFFFFFFF)
+        seed >>= 32
+        if not seed:
+            return words
 
 
 def register() -> None:

@@ -228,7 +228,12 @@ class Env:
     def step(
         self, key: jax.Array, state: EnvState, action: jnp.ndarray, params: EnvParams
     ) -> tuple[EnvState, jnp.ndarray, jnp.ndarray, jnp.ndarray, jnp.ndarray, dict[str, Any]]:
-        """One control period; returns (state, obs, reward, cost, done, info), resetting if done."""
+        """One control period; returns (state, obs, reward, cost, done, info), resetting if done.
+        ``action`` has shape (``action_size``,) (checked when traced: JAX would clamp a missing entry's
+        index and step on a wrong command)."""
+        if jnp.shape(action) != (self.action_size,):
+            raise ValueError(f"action: expected shape ({self.action_size},), got {jnp.shape(action)} "
+                             f"(a batch of actions goes to step_batch, shape (n, {self.action_size}))")
         aut = params.aut
         u = _uniform(key, 8)
         normal = _compute_once(_SQRT2 * jax.scipy.special.erfinv(u))  # vectorised over all 8
@@ -316,6 +321,8 @@ class Env:
     def step_batch(self, key: jax.Array, state: EnvState, action: jnp.ndarray, params: EnvParams):
         """Step a batch (leading axis n): ``step(k_i, state[i], action[i], params)`` with
         ``k_i = jax.random.split(key, n)[i]``."""
+        if jnp.ndim(action) != 2:
+            raise ValueError(f"actions: expected shape (n, {self.action_size}), got {jnp.shape(action)}")
         n = action.shape[0]
         return jax.vmap(self.step, in_axes=(0, 0, 0, None))(jax.random.split(key, n), state, action, params)
 
