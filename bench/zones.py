@@ -4,6 +4,12 @@
     python bench/zones.py --runs RUNS --seeds 0 --episodes 100 --out /tmp/zones
     python bench/zones.py --quick --runs /tmp/zq         # a check of the script: a tiny training, 8 episodes
 
+Beside the generalists, ``PathFollower``: a controller with no learning that steers along the
+observation's path direction, on the same layouts, limits and key. It scores about as the
+generalists do (bench/RESULTS.md, "2026-12-02, evening"): the observation carries a planner's answer,
+so these tables show what d2spo's task shaping solves, not a policy that reads formulas better
+than DeepLTL's, whose agent plans for itself (README, "What these ZoneEnv figures measure").
+
 For each seed, one generalist trained with the defaults (``d2spo train --algo d2spo --generalist
 --task phi1 --seed S``; RUNS/gen-sS, reused when its summary.json is there) is evaluated on each
 task for ``--episodes`` episodes, each on a zones layout of its own (``zones:SEED`` for SEED =
@@ -106,6 +112,33 @@ def _on_layouts(cfg, task: str, filt: bool, layouts: list, limit: int, bank=None
     return env, view(params.replace(bank=bank), jnp.zeros((), jnp.int32)), learner, bank
 
 
+class PathFollower:
+    """The reference with no learning: a controller that reads only the observation's ``target``
+    (the direction, in the robot's frame, in which the path to the nearest area that makes progress
+    falls fastest: docs/env.md, "The generalist") and steers along it, turn rate twice the angle to
+    it, clipped; full speed ahead, or backwards at 0.6 while the direction is more than 1 rad off.
+    What the observation alone solves: the learned policy is worth what it adds to this. Acts where
+    a learner does (``rollout.make_rollout``); its ``policy`` argument is unused."""
+
+    def __init__(self, env):
+        sl = env.observation_slices["target"]
+        self.forward, self.left = sl.start + 1, sl.start + 2  # (path length, forward, left, any)
+        self.params = None
+
+    def act(self, policy, obs, env_state, key):
+        angle = jnp.arctan2(obs[self.left], obs[self.forward])
+        speed = jnp.where(jnp.abs(angle) > 1.0, -0.6, 1.0)
+        return jnp.stack([speed, jnp.clip(2.0 * angle, -1.0, 1.0)])
+
+
+def _follow(env, episodes: int, limit: int, params) -> tuple:
+    """``make_rollout``'s arrays for the ``PathFollower`` on ``params`` (key 7, as the policy's)."""
+    from d2spo.rollout import make_rollout
+
+    return tuple(np.asarray(a) for a in make_rollout(PathFollower(env), env, episodes, limit, slot_per_episode=True)(
+        params, None, jax.random.PRNGKey(7)))
+
+
 def evaluate_seed(run: Path, episodes: int, keep_paths: int) -> dict:
     from d2spo.envs import layout_bank
     from d2spo.envs.task_plan import slot_max_steps
@@ -137,6 +170,10 @@ def evaluate_seed(run: Path, episodes: int, keep_paths: int) -> dict:
             if filt and keep_paths:
                 per["paths"] = [(layouts[i], poses[i:i + 1], collided[i:i + 1], completed[i:i + 1])
                                 for i in range(keep_paths)]
+        collided, completed, _, length, _ = _follow(env, episodes, limit, params)
+        ok = completed & ~collided
+        per["path_follower"] = {"success_rate": float(ok.mean()), "collision_rate": float(collided.mean()),
+                                "mean_steps_to_success": float(length[ok].mean()) if ok.any() else None}
         out["tasks"][task] = per
     return out
 
@@ -172,6 +209,9 @@ def evaluate_infinite(run: Path, episodes: int) -> dict:
                 "visits_per_episode": float(visits.mean()), "collision_rate": float(collided.mean()),
                 "visit_fraction": float(visits.sum() / optimum.sum()),
                 "episodes": int(episodes), "seconds": round(time.perf_counter() - t, 1)}
+        collided, *_, visits = _follow(env, episodes, limit, params)
+        per["path_follower"] = {"visits_per_episode": float(visits.mean()), "collision_rate": float(collided.mean()),
+                                "visit_fraction": float(visits.sum() / optimum.sum())}
         per["route_optimal_visits"] = float(optimum.mean())
         out["tasks"][task] = per
     try:
@@ -184,8 +224,9 @@ def evaluate_infinite(run: Path, episodes: int) -> dict:
 
 def infinite_table(results: dict, seeds: list[int]) -> str:
     """The markdown table of the ``INFINITE`` tasks (means over seeds) and the ``PERSISTENCE`` row."""
-    lines = ["| task | visits π_Ω | visits + filter | route-optimal | of the route-optimal (filter) | "
-             "collisions π_Ω / filter | DeepLTL | GCRL-LTL |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    lines = ["| task | visits π_Ω | visits + filter | no learning (`PathFollower`) | route-optimal | "
+             "of the route-optimal (filter) | collisions π_Ω / filter | DeepLTL | GCRL-LTL |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
 
     def mean(task, mode, key):
         return float(np.mean([results[s]["tasks"][task][mode][key] for s in seeds]))
@@ -193,20 +234,21 @@ def infinite_table(results: dict, seeds: list[int]) -> str:
     for task in INFINITE:
         best = float(np.mean([results[s]["tasks"][task]["route_optimal_visits"] for s in seeds]))
         lines.append(f"| `{task}` | {mean(task, 'pi_omega', 'visits_per_episode'):.2f} | "
-                     f"{mean(task, 'filter', 'visits_per_episode'):.2f} | {best:.2f} | "
+                     f"{mean(task, 'filter', 'visits_per_episode'):.2f} | "
+                     f"{mean(task, 'path_follower', 'visits_per_episode'):.2f} | {best:.2f} | "
                      f"{mean(task, 'filter', 'visit_fraction'):.1%} | {mean(task, 'pi_omega', 'collision_rate'):.1%} / "
                      f"{mean(task, 'filter', 'collision_rate'):.1%} | "
                      + " | ".join(f"{r:.2f}" for r in REFERENCE_VISITS[task]) + " |")
     answer = results[seeds[0]][PERSISTENCE]
-    lines.append(f"| `{PERSISTENCE}` (steps in the accepting set) | {answer} | | | | | "
+    lines.append(f"| `{PERSISTENCE}` (steps in the accepting set) | {answer} | | | | | | "
                  + " | ".join(f"{r:.1f}" for r in REFERENCE_PERSISTENCE) + " |")
     return "\n".join(lines)
 
 
 def table(results: dict, seeds: list[int]) -> tuple[str, dict]:
     """The markdown table (mean over seeds, min-max in brackets) and the means per task and mode."""
-    lines = ["| task | d2spo π_Ω | d2spo + filter | steps (filter) | collisions π_Ω / filter | "
-             + " | ".join(METHODS) + " |", "|---|---:|---:|---:|---:|" + "---:|" * len(METHODS)]
+    lines = ["| task | d2spo π_Ω | d2spo + filter | steps (filter) | collisions π_Ω / filter | no learning "
+             "(`PathFollower`), steps | " + " | ".join(METHODS) + " |", "|---|---:|---:|---:|---:|---:|" + "---:|" * len(METHODS)]
     means = {}
     for task in TASKS:
         row = {}
@@ -223,9 +265,13 @@ def table(results: dict, seeds: list[int]) -> tuple[str, dict]:
             return f"{m:.3f}" + (f" [{lo:.3f}-{hi:.3f}]" if len(seeds) > 1 else "")
 
         steps = row["filter"]["steps"]
+        follow = [results[s]["tasks"][task]["path_follower"] for s in seeds]  # the same layouts for every seed
+        f_steps = follow[0]["mean_steps_to_success"]
         lines.append(f"| `{task.replace('|', chr(92) + '|')}` | {cell('pi_omega')} | {cell('filter')} | "
                      f"{'—' if steps is None else f'{steps:.0f}'} | {row['pi_omega']['collision_rate']:.1%} / "
-                     f"{row['filter']['collision_rate']:.1%} | " + " | ".join(f"{r:.3f}" for r in REFERENCE[task]) + " |")
+                     f"{row['filter']['collision_rate']:.1%} | {follow[0]['success_rate']:.3f}, "
+                     f"{'—' if f_steps is None else f'{f_steps:.0f}'} | "
+                     + " | ".join(f"{r:.3f}" for r in REFERENCE[task]) + " |")
     return "\n".join(lines), means
 
 
