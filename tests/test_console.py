@@ -95,6 +95,11 @@ def test_certify_summary_is_shown():
     assert "ρ_h = 0.0123" in out and "pose [1.0, 2.0, 0.0] with h = 0.3 (1 of the worst 1 found)" in out
     assert "gradient search in D: no counterexample found" in out
     assert "round 2: certified ℒ 95.00%, D 50.00%, violated grid points: 3 (Prop. 1), 0 (Prop. 2, explored)" in out
+    assert "between its points" not in out  # the ring's grid has violated points: red, not flagged
+    # a ring grid with none violated, but a counterexample found by the search: flagged on its row
+    buf = io.StringIO()
+    print_certify(Console(file=buf, width=220), {**s, "nets": {**s["nets"], "grid_L": net}})
+    assert "grid: ring + contact (a counterexample between its points: below)" in buf.getvalue()
 
 
 def test_the_eval_table_fits_a_log_s_80_columns(tmp_path, capsys, monkeypatch):

@@ -178,6 +178,14 @@ def test_report_on_a_sound_reproduce_json_is_written(tmp_path, capsys):
     assert "Rendered" in (tmp_path / "report.md").read_text()
 
 
+def test_report_given_a_training_run_says_what_it_reads(tmp_path, capsys):
+    """It suggested `d2spo reproduce all --out RUN`: reproducing into a training's run directory."""
+    (tmp_path / "config.json").write_text("{}")
+    line = one_error(capsys, "report", tmp_path)
+    assert "a run directory of `d2spo train`" in line and "reproduce all --out" not in line
+    assert not (tmp_path / "report.md").exists()
+
+
 # ------------------------------------------------------------------ 6. sizes beyond the machine
 
 

@@ -116,6 +116,10 @@ def build_report(out: Path) -> Path:
     if not out.is_dir():
         raise RunDirError(f"{out}: no such directory; run `d2spo reproduce ... --out {out}` first")
     meta_path = out / "reproduce.json"
+    if not meta_path.exists() and (out / "config.json").is_file():  # a training's run, not reproduce's OUT
+        raise RunDirError(f"{out}: a run directory of `d2spo train`; `d2spo report` reads the folder `d2spo "
+                          "reproduce --out OUT` wrote (its tables and figures); for one run, `d2spo eval "
+                          f"{out}` and its summary.json")
     meta = read_meta(meta_path) if meta_path.exists() else {}
     parts = ["# d2spo: reproduction report", ""]
     if meta:
