@@ -42,3 +42,13 @@ def test_a_deepltl_task_compiles_onto_a_zones_layout():
     env, params = make_env(EnvConfig(layout="zones:1"), task="F (green & (!blue U yellow)) & F magenta")
     assert set(env.aps) == {"green", "blue", "yellow", "magenta"}
     assert env.task.route_length < float("inf")
+
+
+@pytest.mark.parametrize("name", ["zones:abc", "zones:3.5", "zones:-1"])
+def test_a_bad_zones_seed_names_the_kind(name):
+    """It said "random layout seed must be an integer" of a zones layout."""
+    from d2spo.envs import layouts
+    from d2spo.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"a zones:SEED layout's seed must be a whole number >= 0"):
+        layouts.load(name)

@@ -205,9 +205,9 @@ def load(name_or_path: str | os.PathLike) -> Layout:
         try:
             seed = int(seed_text)
         except ValueError:
-            raise ConfigError("layout", f"random layout seed must be an integer, got {seed_text!r}") from None
+            raise ConfigError("layout", f"a {kind}:SEED layout's seed must be a whole number >= 0, got {seed_text!r}") from None
         if seed < 0:
-            raise ConfigError("layout", f"random layout seed must be non-negative, got {seed}")
+            raise ConfigError("layout", f"a {kind}:SEED layout's seed must be a whole number >= 0, got {seed}")
         if kind == "zones":
             return zones_layout(seed)
         if kind == "world":
