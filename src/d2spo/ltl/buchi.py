@@ -236,8 +236,8 @@ def to_dba(formula: Formula | str, max_states: int = 1000) -> BuchiAutomaton:
         raise NoDeterministicBuchi(
             f"{f} has no deterministic Büchi automaton: it can demand that something holds forever from some "
             "unknown time on (a persistence property, like F G a), which no deterministic Büchi automaton "
-            "recognises; state that part as a recurrence between two areas (G F a & G F b), a safety (G a) or a reach "
-            "(F a) property",
+            "recognises; these are other properties that are trained: a recurrence (G F a: back to a again and "
+            "again, leaving it between), a safety from the start (G a) or a reach (F a)",
             e.args[0]) from None
     dead, done = dead_states(delta, accepting), universal_states(delta, accepting)
     return BuchiAutomaton(aps, 0, delta, accepting, frozenset(dead), _names(f, aps, delta, dead, done))
