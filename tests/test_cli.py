@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 
@@ -108,6 +109,22 @@ def test_env_check_needs_no_task(tmp_path, capsys):
     assert cli.main(["env", "check", "--layout", str(path), "--task", "phi1"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "task:" in err[0] and "'A2', 'A3'" in err[0]
+
+
+def test_env_check_takes_the_robot_of_a_dynamics_file_and_a_radius(tmp_path, capsys):
+    """`env check` took only --preset: a user's own robot (its speed, its size) could not be checked."""
+    motion = {"dt": 0.1, "v_max": 0.05, "omega_max": 1.0, "actuator_tau": 0.0, "v_gain": 1.0, "omega_gain": 1.0,
+              "slip": 0.0, "noise_xy": 0.0, "noise_theta": 0.0}
+    (tmp_path / "slow.json").write_text(json.dumps(motion))
+    assert cli.main(["env", "check", "--layout", "paper", "--task", "F A1"]) == 0
+    fast = capsys.readouterr().out
+    assert cli.main(["env", "check", "--layout", "paper", "--task", "F A1", "--dynamics", str(tmp_path / "slow.json"),
+                     "--robot-radius", "0.2"]) == 0
+    slow = capsys.readouterr().out
+    assert "a robot of radius 0.2 m fits" in slow
+    limit = lambda out: int(out.split("episode limit ")[1].split()[0])  # noqa: E731
+    assert limit(slow) > limit(fast)  # the slow robot's route needs more steps
+    assert cli.main(["env", "check", "--layout", "paper", "--robot-radius", "2.0"]) == 2
 
 
 def test_misspelled_flag_keeps_the_suggestion(capsys):

@@ -11,6 +11,7 @@ import tyro
 
 from d2spo.demo import random_rollout
 from d2spo.envs import EnvConfig, layouts, make_env
+from d2spo.envs.dynamics import load_dynamics
 from d2spo.envs.layout_bank import check_fits
 from d2spo.envs.nav import checked_layout
 from d2spo.envs.preflight import preflight
@@ -60,9 +61,18 @@ class EnvCheckCmd:
     """Also check that this task (a name or a formula) can be completed on the layout; default: no task."""
     preset: str = "default"
     """Robot preset whose size and layout scale the layout is checked with: ideal, default or turtlebot."""
+    robot_radius: float | None = None
+    """The robot's radius (m), as `d2spo train --robot-radius`; default: the preset's."""
+    dynamics: Path | None = None
+    """A dynamics JSON file (docs/env.md), as `d2spo train --dynamics`: the task's time check uses its speed."""
+
+    def env_config(self) -> EnvConfig:
+        motion = load_dynamics(self.dynamics) if self.dynamics is not None else {}
+        return EnvConfig(layout=self.layout, preset=self.preset, robot_radius=self.robot_radius, **motion)
 
     def run(self) -> int:
-        cfg, lay = checked_layout(EnvConfig(layout=self.layout, preset=self.preset))
+        env_cfg = self.env_config()
+        cfg, lay = checked_layout(env_cfg)
         n_obs = len(lay.obstacles)
         print(f"layout {lay.name!r}: arena {lay.arena[0]:g} x {lay.arena[1]:g} m, "
               f"{n_obs} obstacle{'s' * (n_obs != 1)}, areas {lay.describe_areas()}; "
@@ -75,13 +85,13 @@ class EnvCheckCmd:
         if self.task is None:
             print("no task checked (--task NAME_OR_FORMULA checks one)")
             return 0
-        env, params = make_env(EnvConfig(layout=self.layout, preset=self.preset), task=self.task)
+        env, params = make_env(env_cfg, task=self.task)
         # what `d2spo train` checks before it starts, with D²SPO's barrier margin d (a warning where no route keeps it)
         preflight(env, params, repr(self.task), margin=CBFConfig().d)
         n = int(params.aut.distance[int(params.aut.initial)])
         goal = " to its first accepting visit (a patrol: then again and again)" if is_recurrence(env.automaton) else ""
-        print(f"task {self.task!r}: needs {n} area visit{'s' * (n != 1)}{goal} on this layout; observation size "
-              f"{env.observation_size}")
+        print(f"task {self.task!r}: needs {n} area visit{'s' * (n != 1)}{goal} on this layout; episode limit "
+              f"{int(params.max_steps)} steps of {env.config.dt:g} s for this robot; observation size {env.observation_size}")
         return 0
 
 
