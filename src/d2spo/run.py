@@ -12,7 +12,6 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import re
 import shutil
 import warnings
 import weakref
@@ -33,7 +32,7 @@ from d2spo.envs.preflight import preflight
 from d2spo.errors import ConfigError, RunDirError, RunDirWarning, UserError
 from d2spo.inputs import sha256_of
 from d2spo.ltl.parser import parse
-from d2spo.runio import atomic_write_bytes, atomic_write_json, read_json, remove_file, remove_tmp_files
+from d2spo.runio import atomic_write_bytes, atomic_write_json, read_json, remove_file, remove_tmp_files, temporary_of
 
 
 def build(cfg: TrainConfig):
@@ -76,10 +75,6 @@ def _build_generalist(cfg: TrainConfig):
 
 
 
-_OWN_TMP = re.compile(r"\..+\.\d+-[0-9a-f]+\.tmp")
-"""The temporary file of an atomic write a kill interrupted (``runio.atomic_write_bytes``' names)."""
-
-
 def check_new_run_dir(out: Path) -> None:
     """RunDirError when ``out`` is a directory that holds files but no d2spo run (no config.json a run
     wrote): a new run there would delete its hidden ``.*.tmp`` files and ``policy-*.msgpack`` and write
@@ -88,7 +83,7 @@ def check_new_run_dir(out: Path) -> None:
     out = Path(out)
     if not out.is_dir():
         return
-    names = sorted(p.name for p in out.iterdir() if p.name != ".lock" and not _OWN_TMP.fullmatch(p.name))
+    names = sorted(p.name for p in out.iterdir() if p.name != ".lock" and temporary_of(p.name) is None)
     if not names:
         return
     try:

@@ -77,6 +77,15 @@ def _finite(action, what: str) -> np.ndarray:
     return a
 
 
+def _checked(action, what: str, space, shape: tuple[int, ...]) -> jax.Array:
+    """``action`` finite (``_finite``) and of ``shape``'s size, as float32 of that shape; ValueError
+    naming ``space`` otherwise."""
+    a = _finite(action, what)
+    if a.size != int(np.prod(shape)):
+        raise ValueError(f"{what}: expected {space} (shape {shape}), got shape {a.shape}")
+    return jnp.asarray(a.reshape(shape))
+
+
 def _step_masked(env: Env, key, state, actions, params, autoreset):
     """``env.step_batch``, except that the sub-environments in ``autoreset`` (whose state is
     already a fresh episode's, from the previous step) keep that state and report nothing."""
@@ -216,11 +225,7 @@ class NavEnv(gymnasium.Env):
         """Returns (obs, reward, terminated, truncated, info) with the cost in ``info["cost"]``."""
         if self._state is None:
             raise RuntimeError("call reset() before step()")
-        action = jnp.asarray(_finite(action, "action"), jnp.float32)
-        if action.size != self.env.action_size:
-            raise ValueError(f"action: expected {self.action_space} (shape ({self.env.action_size},)), got shape "
-                             f"{action.shape}")
-        action = action.reshape(self.env.action_size)
+        action = _checked(action, "action", self.action_space, (self.env.action_size,))
         self._state, _, reward, cost, done, info = self._fns.step(self._next_key(), self._state, action, self.params)
         reward, cost, done, info = jax.device_get((reward, cost, done, info))
         self._pose = info["next_pose"]
@@ -313,11 +318,7 @@ class NavVectorEnv(VectorEnv):
             seeds = [int(x) for x in seed]
             if len(seeds) != self.num_envs:
                 raise ValueError(f"seed: a list of {self.num_envs} seeds (one per sub-environment), got {len(seeds)}")
-            key = seed_key(seeds[0])
-            for x in seeds[1:]:
-                for word in _words(x):
-                    key = jax.random.fold_in(key, word)
-            self._key = key
+            self._key = seed_key(*seeds)
         elif seed is not None:
             self._key = seed_key(seed)
         elif self._key is None:  # never seeded: a seed from entropy
@@ -331,11 +332,7 @@ class NavVectorEnv(VectorEnv):
         """Step all sub-environments; returns (obs, reward, terminated, truncated, info), cost in info."""
         if self._state is None:
             raise RuntimeError("call reset() before step()")
-        actions = jnp.asarray(_finite(actions, "actions"), jnp.float32)
-        if actions.size != self.num_envs * self.env.action_size:
-            raise ValueError(f"actions: expected {self.action_space} (shape ({self.num_envs}, "
-                             f"{self.env.action_size})), got shape {actions.shape}")
-        actions = actions.reshape(self.num_envs, self.env.action_size)
+        actions = _checked(actions, "actions", self.action_space, (self.num_envs, self.env.action_size))
         next_step = self.metadata["autoreset_mode"] == AutoresetMode.NEXT_STEP
         autoreset = jnp.asarray(self._autoreset if next_step else np.zeros(self.num_envs, bool))
         self._state, *out = self._fns.step_masked(self._next_key(), self._state, actions, self.params, autoreset)
@@ -377,12 +374,13 @@ class VectorCostTuple(VectorWrapper):
         return obs, reward, info["cost"], terminated, truncated, info
 
 
-def seed_key(seed: int) -> jax.Array:
+def seed_key(seed: int, *more: int) -> jax.Array:
     """The JAX key of a Gymnasium seed, any int >= 0: ``jax.random.key(seed)`` below 2**32 (as it always
-    was), its higher 32-bit words folded in above (``key`` alone keeps the low 32 bits: 2**32 was seed 0)."""
-    low, *high = _words(seed)
+    was), its higher 32-bit words folded in above (``key`` alone keeps the low 32 bits: 2**32 was seed 0);
+    then every word of ``more`` (a vector env's list of seeds) folded in too."""
+    low, *rest = _words(seed)
     key = jax.random.key(low)
-    for word in high:
+    for word in rest + [w for x in more for w in _words(x)]:
         key = jax.random.fold_in(key, word)
     return key
 
