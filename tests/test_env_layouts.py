@@ -56,7 +56,7 @@ def field_of(excinfo) -> str:
         (lambda d: d.update(arena=[4.0, 0.0]), "layout.arena[1]"),
         (lambda d: d.update(arena=[4.0]), "layout.arena"),
         (lambda d: d.update(start="home"), "layout.start"),
-        (lambda d: d.update(colour="red"), "layout"),
+        (lambda d: d.update(colour="red"), "layout.colour"),  # named as inside an area (with the closest key)
         # a misspelt key inside an area or obstacle (it was dropped without a word, and a label with it)
         (lambda d: d["areas"][1].update(lable="dock"), "layout.areas[1].lable"),
         (lambda d: d["areas"][0].update(colour="red"), "layout.areas[0].colour"),

@@ -280,3 +280,84 @@ def test_a_policy_with_non_finite_weights_is_not_exported(tmp_path):
     with pytest.raises(NaNError, match="non-finite weights; nothing exported"):
         export_run(tmp_path / "run", tmp_path / "out")
     assert not (tmp_path / "out").exists()
+
+
+def _rehashed(manifest: dict, **edits) -> dict:
+    """``manifest`` with top-level ``edits`` and its content_sha256 recomputed: what a writer with a bug, or
+    an edit that also rewrote the checksum, leaves."""
+    from d2spo.deploy.policy import CONTENT_KEY, content_sha256
+
+    m = {**manifest, **edits}
+    return {**m, CONTENT_KEY: content_sha256(m)}
+
+
+def test_a_manifest_whose_checksums_hold_but_which_this_runtime_would_misread_is_refused_at_load(tiny, tmp_path):
+    """The checksums catch a damaged copy, not a consistent manifest with values the runtime does not
+    have: an unknown alpha ran as the cubic one, an unknown label mode as step labelling, a NaN v_max
+    gave a NaN command, an activation, a transition or a weight of the wrong shape failed in the robot's
+    loop with numpy's KeyError, IndexError or matmul error. Each is now refused by Policy.load."""
+    import hashlib
+    import io
+    import shutil
+
+    copy = tmp_path / "copy"
+    shutil.copytree(tiny[1], copy)
+    m = json.loads((tiny[1] / "manifest.json").read_text())
+    actor = m["networks"]["actor"]
+    automaton = m["automaton"]
+    delta = [list(row) for row in automaton["delta"]]
+    delta[0][1] = 77
+    for edits, match in [
+        ({"filter": {**m["filter"], "alpha": "quadratic"}}, "filter.alpha must be 'linear' or 'cubic'"),
+        ({"filter": {**m["filter"], "dt": 0.0}}, r"filter.dt must be a finite number > 0"),
+        ({"automaton": {**automaton, "label_mode": "evnt"}}, "label_mode must be 'event' or 'step'"),
+        ({"automaton": {**automaton, "delta": delta}}, "automaton: delta must be"),
+        ({"action": {**m["action"], "v_max": float("nan")}}, r"action.v_max must be a finite number > 0"),
+        ({"networks": {**m["networks"], "actor": {**actor, "layers": [{**actor["layers"][0], "activation": "gelu"},
+                                                                       *actor["layers"][1:]]}}},
+         "activation 'gelu' is not one of"),
+    ]:
+        (copy / "manifest.json").write_text(json.dumps(_rehashed(m, **edits)))
+        with pytest.raises(ArtefactError, match=match):
+            Policy.load(copy)
+    # weights of another shape, the manifest's SHA-256 of them updated: refused at load, not at the first act
+    with np.load(tiny[1] / "weights.npz") as data:
+        arrays = {k: data[k] for k in data.files}
+    arrays["actor.0.kernel"] = arrays["actor.0.kernel"][:-1]
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **arrays)
+    (copy / "weights.npz").write_bytes(buf.getvalue())
+    weights = {**m["weights"], "sha256": hashlib.sha256(buf.getvalue()).hexdigest()}
+    (copy / "manifest.json").write_text(json.dumps(_rehashed(m, weights=weights)))
+    with pytest.raises(ArtefactError, match="damaged .ValueError: matmul"):
+        Policy.load(copy)
+
+
+def test_the_automaton_refuses_a_state_or_letter_it_does_not_have(tiny):
+    """``Automaton.advance`` and ``is_visit`` took a negative state or letter as numpy's index from the
+    end: another state's transition, silently."""
+    aut = Policy.load(tiny[1]).automaton
+    n_letters = aut.delta.shape[1]
+    assert aut.advance(aut.initial, 0, 0) == aut.initial
+    for q, letter, name in [(0, -1, "letter"), (0, n_letters, "letter"), (-1, 1, "q"), (aut.n_states, 1, "q"),
+                            (0.0, 1, "q"), (0, True, "letter")]:
+        with pytest.raises(ValueError, match=f"Automaton: {name} must be an integer in 0..") as e:
+            aut.advance(q, letter, 0)
+        with pytest.raises(ValueError, match=f"Automaton: {name} must be an integer in 0.."):
+            aut.is_visit(q, letter, 0)
+        assert str(e.value).count("\n") == 0
+
+
+def test_the_filter_returns_an_action_that_meets_its_condition_without_iterating(tiny, monkeypatch):
+    """The filter returns u0 unchanged when c(u0) >= 0; it ran its linearise-and-project iterations (two
+    evaluations of h and a derivative through the ray casts each) before it looked: most of its time."""
+    from d2spo.deploy.filter import Filter
+
+    policy = Policy.load(tiny[1])
+    calls = []
+    h = Filter.h
+    monkeypatch.setattr(Filter, "h", lambda self, x: calls.append(1) or h(self, x))
+    pose = np.array([2.5, 2.5, 0.0], np.float32)
+    u, ok, c = policy.filter(pose, [0.0, 0.0])  # standing still in the middle of the arena: c(0) >= 0
+    assert ok and c >= 0 and np.array_equal(u, np.zeros(2, np.float32))
+    assert len(calls) == 2  # h at the pose and at the predicted one, nothing more

@@ -226,6 +226,20 @@ def test_limits():
         to_dba(" & ".join(f"G F p{i}" for i in range(13)))
 
 
+def test_the_nba_work_is_bounded(monkeypatch):
+    """A tableau node can have exponentially many branches: ``a R b R c …`` of 16 operands took 18 s
+    (``G F`` nested 16 deep ran for minutes, with no limit to stop it); ``MAX_NBA_STEPS`` refuses them
+    in one line. The operands of a product share the bound (the default's refusals take seconds:
+    a smaller bound here)."""
+    import sys
+
+    buchi = sys.modules["d2spo.ltl.buchi"]
+    monkeypatch.setattr(buchi, "MAX_NBA_STEPS", 100)  # one ordered visit of three needs 75
+    assert to_dba("F (a & F (b & F c))").n_states == 4
+    with pytest.raises(UserError, match="MAX_NBA_STEPS=100"):
+        to_dba("F (a & F (b & F c)) & F (d & F (e & F f))")
+
+
 @pytest.mark.parametrize("name", BUCHI_SUITE)
 def test_the_buchi_suite_is_exact_or_refused(name):
     """Each task of ``tasks.BUCHI_SUITE`` is exact on lassos, or (``persist``, F G) refused in one line."""

@@ -14,7 +14,7 @@ from d2spo.envs import EnvConfig, layouts, make_env
 from d2spo.envs.dynamics import load_dynamics
 from d2spo.envs.layout_bank import check_fits
 from d2spo.envs.nav import checked_layout
-from d2spo.envs.preflight import preflight
+from d2spo.envs.preflight import preflight, start_state
 from d2spo.errors import ConfigError
 from d2spo.ltl.buchi_task import is_recurrence
 from d2spo.plotstyle import check_picture_path
@@ -88,7 +88,7 @@ class EnvCheckCmd:
         env, params = make_env(env_cfg, task=self.task)
         # what `d2spo train` checks before it starts, with D²SPO's barrier margin d (a warning where no route keeps it)
         preflight(env, params, repr(self.task), margin=CBFConfig().d)
-        n = int(params.aut.distance[int(params.aut.initial)])
+        n = int(params.aut.distance[start_state(env.task)])  # after the start's letter, as an episode begins
         goal = " to its first accepting visit (a patrol: then again and again)" if is_recurrence(env.automaton) else ""
         print(f"task {self.task!r}: needs {n} area visit{'s' * (n != 1)}{goal} on this layout; episode limit "
               f"{int(params.max_steps)} steps of {env.config.dt:g} s for this robot; observation size {env.observation_size}")

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 
 class UserError(Exception):
     """Base class for mistakes in user input: a formula, a layout, a flag, a run directory."""
@@ -13,6 +15,18 @@ class ConfigError(UserError, ValueError):
     def __init__(self, field: str, message: str):
         self.field = field
         super().__init__(f"{field}: {message}")
+
+
+def is_finite_number(value) -> bool:
+    """Whether ``value`` is a JSON number (an int or a float, not a bool) that is finite as a float.
+    An int beyond float's range (``1e400`` written as digits) is not: ``math.isfinite`` would raise
+    OverflowError on it instead of answering."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return False
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False
 
 
 def in_file(e: ConfigError, path) -> ConfigError:

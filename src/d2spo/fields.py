@@ -11,11 +11,10 @@ from __future__ import annotations
 import ast
 import dataclasses
 import inspect
-import math
 import textwrap
 from typing import Any
 
-from d2spo.errors import ConfigError
+from d2spo.errors import ConfigError, is_finite_number
 
 MAX_LR = 1.0
 """Largest learning rate accepted. Every optimiser here is Adam (steps of about lr per update,
@@ -32,7 +31,7 @@ def _is_int(v: Any) -> bool:
 
 
 def _is_number(v: Any) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+    return is_finite_number(v)
 
 
 KINDS: dict[str, tuple[Any, str]] = {

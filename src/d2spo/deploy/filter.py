@@ -78,6 +78,8 @@ class Filter:
             return (self.h(self.map.features(self.next_pose(pose, u))) - h0) / dt + self._alpha(h0)
 
         c0 = c(u0)
+        if c0 >= 0:  # u0 is returned unchanged (as the JAX filter's final select does): skip the iterations
+            return u0, True, float(c0)
         u_k, best, best_c = u0, u0, c0
         for _ in range(self.iters):
             jet = c(ad.seed(u_k))
@@ -89,6 +91,4 @@ class Filter:
             u_k = u_new
             if better:
                 best, best_c = u_new, c_new
-        if c0 >= 0:
-            return u0, True, float(c0)
         return best, bool(best_c >= 0), float(best_c)

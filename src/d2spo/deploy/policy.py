@@ -161,9 +161,25 @@ class Policy:
                 raise ArtefactError(f"{weights}: damaged (its SHA-256 is not the manifest's)")
             with np.load(weights, allow_pickle=False) as data:
                 arrays = {k: data[k] for k in data.files}
-            return cls(directory, manifest, arrays, backend)
+            _check_content(manifest)
+            policy = cls(directory, manifest, arrays, backend)
+            policy._self_check()
+            return policy
         except (KeyError, TypeError, IndexError, ValueError) as e:  # a manifest of a broken writer, or edited
             raise ArtefactError(f"{path}: damaged ({type(e).__name__}: {e})") from None
+
+    def _self_check(self) -> None:
+        """Act once at the layout's start pose in every automaton state (with and without the filter):
+        arrays whose shapes do not chain, a path field short of a state, or an action or command that is
+        not finite fail here, at load, rather than in the robot's control loop (ValueError)."""
+        start = self.pose(self.manifest["layout"]["start"])
+        ranges = self.scan(start)
+        for q in range(self.automaton.n_states):
+            for use_filter in (False, True) if self.runtime_filter is not None else (None,):
+                u = self.act(ranges, start, q, filter=use_filter)
+                if u.shape != (2,) or not np.isfinite(self.command(u)).all():
+                    raise ValueError(f"acting at the layout's start in state {q} gives {u.tolist()}, command "
+                                     f"{self.command(u)}")
 
     # ------------------------------------------------------------------------ the observation
 
@@ -347,6 +363,53 @@ class Policy:
         """[K] the ranges the env's lidar reads at ``pose`` on the map (for a simulator, or to check a real scan)."""
         pose = self.pose(pose)
         return self.map.lidar(pose[:2], np.cos(pose[2]), np.sin(pose[2]))
+
+
+def _check_content(m: dict) -> None:
+    """ValueError unless the manifest's settings are ones this runtime has: every layer's activation
+    named in ``nets.ACTIVATIONS``, the filter's ``alpha`` and the automaton's ``label_mode`` among their
+    values, positive finite scales, and an automaton whose transitions stay within its states (the
+    checksums catch a damaged copy; this catches a writer or an edit that this runtime would misread:
+    an unknown alpha would run as the cubic one, an unknown label mode as ``step``)."""
+    from d2spo.deploy.nets import ACTIVATIONS
+
+    def positive(value, what: str) -> None:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or value <= 0:
+            raise ValueError(f"{what} must be a finite number > 0, got {value!r:.40}")
+
+    nets = m["networks"]
+    for name, net in nets.items():
+        specs = net["layers"] if "layers" in net else [*net["hidden"], net["beta"], net["a"]]
+        for spec in specs:
+            if spec["activation"] not in ACTIVATIONS:
+                raise ValueError(f"networks.{name}: activation {spec['activation']!r} is not one of "
+                                 f"{', '.join(ACTIVATIONS)}")
+    act = m["action"]
+    for key in ("v_max", "omega_max", "dt"):
+        positive(act[key], f"action.{key}")
+    v_min = act.get("v_min", -act["v_max"])
+    if isinstance(v_min, bool) or not isinstance(v_min, (int, float)) or not -act["v_max"] <= v_min < act["v_max"]:
+        raise ValueError(f"action.v_min must lie in [-v_max, v_max), got {v_min!r:.40}")
+    positive(m["sensor"]["sensing_radius"], "sensor.sensing_radius")
+    positive(m["sensor"]["n_rays"], "sensor.n_rays")
+    f = m.get("filter")
+    if f is not None:
+        if f["alpha"] not in ("linear", "cubic"):
+            raise ValueError(f"filter.alpha must be 'linear' or 'cubic', got {f['alpha']!r:.40}")
+        for key in ("alpha_coef", "dt", "iters", "n_bisect"):
+            positive(f[key], f"filter.{key}")
+    aut = m["automaton"]
+    if aut["label_mode"] not in ("event", "step"):
+        raise ValueError(f"automaton.label_mode must be 'event' or 'step', got {aut['label_mode']!r:.40}")
+    delta = np.asarray(aut["delta"])
+    n_states, n_letters = len(aut["accepting"]), 2 ** len(aut["aps"])
+    if delta.shape != (n_states, n_letters) or not np.issubdtype(delta.dtype, np.integer) \
+            or (delta < 0).any() or (delta >= n_states).any() or len(aut["rejecting"]) != n_states \
+            or not 0 <= aut["initial"] < n_states:
+        raise ValueError(f"automaton: delta must be [{n_states}][{n_letters}] states in 0..{n_states - 1}, with "
+                         f"as many accepting and rejecting flags and an initial state among them")
+    if any(not 0 <= a["bit"] < n_letters for a in m["layout"]["areas"]):
+        raise ValueError(f"layout.areas: a bit outside 0..{n_letters - 1}")
 
 
 def _lookup(field: np.ndarray, xy: np.ndarray, spacing: np.float32) -> np.float32:

@@ -67,15 +67,29 @@ class Automaton:
         inside = dx * dx + dy * dy <= radius * radius
         return int(np.bitwise_or.reduce(np.where(inside, self.area_bits, 0), initial=0))
 
+    def _checked(self, q, letter, prev_letter) -> tuple[int, int, int]:
+        """(q, letter, prev_letter) as ints, or a ValueError: a state outside 0..Q-1 or a letter outside
+        0..2**len(aps)-1 (numpy would wrap a negative one to another state's transition silently)."""
+        out = []
+        for name, v, n in (("q", q, self.n_states), ("letter", letter, self.delta.shape[1]),
+                           ("prev_letter", prev_letter, self.delta.shape[1])):
+            if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or not 0 <= v < n:
+                raise ValueError(f"Automaton: {name} must be an integer in 0..{n - 1}; got {v!r:.40}")
+            out.append(int(v))
+        return out[0], out[1], out[2]
+
     def is_visit(self, q: int, letter: int, prev_letter: int) -> bool:
         """Whether the step that ``advance`` takes from q reads an accepting transition
         (``ltl.labelling.accepting_visit``); always False for a task without them."""
+        q, letter, prev_letter = self._checked(q, letter, prev_letter)
         if self.visit is None or (self.event and (letter == prev_letter or letter == 0)):
             return False
         return bool(self.visit[q, letter])
 
     def advance(self, q: int, letter: int, prev_letter: int) -> int:
-        """The state after reading ``letter`` at q, the previous step's letter being ``prev_letter``."""
+        """The state after reading ``letter`` at q, the previous step's letter being ``prev_letter``.
+        ValueError for a state or letter the automaton does not have."""
+        q, letter, prev_letter = self._checked(q, letter, prev_letter)
         if self.event and (letter == prev_letter or letter == 0):
             return int(q)
         return int(self.delta[q, letter])

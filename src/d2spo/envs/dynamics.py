@@ -31,7 +31,7 @@ from pathlib import Path
 import jax.numpy as jnp
 from flax import struct
 
-from d2spo.errors import ConfigError, json_trouble
+from d2spo.errors import ConfigError, is_finite_number, json_trouble
 from d2spo.inputs import read_regular
 
 
@@ -107,7 +107,7 @@ LARGEST = 1e6
 def check_value(name: str, value, where: str = "") -> float:
     """``value`` as a float if it is valid for the dynamics field ``name``; ConfigError naming the
     field otherwise (``where`` is added to the message, e.g. the file it came from)."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+    if not is_finite_number(value):
         raise ConfigError(name, f"expected a finite number, got {value!r}{where}")
     if name == "slip" and not 0 <= value < 1:
         raise ConfigError(name, f"must be in [0, 1), got {value}{where}")

@@ -26,7 +26,7 @@ import numpy as np
 from d2spo.envs import generator
 from d2spo.envs.workspace import PROPOSITION_RULE, Area, DiskObstacle, Layout, Obstacle, is_proposition, validate
 from d2spo.envs.zones import zones_layout
-from d2spo.errors import ConfigError, in_file, json_trouble
+from d2spo.errors import ConfigError, in_file, is_finite_number, json_trouble
 from d2spo.inputs import read_regular
 
 BUILTIN = ("paper", "relaxed", "open", "physical-1", "physical-2", "physical-3", "physical-4")
@@ -43,7 +43,7 @@ the generalist's training world, rectangular arenas of 5-20 m, boxes and pillars
 
 
 def _number(value, field: str, positive: bool = False) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+    if not is_finite_number(value):
         raise ConfigError(field, f"expected a finite number, got {value!r}")
     if positive and value <= 0:
         raise ConfigError(field, f"must be positive, got {value!r}")
@@ -64,6 +64,7 @@ def _get(obj: dict, key: str, field: str):
     return obj[key]
 
 
+LAYOUT_KEYS = ("name", "description", "arena", "start", "obstacles", "areas")
 AREA_KEYS = ("name", "label", "center", "radius")
 OBSTACLE_KEYS = ("center", "half_extents", "radius")
 
@@ -86,12 +87,12 @@ def from_json(data: dict, default_name: str = "custom") -> Layout:
     f = "layout"
     if not isinstance(data, dict):
         raise ConfigError(f, f"expected a JSON object, got {type(data).__name__}")
-    unknown = set(data) - {"name", "description", "arena", "start", "obstacles", "areas"}
-    if unknown:
-        raise ConfigError(f, f"unknown keys {sorted(unknown)}")
+    _no_unknown_keys(data, LAYOUT_KEYS, f, "a layout")
     name = data.get("name", default_name)
     if not isinstance(name, str):
         raise ConfigError(f"{f}.name", f"expected a string, got {name!r}")
+    if not isinstance(data.get("description", ""), str):
+        raise ConfigError(f"{f}.description", f"expected a string, got {data['description']!r}")
     arena = _vector(_get(data, "arena", f), 2, f"{f}.arena", positive=True)
     start = _vector(_get(data, "start", f), 3, f"{f}.start")
     obstacles_raw = _get(data, "obstacles", f)

@@ -12,8 +12,11 @@ import math
 import re
 import warnings
 
+import numpy as np
+
 from d2spo.envs import routes
 from d2spo.envs.compiled_task import CompiledTask
+from d2spo.envs.layouts import letters_at
 from d2spo.envs.state_fields import FORBIDDEN, TARGET, named_areas
 from d2spo.errors import ConfigError, TaskWarning
 from d2spo.ltl.automaton import UNREACHABLE
@@ -207,6 +210,7 @@ def preflight(env, params, name: str, margin: float = 0.0, episode_time: bool = 
     if task is None or task.distance is None or not (task.automaton.accepting or task.recurrence):
         return
     warn_if_endless_branch(task.automaton, name)
+    check_start(task, name)
     cfg = env.config
     if task.fields is not None:
         check_feasible(task, name)
@@ -218,6 +222,32 @@ def preflight(env, params, name: str, margin: float = 0.0, episode_time: bool = 
         check_cycle(task, int(params.max_steps), cfg.dt, cfg.v_max * cfg.v_gain, name)
     elif episode_time:
         check_time(task, int(params.max_steps), cfg.dt, cfg.v_max * cfg.v_gain, name)
+
+
+def start_state(task: CompiledTask) -> int:
+    """The automaton state an episode starts in: the initial state after reading the letter of the
+    start pose (the env's reset reads it: with event labelling only a non-empty letter)."""
+    aut, layout = task.automaton, task.layout
+    letter = int(letters_at(np.asarray(layout.start[:2], float), layout, aut.aps))
+    if letter == 0 and task.label_mode == "event":
+        return aut.initial
+    return aut.delta[aut.initial][letter]
+
+
+def check_start(task: CompiledTask, name: str) -> None:
+    """A ``TaskWarning`` when the start pose lies inside an area whose reading completes the task:
+    every episode then completes on its first step, and nothing is learnt (``env check`` once said
+    such a task "needs 1 area visit")."""
+    aut, layout = task.automaton, task.layout
+    if task.recurrence or start_state(task) not in aut.accepting:  # a patrol never completes
+        return
+    sx, sy = layout.start[:2]
+    inside = [a.name for a in layout.areas
+              if a.label in aut.aps and (a.center[0] - sx) ** 2 + (a.center[1] - sy) ** 2 <= a.radius ** 2]
+    warnings.warn(TaskWarning(
+        f"{name} on layout {layout.name!r}: the start ({sx:g}, {sy:g}) lies inside {', '.join(inside)}, and the "
+        "automaton reads that area at once and accepts: every episode completes on its first step, with nothing "
+        "to learn; move the start out of it"))
 
 
 def warn_if_endless_branch(aut, name: str) -> None:

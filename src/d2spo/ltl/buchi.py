@@ -52,6 +52,12 @@ from d2spo.ltl.translate import (
     to_dnf,
 )
 
+MAX_NBA_STEPS = 1_000_000
+"""Most work (as ``translate.MAX_TABLEAU_STEPS`` counts it) spent expanding the nodes of the NBAs of
+one ``to_dba`` call (step 1), beyond which it raises ``AutomatonTooLarge``: a node can have
+exponentially many branches (``G F G F … a``, a chain ``a R b R c …``). The suite's tasks need at
+most 300, a patrol of twelve areas 72, ``G (a -> X X X X X X X X b)`` 14000; ``G F`` nested 12 deep
+1.1 million (10 s on a 2-core CPU), 14 deep 4.7 million (54 s), 16 deep ran for minutes."""
 MAX_NAME_STEPS = 200_000
 """Most tableau work (as ``translate.MAX_TABLEAU_STEPS`` counts it) spent on simplifying the
 state names; beyond it the names keep their unsatisfiable and redundant clauses."""
@@ -231,7 +237,7 @@ def to_dba(formula: Formula | str, max_states: int = 1000) -> BuchiAutomaton:
     if len(aps) > MAX_APS:
         raise AutomatonTooLarge(f"the formula uses {len(aps)} propositions; at most {MAX_APS} are supported")
     try:
-        delta, accepting = _automaton(nnf(f), aps, max_states)
+        delta, accepting = _automaton(nnf(f), aps, max_states, [MAX_NBA_STEPS, MAX_NBA_STEPS])
     except _NoDba as e:
         raise NoDeterministicBuchi(
             f"{f} has no deterministic Büchi automaton: it can demand that something holds forever from some "
@@ -252,21 +258,23 @@ def _operands(g: Formula, kind: type) -> list[Formula]:
     return [h for c in g.children() for h in (_operands(c, kind) if isinstance(c, kind) else [c])]
 
 
-def _automaton(g: Formula, aps: tuple[str, ...], max_states: int) -> tuple[list[list[int]], list[list[bool]]]:
+def _automaton(g: Formula, aps: tuple[str, ...], max_states: int,
+               budget: list[int]) -> tuple[list[list[int]], list[list[bool]]]:
     """Reduced DBA (delta, accepting; initial state 0) of the NNF formula ``g`` over the letters of
     ``aps``. A conjunction or disjunction whose operands all have a DBA is built as the product
     of theirs (smaller than determinising the whole: the NBA of ``G F a | G F b`` guesses a
     disjunct, which Safra's trees remember in every order); otherwise the whole formula goes
-    through steps 1-3 over its own propositions. Raises ``_NoDba``."""
+    through steps 1-3 over its own propositions. Raises ``_NoDba``. ``budget``: [NBA steps left,
+    ``MAX_NBA_STEPS``], shared by the operands."""
     if isinstance(g, (And, Or)):
         try:
-            parts = [_automaton(h, aps, max_states) for h in _operands(g, type(g))]
+            parts = [_automaton(h, aps, max_states, budget) for h in _operands(g, type(g))]
         except _NoDba:
             pass  # the whole may still have one: F G a & G a is G a
         else:
             return reduce(*product(parts, isinstance(g, And), max_states, str(g)))[:2]
     own = tuple(sorted(g.aps()))
-    dpa = determinise(to_nba(g, own, MAX_TABLEAU_NODES), 1 << len(own), max_states, str(g))
+    dpa = determinise(to_nba(g, own, MAX_TABLEAU_NODES, budget), 1 << len(own), max_states, str(g))
     marks, witness = buchi_marks(dpa)
     if marks is None:
         assert witness is not None

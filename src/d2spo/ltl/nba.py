@@ -37,8 +37,11 @@ class Nba:
     """succ[q][letter]: the (target, accepting) pairs of the transitions of q on the letter."""
 
 
-def branches(node: frozenset, bit: dict[str, int]) -> list[Branch]:
-    """The branches of a tableau node (a set of NNF formulas), duplicates removed."""
+def branches(node: frozenset, bit: dict[str, int], budget: list[int] | None = None) -> list[Branch]:
+    """The branches of a tableau node (a set of NNF formulas), duplicates removed. ``budget``:
+    [work left, work allowed], counted as ``tableau.Tableau.expand`` counts it and decremented
+    here; ``AutomatonTooLarge`` when it runs out (a node can have exponentially many branches:
+    ``G F G F … a``)."""
     found: set[Branch] = set()
     # A partial branch: formulas still to process, bits set, bits clear, next node, postponed, processed.
     work = [(list(node), 0, 0, frozenset(), frozenset(), frozenset())]
@@ -46,6 +49,11 @@ def branches(node: frozenset, bit: dict[str, int]) -> list[Branch]:
         todo, pos, neg, nxt, post, done = work.pop()
         alive = True
         while todo and alive:
+            if budget is not None:
+                budget[0] -= 1 + len(done)  # each step copies the branch's set of processed formulas
+                if budget[0] < 0:
+                    raise AutomatonTooLarge(f"the Büchi automaton needs more than MAX_NBA_STEPS={budget[1]} "
+                                            "tableau steps; simplify the formula")
             f = todo.pop()
             if f in done:
                 continue
@@ -155,9 +163,10 @@ def sccs(n: int, succ: list[list[int]]) -> list[int]:
     return comp
 
 
-def to_nba(f: Formula, aps: tuple[str, ...], max_nodes: int) -> Nba:
+def to_nba(f: Formula, aps: tuple[str, ...], max_nodes: int, budget: list[int] | None = None) -> Nba:
     """NBA of the NNF formula ``f`` over the letters of ``aps`` (``AutomatonTooLarge`` beyond
-    ``max_nodes`` tableau nodes)."""
+    ``max_nodes`` tableau nodes, or when the work of expanding them exhausts ``budget``, a list
+    [steps left, steps allowed] that several calls may share)."""
     bit = {name: 1 << i for i, name in enumerate(aps)}
     n_letters = 1 << len(aps)
     nodes = [normalise(frozenset({f}))]
@@ -165,7 +174,7 @@ def to_nba(f: Formula, aps: tuple[str, ...], max_nodes: int) -> Nba:
     # gba[v][letter]: list of (target node number, postponed eventualities)
     gba: list[list[list[tuple[int, frozenset]]]] = []
     for node in nodes:  # grows while we iterate
-        options = branches(node, bit)
+        options = branches(node, bit, budget)
         row = []
         memo: dict[tuple, list[tuple[int, frozenset]]] = {}
         for letter in range(n_letters):
