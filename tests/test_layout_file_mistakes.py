@@ -90,6 +90,28 @@ def test_a_description_that_is_not_a_string_is_refused():
     assert layouts.from_json(data).areas == layouts.load("paper").areas
 
 
+def test_an_arena_larger_than_float32_positions_allow_is_one_line_and_no_numpy_warning(tmp_path, capsys):
+    """A 1e308 m arena passed every check and overflowed numpy in the reachability search (a
+    RuntimeWarning on stderr before the error); arenas over ``MAX_ARENA`` are refused first, and
+    the largest allowed one still loads."""
+    import warnings
+
+    from d2spo.envs.workspace import MAX_ARENA
+
+    data = {"name": "big", "arena": [1e308, 1e308], "start": [1.0, 1.0, 0.0], "obstacles": [],
+            "areas": [{"name": "A1", "center": [3.0, 3.0], "radius": 0.5}]}
+    with pytest.raises(ConfigError, match=r"^layout\.arena: .* larger than the 1000 m a side"):
+        layouts.from_json(data)
+    path = tmp_path / "big.json"
+    path.write_text(json.dumps(data))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        line = one_error(capsys, "env", "check", "--layout", path, "--task", "F A1")
+    assert "is the layout in metres?" in line
+    data["arena"] = [MAX_ARENA, 10.0]
+    assert layouts.from_json(data).arena == (MAX_ARENA, 10.0)
+
+
 def _office_starting_at(tmp_path, start):
     data = json.loads((Path(__file__).parent / "data" / "layouts" / "office.json").read_text())
     data["start"] = start

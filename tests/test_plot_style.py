@@ -164,6 +164,17 @@ def test_evaluation_figure_text_does_not_overlap(n, layout):
             ax.get_subplotspec().rowspan.stop < ax.get_gridspec().nrows, ax.get_title()
 
 
+def test_a_long_title_is_wrapped_within_the_figure():
+    """``d2spo eval --plot``'s title holds the task's formula: a long one ran off the figure's sides."""
+    task = " & ".join(f"G F room{i}" for i in range(12)) + " & G !stairs"
+    suptitle = f"gen: {task} / default, runtime filter on"
+    fig = plots.draw_evaluation_figure(*_paths(1), suptitle)
+    fig.canvas.draw()
+    box = fig._suptitle.get_window_extent(fig.canvas.get_renderer())
+    assert box.x0 >= 0 and box.x1 <= fig.bbox.width, (box, fig.bbox)
+    assert fig._suptitle.get_text().replace("\n", " ") == suptitle  # wrapped between words, nothing lost
+
+
 def test_reward_curves_name_every_line_and_band_with_units(tmp_path):
     ax = Figure().add_subplot()
     x = np.arange(5) + 10

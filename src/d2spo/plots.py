@@ -17,6 +17,7 @@ Figure objects (no pyplot global state), so it is safe in tests and servers.
 
 from __future__ import annotations
 
+import textwrap
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 
@@ -214,7 +215,9 @@ def _evaluation_panels(shown, ncols: int, size: tuple[float, float], suptitle: s
     recurrence = any("route_optimal_visits" in rates for _, rates in shown)
     handles.update({h.get_label(): h for h in outcome_handles(recurrence, drawn)})
     fig.legend(handles=list(handles.values()), loc="outside lower center", ncol=2, fontsize=8, frameon=False)
-    fig.suptitle(suptitle, fontsize=11)
+    # a long formula (a user's patrol of six rooms) ran off both sides of the figure: wrapped at the
+    # figure's width, about 11 characters an inch at 11 points
+    fig.suptitle(textwrap.fill(suptitle, max(40, int(11 * size[0])), break_long_words=False), fontsize=11)
     return fig
 
 

@@ -167,6 +167,11 @@ def is_proposition(label: str) -> bool:
         return False
 
 
+MAX_ARENA = 1000.0
+"""The largest arena side, in metres: the env holds positions in float32, whose spacing at 1 km is
+about 0.1 mm; at 10 km it reaches 1 mm, a tenth of a step, and larger arenas overflow the searches."""
+
+
 def validate(layout: Layout) -> None:
     """Geometric checks that do not depend on the robot. Raises ConfigError naming the field.
 
@@ -186,6 +191,9 @@ def validate(layout: Layout) -> None:
     w, h = layout.arena
     if not (w > 0 and h > 0):
         raise ConfigError("layout.arena", f"sizes must be positive, got {layout.arena}")
+    if max(w, h) > MAX_ARENA:
+        raise ConfigError("layout.arena", f"{layout.arena} is larger than the {MAX_ARENA:g} m a side d2spo "
+                          "handles (float32 positions); is the layout in metres?")
     for i, o in enumerate(layout.obstacles):
         if isinstance(o, DiskObstacle):
             if not o.radius > 0:
