@@ -79,6 +79,7 @@ check compile_count env PYTHONPATH=bench D2SPO_TEST_JAX_CACHE="$W/test-cache" \
   $PY -m pytest -q -p no:cacheprovider -p compile_count tests/test_common_gae.py
 check gpu_quick env QUICK=1 PY="$PY" bash bench/gpu.sh "$W/gpu"
 check deploy_gym_loop $PY examples/deploy_gym_loop.py "$W/run" --episodes 1
+check deploy_match $PY bench/deploy_match.py "$W/run" --episodes 1 --policy last
 echo "skipped examples/sb3_ppo.py (needs stable-baselines3 and torch), bench/fingerprint.sh (compares two trees)"
 echo "bench smoke: $((SECONDS - begin)) s, $([ $failed = 0 ] && echo 'every script ran' || echo 'FAILED')"
 # a folder of its own making goes once every script ran (about 1.1 GB: runs and compiled programs)

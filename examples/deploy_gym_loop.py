@@ -24,7 +24,7 @@ import numpy as np
 import d2spo.envs  # noqa: F401  registers d2spo/Nav-v0
 from d2spo.config import config_from_dict
 from d2spo.deploy import Policy
-from d2spo.errors import UserError
+from d2spo.errors import ArtefactError, UserError
 
 
 def load_policy(path: Path) -> Policy:
@@ -32,6 +32,12 @@ def load_policy(path: Path) -> Policy:
     that is removed once the policy is loaded (it reads its weights into memory)."""
     if (path / "manifest.json").is_file():
         return Policy.load(path)
+    if not path.exists():  # an export not written yet (e.g. robot/phi1, or RUN/export): say how to write it
+        run = next((p for p in path.parents if (p / "config.json").is_file()), None)  # RUN/export: RUN
+        raise ArtefactError(f"{path}: no such export or run directory; "
+                            + (f"the run {run} has no export there: `d2spo export {run} --out {path}` writes one"
+                               if run else f"`d2spo export RUN --out {path}` writes one from the run directory RUN")
+                            + " (or give the run directory itself)")
     from d2spo.export import export_run  # a run directory: export it first (this needs JAX; a robot does not)
 
     with tempfile.TemporaryDirectory(prefix="d2spo-export-") as tmp:

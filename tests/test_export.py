@@ -29,6 +29,14 @@ from d2spo.safety.filter import cbf_condition
 from d2spo.train import learner_program
 
 ROOT = Path(__file__).resolve().parent.parent
+OBSERVATION_TOLERANCE = 1e-5
+"""docs/deploy.md's bound on |deploy's observation - the env's|: measured up to 2.9e-6 (the path part)
+along a trained ϕ1 run's trajectories (bench/deploy_match.py), 1.2e-7 at these random states."""
+ACTION_TOLERANCE = 1e-4
+"""docs/deploy.md's bound on |deploy's action - JAX's| without the filter: a trained network amplifies
+the observation's float32 differences (up to 3.1e-5 along a trained ϕ1 run's trajectories,
+bench/deploy_match.py; the 2e-6 documented before held at random states only); these tiny untrained
+networks stay near 2e-7."""
 
 
 @pytest.fixture(scope="module")
@@ -85,6 +93,15 @@ def _jax_actions(case, states, runtime_filter: bool) -> np.ndarray:
     return np.asarray(jax.jit(jax.vmap(lambda o, st: lrn.act(policy, o, st, key)))(jnp.asarray(obs), s))
 
 
+def test_the_documented_tolerances_are_the_tested_ones():
+    """docs/deploy.md promised 2e-6 (measured at random states) while this file asserted 1e-5 and a
+    trial measured 1.6e-5 along trajectories: the page states the bounds asserted here."""
+    page = (ROOT / "docs" / "deploy.md").read_text()
+    short = lambda x: f"{x:.0e}".replace("e-0", "e-")  # noqa: E731  1e-05 -> 1e-5
+    assert (f"the observation within {short(OBSERVATION_TOLERANCE)} and an action\nwithout the filter within "
+            f"{short(ACTION_TOLERANCE)} of JAX's") in page
+
+
 def test_deploy_imports_and_acts_without_jax(tiny):
     code = ("import sys; from d2spo.deploy import Policy; p = Policy.load(sys.argv[1]); t = p.task_tracker(); "
             "pose = (1.0, 1.0, 0.3); q = t.reset(1.0, 1.0); u = p.act(p.scan(pose), pose, q, filter=True); "
@@ -99,7 +116,7 @@ def test_observation_from_the_robots_readings_is_the_envs(case, states):
     _, obs, poses, qs, scans = states
     built = np.stack([policy.observation(scans[i], poses[i], qs[i]) for i in range(len(qs))])
     print(f"observation: max abs difference {np.abs(built - obs).max():.3g}")
-    assert np.abs(built - obs).max() < 1e-5
+    assert np.abs(built - obs).max() < OBSERVATION_TOLERANCE
     mapped = np.stack([policy.scan(p) for p in poses])  # the lidar cast on the exported map
     assert np.abs(mapped - scans).max() < 1e-5
     back = np.stack([policy.pose_of_observation(o) for o in obs])
@@ -122,7 +139,7 @@ def test_actions_equal_the_jax_policys_without_the_filter(case, states):
     from_sensors = np.stack([policy.act(scans[i], poses[i], qs[i], filter=False) for i in range(len(qs))])
     print(f"no filter: max abs difference {np.abs(from_obs - want).max():.3g} (observations), "
           f"{np.abs(from_sensors - want).max():.3g} (readings)")
-    assert np.abs(from_obs - want).max() < 1e-5 and np.abs(from_sensors - want).max() < 1e-5
+    assert np.abs(from_obs - want).max() < ACTION_TOLERANCE and np.abs(from_sensors - want).max() < ACTION_TOLERANCE
     u_rl = policy.actor(obs)  # the proposals: forward only where the actor was trained so
     np.testing.assert_allclose(u_rl, np.asarray(case[3].nets.actor.apply(case[4][0], obs)), atol=1e-5)
     assert (u_rl[:, 0] >= 0).all() if case[2].td3.forward_only else (u_rl[:, 0] < 0).any()
@@ -167,7 +184,7 @@ def test_other_learners_export_their_actor(algo, case, states, tmp_path):
     key = jax.random.PRNGKey(0)
     want = np.asarray(jax.jit(jax.vmap(lambda o, st: learner.act(learner.policy(carry), o, st, key)))(obs, s))
     got = np.stack([policy.act_observation(o) for o in obs])
-    assert np.abs(got - want).max() < 1e-5
+    assert np.abs(got - want).max() < ACTION_TOLERANCE
     with pytest.raises(ValueError, match="no runtime filter"):
         policy.act_observation(obs[0], filter=True)
 

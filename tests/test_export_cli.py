@@ -14,6 +14,7 @@ from _cli import one_error_line
 from _tiny import tiny_cfg, write_run
 
 from d2spo import cli
+from d2spo.cli_export import FILTER_NOTE
 from d2spo.deploy import Policy
 from d2spo.errors import ArtefactError
 from d2spo.export import ExportConfig, export_run
@@ -71,12 +72,17 @@ def test_a_new_export_removes_the_files_only_the_one_it_replaces_had(tiny, tmp_p
 
 def test_the_example_refuses_a_path_that_is_not_a_policy_in_one_line(tiny, tmp_path, capsys, monkeypatch):
     temp = _temporary_dirs_here(monkeypatch, tmp_path)
-    for args in ([tmp_path / "nope"], [tiny[1] / "manifest.json"], [tiny[1], "--episodes", "0"]):
+    run = tiny[0]
+    nope, unwritten = tmp_path / "nope", run / "export"  # unwritten: said "no such run directory" before
+    for args, says in [([nope], f"no such export or run directory; `d2spo export RUN --out {nope}`"),
+                       ([unwritten], f"the run {run} has no export there: `d2spo export {run} --out {unwritten}`"),
+                       ([tiny[1] / "manifest.json"], "is a file"), ([tiny[1], "--episodes", "0"], "--episodes")]:
         monkeypatch.setattr(sys, "argv", ["deploy_gym_loop.py", *map(str, args)])
         with pytest.raises(SystemExit) as e:
             runpy.run_path(str(ROOT / "examples" / "deploy_gym_loop.py"), run_name="__main__")
         err = capsys.readouterr().err.strip().splitlines()
-        assert e.value.code == 2 and len(err) == 1 and "error:" in err[0], err
+        assert e.value.code == 2 and len(err) == 1 and "error:" in err[0] and says in err[0], err
+        assert "no such run directory" not in err[0]
     assert list(temp.iterdir()) == []  # the temporary export directory of a failed export is removed too
 
 
@@ -91,10 +97,16 @@ def test_export_command_and_bad_input(tiny, tmp_path, capsys):
     run = tiny[0]
     assert cli.main(["export", str(run), "--out", str(tmp_path / "cli"), "--runtime-filter", "True",
                      "--filter-iters", "5"]) == 0
-    assert "runtime filter on by default" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "runtime filter on by default" in out and "note: the runtime filter" not in out  # asked for: no note
     assert Policy.load(tmp_path / "cli").filter_on and Policy.load(tmp_path / "cli").runtime_filter.iters == 5
     assert cli.main(["export", str(run), "--out", str(tmp_path / "cli")]) == 0  # an earlier export is replaced
     assert not Policy.load(tmp_path / "cli").filter_on
+    # off as trained, silently before: eval turns it on under other dynamics, and a robot's are other
+    out = capsys.readouterr().out.splitlines()
+    assert "runtime filter off by default" in out[0] and out[2] == FILTER_NOTE and "--runtime-filter True" in out[2]
+    assert cli.main(["export", str(run), "--out", str(tmp_path / "cli"), "--runtime-filter", "False"]) == 0
+    assert FILTER_NOTE not in capsys.readouterr().out  # off as asked
     assert "no such run directory" in one_error_line(capsys, ["export", str(tmp_path / "nothing"), "--out",
                                                                str(tmp_path / "o")])
     write_run(tmp_path / "nockpt", tiny_cfg())
@@ -159,13 +171,37 @@ def test_a_damaged_or_foreign_export_is_refused(tiny, tmp_path):
     (copy / "manifest.json").write_text(json.dumps({**manifest, "observation": {"size": "sixteen"}}, indent=1))
     with pytest.raises(ArtefactError, match="edited or damaged since export"):
         Policy.load(copy)
-    # an export of an earlier d2spo (no content_sha256) that a broken writer left without a key
+    # an export of an earlier d2spo (format version 1, no content_sha256) that a broken writer left without a key
     old = {k: v for k, v in manifest.items() if k not in ("automaton", "content_sha256")}
-    (copy / "manifest.json").write_text(json.dumps(old))
+    (copy / "manifest.json").write_text(json.dumps({**old, "format_version": 1}))
     with pytest.raises(ArtefactError, match="damaged .KeyError"):
         Policy.load(copy)
-    (copy / "manifest.json").write_text(json.dumps({k: v for k, v in manifest.items() if k != "content_sha256"}))
-    Policy.load(copy)  # it loads as before
+    unchecked = {k: v for k, v in manifest.items() if k != "content_sha256"}
+    (copy / "manifest.json").write_text(json.dumps({**unchecked, "format_version": 1}))
+    Policy.load(copy)  # version 1 predates the checksum: it loads as before
+
+
+def test_a_manifest_whose_checksum_was_deleted_is_refused(tiny, tmp_path):
+    """Deleting content_sha256 let an edited manifest (a faster v_max) load unchecked, as an export from
+    before the key; a manifest of the format version that always records it is damaged or edited without it."""
+    import shutil
+
+    from d2spo.deploy.policy import CHECKSUMMED_SINCE, FORMAT_VERSION
+
+    copy = tmp_path / "copy"
+    shutil.copytree(tiny[1], copy)
+    manifest = json.loads((tiny[1] / "manifest.json").read_text())
+    assert manifest["format_version"] == FORMAT_VERSION >= CHECKSUMMED_SINCE and "content_sha256" in manifest
+    edited = {k: v for k, v in manifest.items() if k != "content_sha256"}
+    for m in (edited, {**edited, "action": {**manifest["action"], "v_max": 9.0}}):
+        (copy / "manifest.json").write_text(json.dumps(m))
+        with pytest.raises(ArtefactError, match=r"damaged or edited since export \(no content_sha256, which every "
+                                                r"manifest of format version 2 records\)"):
+            Policy.load(copy)
+    for version in (True, 1.5, "2"):  # a format version is an integer this runtime reads
+        (copy / "manifest.json").write_text(json.dumps({**manifest, "format_version": version}))
+        with pytest.raises(ArtefactError, match="format version .*; this d2spo reads versions 1 and 2"):
+            Policy.load(copy)
 
 
 def _edited(policy, ranges, pose, part: str, k: int, value: float):
@@ -260,6 +296,17 @@ def test_scan_error_tells_a_scan_the_map_predicts_from_one_it_does_not(tiny):
     assert policy.scan_error(policy.scan((4.0, 4.0, 1.0)), pose) > 0.1  # another pose's scan
     with pytest.raises(ValueError, match="ranges must be"):
         policy.scan_error(ranges[:3], pose)
+
+
+@pytest.mark.parametrize("pose", [(0.6, 0.6, 0.0), (2.5, 2.5, 0.0), (4.0, 4.0, 1.0)])
+def test_scan_error_sees_a_pose_off_by_30_cm(tiny, pose):
+    """The median over every ray read 0.000 for these poses 0.3 m off (at most 0.006): half the rays or
+    more see nothing within H either way. Over the rays that see a surface, the error is 0.11 m or more."""
+    policy = Policy.load(tiny[1])
+    for dx, dy in ((0.3, 0.0), (0.0, 0.3), (-0.3, 0.0), (0.0, -0.3)):
+        off = policy.scan((pose[0] + dx, pose[1] + dy, pose[2]))  # the scan where the robot is
+        assert policy.scan_error(off, pose) > 0.1, (pose, dx, dy)  # at the pose the localisation gives
+    assert policy.scan_error(np.full(policy.n_rays, np.inf), (2.5, 2.5, 0.0)) > 0.3  # nothing seen where the map has
 
 
 def test_a_policy_with_non_finite_weights_is_not_exported(tmp_path):

@@ -175,6 +175,16 @@ def test_a_long_title_is_wrapped_within_the_figure():
     assert fig._suptitle.get_text().replace("\n", " ") == suptitle  # wrapped between words, nothing lost
 
 
+def test_a_panel_names_the_file_its_layout_came_from_where_the_names_differ():
+    """Two copies of a lab file that both say ``"name": "lab"`` drew two panels titled alike."""
+    paths, rates = _paths(3)
+    rates = [{**rates[0], "layout": "labs/lab_v2.json"}, {**rates[1], "layout": "random:12"},
+             {**rates[2], "layout": "labs/random:13.json"}]
+    titles = [ax.get_title() for ax in plots.draw_evaluation_figure(paths, rates, "run").axes]
+    assert titles[0].startswith("random:11 (lab_v2.json): "), titles[0]
+    assert titles[1].startswith("random:12: ") and titles[2].startswith("random:13: "), titles
+
+
 def test_reward_curves_name_every_line_and_band_with_units(tmp_path):
     ax = Figure().add_subplot()
     x = np.arange(5) + 10

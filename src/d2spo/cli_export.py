@@ -35,8 +35,16 @@ class ExportCmd:
         print(f"wrote {self.out}: {m['source']['algo']} on {m['source']['task']} / {m['source']['layout']}, "
               f"policy {m['source']['policy']}{line}")
         print(f"files: {files}; {sum(sizes.values()) / 1024:.0f} KiB in all")
+        if filt is not None and not filt["enabled"] and self.cfg.runtime_filter is None:
+            print(FILTER_NOTE)
         print(evaluated_line(self.run_dir, m))
         return 0
+
+
+FILTER_NOTE = ("note: the runtime filter is off by default, as trained; `d2spo eval` turns it on under other dynamics "
+               "than the run's, which a robot's are: export with --runtime-filter True, or act(..., filter=True)")
+"""Said by an export whose filter stays off by default because nobody asked: the export cannot know the
+robot's dynamics, so it keeps the run's setting where ``evaluate.filter_choice`` would turn it on."""
 
 
 def evaluated_line(run_dir: Path, manifest: dict) -> str:

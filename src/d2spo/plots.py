@@ -209,7 +209,7 @@ def _evaluation_panels(shown, ncols: int, size: tuple[float, float], suptitle: s
     for ax, ((layout, poses, collided, completed), rates) in zip(panel_grid(fig, len(shown), ncols), shown):
         draw_layout(layout, ax, show_sensing=False)
         drawn |= draw_trajectories(ax, poses, collided, completed)
-        ax.set_title(f"{layout.name}: {rates_title(rates)}\n"
+        ax.set_title(f"{panel_name(layout, rates.get('layout'))}: {rates_title(rates)}\n"
                      f"({rates['episodes']} episodes; {poses.shape[0]} drawn)", fontsize=9)
         handles.update(zip(*reversed(ax.get_legend_handles_labels())))
     recurrence = any("route_optimal_visits" in rates for _, rates in shown)
@@ -219,6 +219,14 @@ def _evaluation_panels(shown, ncols: int, size: tuple[float, float], suptitle: s
     # figure's width, about 11 characters an inch at 11 points
     fig.suptitle(textwrap.fill(suptitle, max(40, int(11 * size[0])), break_long_words=False), fontsize=11)
     return fig
+
+
+def panel_name(layout, spec: str | None) -> str:
+    """A panel's layout: its name, and the file it was read from where the file is named otherwise
+    (two copies of one lab file, both ``"name": "lab"``, were two panels titled alike)."""
+    if isinstance(spec, str) and spec.endswith(".json") and Path(spec).stem != layout.name:
+        return f"{layout.name} ({Path(spec).name})"
+    return layout.name
 
 
 def text_overlaps(fig: Figure) -> bool:

@@ -24,8 +24,14 @@ from d2spo.errors import ArtefactError
 
 FORMAT = "d2spo-policy"
 """The manifest's ``format``."""
-FORMAT_VERSION = 1
-"""The manifest's ``format_version`` this runtime reads."""
+FORMAT_VERSION = 2
+"""The manifest's ``format_version`` ``d2spo export`` writes: 2 since 2026-12-03, a manifest that always
+records its ``CONTENT_KEY``. This runtime also reads version 1 (the same keys; the checksum optional)."""
+FORMAT_VERSIONS = (1, 2)
+"""The ``format_version``s this runtime reads."""
+CHECKSUMMED_SINCE = 2
+"""The first ``format_version`` whose manifests always record ``CONTENT_KEY``: one without it is damaged
+or edited (version 1 predates the key, and its exports from before 2026-12-02 lack it)."""
 MANIFEST = "manifest.json"
 WEIGHTS = "weights.npz"
 
@@ -146,10 +152,14 @@ class Policy:
             raise ArtefactError(f"{path}: not valid JSON ({e})") from None
         if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
             raise ArtefactError(f"{path}: not a {FORMAT} manifest")
-        if manifest.get("format_version") != FORMAT_VERSION:
-            raise ArtefactError(f"{path}: format version {manifest.get('format_version')!r}; this d2spo reads "
-                                f"version {FORMAT_VERSION}")
-        recorded = manifest.get(CONTENT_KEY)  # absent in exports before 2026-12-02
+        version = manifest.get("format_version")
+        if isinstance(version, bool) or version not in FORMAT_VERSIONS:
+            raise ArtefactError(f"{path}: format version {version!r}; this d2spo reads versions "
+                                f"{' and '.join(map(str, FORMAT_VERSIONS))}")
+        recorded = manifest.get(CONTENT_KEY)  # optional in version 1 only: its exports before 2026-12-02 have none
+        if recorded is None and version >= CHECKSUMMED_SINCE:
+            raise ArtefactError(f"{path}: damaged or edited since export (no {CONTENT_KEY}, which every manifest of "
+                                f"format version {version} records); export the run again")
         if recorded is not None and recorded != content_sha256(manifest):
             raise ArtefactError(f"{path}: edited or damaged since export (its content's SHA-256 is not the one it "
                                 "records); export the run again, with the flags that change what it should")
@@ -352,12 +362,16 @@ class Policy:
         return TaskTracker(self.automaton, (self.map.arena_lo - slack, self.map.arena_hi + slack))
 
     def scan_error(self, ranges, pose) -> float:
-        """The median |ranges - scan(pose)| (m) over the rays, both clipped to H: how far the robot's scan
-        is from what the map predicts at its pose. Near 0 on a good map and localisation; a large value
-        means the pose is off, the map out of date or the ranges in another unit (millimetres clip to H
-        and read as free space), which ``act`` cannot tell by itself."""
-        got, want = self.ranges(ranges), self.scan(pose)
-        return float(np.median(np.abs(np.clip(got, 0.0, self.H) - np.clip(want, 0.0, self.H))))
+        """The mean |ranges - scan(pose)| (m), both clipped to H, over the rays on which the map or the scan
+        sees a surface within H (0 when neither sees one): how far the robot's scan is from what the map
+        predicts at its pose. Near 0 on a good map and localisation; a large value means the pose is
+        off, the map out of date (an obstacle not on it adds its rays' share) or the ranges in another
+        unit (millimetres clip to H and read as free space), which ``act`` cannot tell by itself. Rays
+        that both read as free say nothing of the pose and are left out: a median over every ray read
+        0 for a pose 0.3 m off wherever half the rays saw nothing."""
+        got, want = np.clip(self.ranges(ranges), 0.0, self.H), np.clip(self.scan(pose), 0.0, self.H)
+        seen = (got < self.H) | (want < self.H)
+        return float(np.mean(np.abs(got - want)[seen])) if seen.any() else 0.0
 
     def scan(self, pose) -> np.ndarray:
         """[K] the ranges the env's lidar reads at ``pose`` on the map (for a simulator, or to check a real scan)."""
