@@ -90,6 +90,24 @@ def test_a_recurrence_whose_next_visit_is_a_step_away_is_refused(capsys, task, r
         assert status == 0 and not lines and "to its first accepting visit (a patrol" in captured.out, captured
 
 
+@pytest.mark.parametrize("task, hint", [("G (A1 -> F A2)", "'& G F A1'"), ("G (A1 -> F A2) & G !A4", "'& G F A1'"),
+                                        ("GF A1", None)])
+def test_a_response_refused_for_its_short_laps_is_told_to_make_its_trigger_recur(capsys, task, hint):
+    """``G (A1 -> F A2)`` alone is met by staying out of A1, so its laps are a step long; the refusal
+    offered patrols and reaching goals, not the suite's respond form (a user trial)."""
+    from d2spo.cli import main
+    from d2spo.envs.preflight import untriggered_responses
+
+    assert main(["env", "check", "--task", task]) == 2
+    line = capsys.readouterr().err.strip()
+    if hint:
+        assert f"for a response, make its trigger recur: add {hint}" in line, line
+    else:
+        assert "for a response" not in line, line
+    assert untriggered_responses("G (!A1 | F A2) & G F A1") == [] and untriggered_responses("") == []
+    assert untriggered_responses("G ((A1 | A3) -> F A2) & G !A4") == ["(A1 | A3)"]
+
+
 @pytest.mark.parametrize("task, refused", [("G (A1 -> F A2) & GF A1", True), ("GF A1 & GF A2", True),
                                            ("GF A1 & GF A3", False)])
 def test_a_later_lap_a_step_long_is_refused_too(capsys, task, refused):

@@ -68,6 +68,58 @@ def test_a_never_part_alone_is_refused_with_a_goal_the_formula_does_not_name(cap
     assert "e.g. 'F A1' (with a never part: 'G !x & F A1')" in err[0]
 
 
+def test_a_never_part_over_no_label_names_the_missing_propositions_and_the_labels(capsys):
+    """`env check --task 'G !a4'` said only "nothing to reach", not that a4 labels no area of the layout."""
+    assert cli.main(["env", "check", "--task", "G !a4"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "G !a4 asks for nothing to reach" in err[0], err
+    assert "propositions with no area, always false: ['a4']; its labels: A1, A2, A3, A4" in err[0], err
+    assert "did you mean A4 for a4?" in err[0] and "layout 'paper'" in err[0]
+
+
+@pytest.mark.parametrize("formula", ["true", "G !a", "A1 | !A1"])
+def test_ltl_notes_a_task_with_nothing_to_reach(formula, capsys):
+    """`d2spo ltl true` and `d2spo ltl 'G !a'` printed an automaton done at once, with no word that
+    training refuses it."""
+    assert cli.main(["ltl", formula]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{formula!r} asks for nothing to reach" in err[0], err
+    assert err[0].startswith("d2spo: warning: ") and "add a goal, e.g. 'F A1'" in err[0]
+    assert cli.main(["ltl", "F a"]) == 0 and not capsys.readouterr().err.strip()
+
+
+def test_ltl_warns_of_operators_run_into_a_name_unless_a_label_is_so_named(tmp_path, capsys):
+    """`Fb` and `GFa` parsed silently as propositions named Fb and GFa."""
+    assert cli.main(["ltl", "GFa & F b | Fb"]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["d2spo: warning: proposition 'Fb' looks like 'F b'; write operators apart from names (the parser "
+                   "reads 'Fb' as one proposition)",
+                   "d2spo: warning: proposition 'GFa' looks like 'G F a'; write operators apart from names (the "
+                   "parser reads 'GFa' as one proposition)"], err
+    layout = json.loads(_docs_layout_example())
+    layout["areas"][0]["label"] = "Fb"  # an area of that label: no warning for it
+    path = tmp_path / "fb.json"
+    path.write_text(json.dumps(layout))
+    assert cli.main(["ltl", "F Fb & F GFa", "--layout", str(path)]) == 0
+    err = capsys.readouterr().err
+    assert "'GFa' looks like 'G F a'" in err and "'Fb' looks" not in err, err
+
+
+def test_a_task_built_on_a_layout_names_operators_run_into_a_label_in_its_one_error():
+    """The task-building path (``make_env``: train, eval, env check) refuses a proposition that labels
+    no area; where it reads as operators run into a label, the one error says how it reads apart
+    (no separate warning: two lines for one mistake)."""
+    import warnings
+
+    from d2spo.envs import EnvConfig, make_env
+    from d2spo.errors import ConfigError
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ConfigError, match=r"proposition 'XA4' names no area .*did you mean X A4 for XA4\?\)$"):
+            make_env(EnvConfig(layout="paper"), task="F A1 & G !XA4")
+
+
 def test_ltl_on_a_layout_warns_of_propositions_that_label_no_area(capsys):
     """`d2spo ltl 'F a4' --layout paper` printed the automaton with no word that a4 labels no area."""
     assert cli.main(["ltl", "F a4", "--layout", "paper"]) == 0

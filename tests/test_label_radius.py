@@ -57,3 +57,15 @@ def test_an_evaluation_reads_the_task_with_the_true_radii():
     r = rates(*out, max_steps=40)
     assert r["rejection_rate"] == float(np.mean((length < 40) & ~collided.astype(bool) & ~completed.astype(bool)))
     assert r["rejection_rate"] == 0.0  # F A1 forbids nothing
+
+
+def test_the_refusal_names_a_flag_the_command_line_takes():
+    """The refusal's way out parses: `--anneal.no-enabled` (it said `--anneal.enabled False`, which the
+    command line refuses: a boolean flag takes no value)."""
+    from d2spo.cli import parse
+
+    with pytest.raises(ConfigError) as refused:
+        _wide("tlgrl")
+    assert "--anneal.no-enabled" in str(refused.value) and "--anneal.enabled False" not in str(refused.value)
+    cfg = parse(["train", "--algo", "tlgrl", "--anneal.no-enabled", "--label-radius", "1.0"]).config()
+    assert not cfg.anneal.enabled and cfg.env.label_radius == 1.0

@@ -270,3 +270,32 @@ def test_a_patrol_too_large_for_the_monitor_is_built_as_a_dba(monkeypatch):
     assert task.n_states == 3 and is_recurrence(task)
     with pytest.raises(AutomatonTooLarge, match="MAX_TABLEAU_STEPS=50"):
         task_automaton("F (a & F (b & F c)) & F G a")  # no DBA either: the monitor's reason is kept
+
+
+def test_the_co_safe_form_docs_give_a_never_part_is_equivalent_where_areas_overlap():
+    """docs/ltl.md said `G !A4 & F A1` runs as `!A4 U A1`, which accepts entering A1 inside A4 (the
+    letter {A1, A4}); the form it gives now completes and rejects after exactly the same prefixes,
+    over every letter."""
+    import re
+    from pathlib import Path
+
+    from d2spo.ltl import task_automaton
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "ltl.md").read_text()
+    forms = re.findall(r"`G !A4 & F A1`, has none, and runs exactly as its co-safe form `([^`]+)`", text)
+    assert forms == ["!A4 U (A1 & !A4)"]
+
+    def same_status(form: str) -> bool:
+        never, monitor = task_automaton("G !A4 & F A1"), translate(form)
+        assert never.aps == monitor.aps == ("A1", "A4")
+        seen, todo = set(), [(never.initial, monitor.initial)]
+        while todo:  # the product, from the start, over every letter
+            q, m = todo.pop()
+            if (never.status(q) == "completed") != (m in monitor.accepting) or \
+                    (q in never.rejecting) != (m in monitor.rejecting):
+                return False
+            seen.add((q, m))
+            todo.extend(t for a in range(4) if (t := (never.delta[q][a], monitor.delta[m][a])) not in seen)
+        return True
+
+    assert same_status(forms[0]) and not same_status("!A4 U A1")

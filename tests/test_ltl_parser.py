@@ -24,6 +24,7 @@ from d2spo.ltl.formula import (
     Until,
     WeakUntil,
 )
+from d2spo.ltl.parser import run_together
 
 a, b, c, d = Prop("a"), Prop("b"), Prop("c"), Prop("d")
 
@@ -122,6 +123,45 @@ def test_paper_phi2_parses_as_intended():
 )
 def test_printing(text, printed):
     assert str(parse(text)) == printed
+
+
+def test_a_node_is_printed_once_however_often_it_is_shared(monkeypatch):
+    """Sorting a tableau's branches prints their formulas again and again (``Tableau.expand``), and
+    ``nnf`` shares sub-formulas: each node keeps its string, so a formula is printed once."""
+    import d2spo.ltl.formula as formula
+
+    calls = []
+    to_string = formula._to_string
+    monkeypatch.setattr(formula, "_to_string", lambda f: calls.append(f) or to_string(f))
+    p, q, r, s = (Prop(name) for name in "pqrs")  # new nodes, printed by no other test
+    shared = Until(p, Or(q, r))
+    f = And(Release(shared, s), Not(shared))
+    assert str(f) == "((p U (q | r)) R s) & !(p U (q | r))"
+    assert len(calls) == 9  # And, Release, Not, s, and the 5 nodes of shared once
+    assert str(f) == str(And(f.left, f.right)) and len(calls) == 10  # the new And alone
+
+
+@pytest.mark.timeout(60)
+def test_a_shared_sub_formula_is_hashed_once():
+    """A node keeps its hash; the dataclass's own hash recursed through every child on every call,
+    2**64 nodes here (the NNF of ``a <-> b <-> ...`` doubles likewise with each <->)."""
+    f = a
+    for _ in range(64):
+        f = And(f, f)
+    assert hash(And(f.left, f.right)) == hash(f) and f in {f} and And(f.left, f.left) == f
+
+
+@pytest.mark.parametrize("names, labels, apart", [
+    (["Fb", "GFa", "XA1", "FFb", "G_2"], None, {"Fb": "F b", "GFa": "G F a", "XA1": "X A1", "FFb": "F F b"}),
+    (["A1", "F1", "Xtrue", "XU", "Fx1"], None, {"Fx1": "F x1"}),  # no name after the F, a keyword after the X
+    # words are not operators run into a name: a lab's rooms (`Goal`, `Fridge`, `Xray`) stay quiet
+    (["Goal", "Fridge", "Xray", "Garage"], None, {}),
+    # with a layout's labels: operators run into a label, whatever its length, unless itself a label
+    (["GFdock", "Fridge", "Fb", "Goal", "Xa"], ["dock", "ridge", "Fb", "b"],
+     {"GFdock": "G F dock", "Fridge": "F ridge", "Xa": "X a"}),
+])
+def test_run_together_lists_names_that_read_as_operators_and_a_name(names, labels, apart):
+    assert run_together(names, labels) == apart
 
 
 # Random syntax trees, printed and parsed back.

@@ -20,10 +20,13 @@ from d2spo.ltl import (
     AutomatonTooLarge,
     NeverCompletedWarning,
     parse,
+    task_automaton,
     task_formula,
+    to_dba,
     translate,
 )
 from d2spo.ltl.automaton import letters_to_guard
+from d2spo.ltl.formula import FormulaTooLarge
 from d2spo.ltl.tasks import BUCHI_SUITE, SUITE
 
 # The package exports the function ``translate``, which hides the module of the same name.
@@ -246,6 +249,48 @@ def test_tableau_guard(monkeypatch):
     monkeypatch.setattr(translate_module, "MAX_TABLEAU_NODES", 2)
     with pytest.raises(AutomatonTooLarge, match="tableau"):
         translate("G F a | G F b | F G c")
+
+
+def chain(op: str, n: int) -> str:
+    """``a op b op c ...`` over n propositions."""
+    return f" {op} ".join("abcdefghijklmnop"[:n])
+
+
+def test_nnf_converts_each_subformula_once_per_polarity():
+    """``a <-> b`` is ``(a & b) | (!a & !b)``: each <-> doubles its operands as printed. The NNF of a
+    chain shares them, so it has a few nodes per <-> (it was built as a tree: 2**n objects)."""
+    f = translate_module.nnf(parse(chain("<->", 10)))
+    objects, todo = {}, [f]
+    while todo:
+        g = todo.pop()
+        if id(g) not in objects:
+            objects[id(g)] = g
+            todo.extend(g.children())
+    assert len(objects) < 100 < 3000 < translate_module.printed_size(f) <= translate_module.MAX_NNF_SIZE
+
+
+@pytest.mark.parametrize("text, limit, builds", [
+    (chain("<->", 8), "MAX_DNF_CLAUSES=64", (translate, to_dba, task_automaton)),  # 128 clauses: 50 s before
+    (chain("<->", 11), "MAX_NNF_SIZE=4000", (translate, to_dba, task_automaton)),
+    (f"X ({chain('<->', 8)})", "MAX_DNF_CLAUSES=64", (translate, task_automaton)),  # the next state's DNF
+    (chain("W", 11), "MAX_NNF_SIZE=4000", (translate, task_automaton)),  # !(a W b) is !b U (!a & !b): 6140 nodes
+])
+def test_chains_of_iff_and_weak_until_beyond_the_limits_are_one_error(text, limit, builds):
+    for build in builds:
+        with pytest.raises(FormulaTooLarge, match=limit) as info:
+            build(text)
+        assert isinstance(info.value, UserError) and "simplify the formula" in str(info.value)
+
+
+def test_chains_within_the_limits_translate():
+    """The 7-long chain of <-> (64 clauses) is true where an odd number of its propositions are false."""
+    dba = to_dba(chain("<->", 7))
+    assert dba.delta[dba.initial][0] in dba.rejecting  # 7 false: odd
+    assert dba.delta[dba.initial][1] not in dba.rejecting  # 6 false: even
+    assert task_automaton(chain("<->", 7)).n_states == 3
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NeverCompletedWarning)
+        assert translate(chain("W", 6)).n_states == 7
 
 
 # --- The Automaton API -------------------------------------------------------------------------------

@@ -42,7 +42,14 @@ from d2spo.demo import run_demo
 from d2spo.envs import EnvConfig, layouts
 from d2spo.envs.compiled_task import default_task
 from d2spo.envs.dynamics import load_dynamics
-from d2spo.envs.preflight import check_feasible, check_lap, missing_labels, warn_if_endless_branch
+from d2spo.envs.preflight import (
+    NOTHING_TO_REACH,
+    check_feasible,
+    check_lap,
+    missing_labels,
+    warn_if_endless_branch,
+    warn_if_run_together,
+)
 from d2spo.errors import ConfigError, D2SPOWarning, LTLSyntaxError, NaNError, TaskWarning, UserError
 from d2spo.evaluate import EvalConfig, evaluate_run, write_evaluation
 from d2spo.fields import check_choice, check_fields
@@ -102,7 +109,11 @@ class LtlCmd:
         if aut.initial in aut.rejecting:  # the empty prefix is already bad: unsatisfiable
             warnings.warn(f"{self.formula!r} is unsatisfiable: no run satisfies it (its automaton starts in "
                           "its rejecting state), so no policy can be trained on it", TaskWarning, stacklevel=2)
+        elif aut.initial in aut.accepting:  # `true`, `G !a`: done before the robot moves
+            warnings.warn(f"{self.formula!r} {NOTHING_TO_REACH}: no run has anything to do, and `d2spo train` refuses "
+                          "it; add a goal, e.g. 'F A1' (with a never part: 'G !x & F A1')", TaskWarning, stacklevel=2)
         warn_if_endless_branch(aut, repr(self.formula))
+        lay = None
         if self.all_letters:
             feasible, letters = None, "every letter (all areas may hold at once)"
         elif self.layout is not None:
@@ -115,6 +126,7 @@ class LtlCmd:
             feasible = [1 << i for i in range(len(aut.aps))] + ([0] if self.label_mode == "step" else [])
             letters = ("one area at a time (disjoint areas; --layout NAME for a layout's, "
                        "--all-letters for every letter)")
+        warn_if_run_together(aut.aps, None if lay is None else lay.labels)  # `Fb`: no warning where an area is so labelled
         if self.json:
             print(json.dumps(aut.to_json(feasible)))
         elif self.dot:

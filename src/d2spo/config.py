@@ -273,7 +273,7 @@ class TrainConfig:
                 raise ConfigError("label_radius", f"is a fixed relaxed radius for a learner that does not anneal; "
                                   f"{self.algo} anneals its labelling radius from d_bar / k1 (Sec. IV-C): set that "
                                   "with --anneal.d-bar and --anneal.k1, or turn annealing off with "
-                                  "--anneal.enabled False to use --label-radius")
+                                  "--anneal.no-enabled to use --label-radius")
         check_memory(self, seeds)
         return self
 

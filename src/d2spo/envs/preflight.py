@@ -21,6 +21,7 @@ from d2spo.envs.state_fields import FORBIDDEN, TARGET, named_areas
 from d2spo.errors import ConfigError, TaskWarning
 from d2spo.ltl.automaton import UNREACHABLE
 from d2spo.ltl.buchi_task import endless_branch
+from d2spo.ltl.parser import run_together
 from d2spo.ltl.tasks import close_task_names
 
 TIGHT_FRACTION = 0.6
@@ -33,6 +34,10 @@ RECURRENCE_VISITS = 3
 """``default_max_steps`` gives a recurrence room for this many accepting visits: the first and two
 laps of its cycle (so that its visits per episode measure the patrol, not only the way to it)."""
 
+NOTHING_TO_REACH = ("asks for nothing to reach: its automaton accepts before the robot moves (a formula already "
+                    "true, or a 'never' part alone)")
+"""What ``check_letters`` refuses (and ``d2spo ltl`` notes) in a task whose initial state accepts."""
+
 
 def check_letters(task: CompiledTask, what: str) -> None:
     """ConfigError unless a sequence of the letters the layout can produce completes the task, and
@@ -42,9 +47,10 @@ def check_letters(task: CompiledTask, what: str) -> None:
     if bool(arrays.accepting[int(arrays.initial)]):
         others = [label for label in task.layout.labels if label not in task.automaton.aps]
         goal = (others or list(task.layout.labels) or ["A1"])[0]  # an area the formula does not name, if any
-        raise ConfigError("task", f"{what} asks for nothing to reach: its automaton accepts before the robot moves "
-                          "(a formula already true, or a 'never' part alone), so there is nothing to learn; add a "
-                          f"goal, e.g. 'F {goal}' (with a never part: 'G !x & F {goal}')")
+        missing = missing_labels(task.automaton.aps, task.layout)  # `G !a4`: meant to name an area, names none
+        hint = f" (layout {task.layout.name!r}: {missing})" if missing else ""
+        raise ConfigError("task", f"{what} {NOTHING_TO_REACH}, so there is nothing to learn; add a goal, e.g. "
+                          f"'F {goal}' (with a never part: 'G !x & F {goal}'){hint}")
     if int(arrays.distance[int(arrays.initial)]) >= UNREACHABLE:
         aut = task.automaton
         if aut.initial in getattr(aut, "rejecting", ()):  # no layout is to blame: no run satisfies it
@@ -75,6 +81,16 @@ def missing_labels(aps, layout) -> str:
     return f"propositions with no area, always false: {missing}; its labels: {', '.join(layout.labels) or 'none'}{guess}"
 
 
+def warn_if_run_together(aps, labels=None) -> None:
+    """A TaskWarning per proposition of ``aps`` that reads as operators run into a name (``Fb``: one
+    proposition to the parser, rarely meant for ``F b``; ``parser.run_together``): with ``labels``
+    (a layout's), operators run into one of them and not itself a label (an area may be labelled
+    ``Fb``); without, operators run into a letter and digits."""
+    for name, apart in run_together(sorted(set(aps)), labels).items():
+        warnings.warn(TaskWarning(f"proposition {name!r} looks like {apart!r}; write operators apart from names "
+                                  f"(the parser reads {name!r} as one proposition)"), stacklevel=2)
+
+
 def _label_meant(prop: str, layout) -> str | None:
     """The label ``prop`` was likely meant to be: the one it equals but for case; an area's name
     written as a proposition (``lab_bench`` for the area ``lab-bench``, whose label is ``lab``: a
@@ -103,8 +119,10 @@ def check_feasible(task: CompiledTask, name: str, radius: float | None = None, r
     aut, layout = task.automaton, task.layout
     missing = [p for p in aut.aps if p not in layout.labels]
     if missing:
+        meant = _label_meant(missing[0], layout)
+        hint = f"; did you mean {meant} for {missing[0]}?" if meant else ""
         raise ConfigError("task", f"{name}: proposition {missing[0]!r} names no area of layout {layout.name!r} "
-                          f"(no area has that label; its labels: {', '.join(layout.labels) or 'none'})")
+                          f"(no area has that label; its labels: {', '.join(layout.labels) or 'none'}{hint})")
     distance = task.distance
     if distance[aut.initial] is None:
         raise ConfigError("task", f"{name} cannot be completed on layout {layout.name!r}: no sequence of the "
@@ -276,10 +294,46 @@ def check_lap(task: CompiledTask, robot_radius: float, name: str) -> None:
                                    2 * task.automaton.n_states + 2)
     lap = min((b - a for a, b in zip(lengths, lengths[1:])), default=math.inf)
     if lap < 2 * robot_radius:
+        triggers = untriggered_responses(getattr(task.automaton, "state_formulas", ()) and
+                                         task.automaton.state_formulas[task.automaton.initial])
+        hint = (f"; for a response, make its trigger recur: add '& G F {triggers[0]}' (the suite's respond: "
+                "'G (A1 -> F A2) & G F A1')" if triggers else "")
         raise ConfigError("task", f"{name}: on layout {task.layout.name!r} an accepting visit can follow the "
                           f"last after {lap:.2f} m (leaving an area and entering it again), so its visits would "
                           "count moves at an area's edge, not laps; give two areas to alternate between, e.g. "
-                          "'GF a & GF b', or a goal to reach once, 'F a'")
+                          f"'GF a & GF b', or a goal to reach once, 'F a'{hint}")
+
+
+def untriggered_responses(formula: str) -> list[str]:
+    """The triggers p of the response conjuncts ``G (p -> F q)`` of ``formula`` (an automaton state's
+    residual, where it reads ``G (!p | F q)``) that no conjunct ``G F p`` makes recur: alone, such a
+    response is met by never meeting p, and every step away from p is an accepting visit."""
+    from d2spo.ltl.formula import Always, And, Eventually, Implies, Not, Or, Prop
+    from d2spo.ltl.parser import parse
+
+    if not formula:
+        return []
+    conjuncts, todo = [], [parse(formula)]
+    while todo:
+        f = todo.pop()
+        if isinstance(f, And):
+            todo += [f.left, f.right]
+        else:
+            conjuncts.append(f)
+    recurring = {c.arg.arg for c in conjuncts if isinstance(c, Always) and isinstance(c.arg, Eventually)}
+    triggers = []
+    for c in conjuncts:
+        body = c.arg if isinstance(c, Always) else None
+        if isinstance(body, Implies) and isinstance(body.right, Eventually):
+            p = body.left
+        elif isinstance(body, Or) and isinstance(body.left, Not) and isinstance(body.right, Eventually):
+            p = body.left.arg
+        else:
+            continue
+        text = str(p) if isinstance(p, Prop) else f"({p})"
+        if p not in recurring and text not in triggers:
+            triggers.append(text)
+    return triggers
 
 
 def check_cycle(task: CompiledTask, max_steps: int, dt: float, v_max: float, name: str) -> None:

@@ -44,6 +44,7 @@ from d2spo.ltl.translate import (
     DNF_TRUE,
     MAX_APS,
     MAX_TABLEAU_NODES,
+    Dnf,
     _clause_order,
     _negate_dnf,
     _Progression,
@@ -236,8 +237,10 @@ def to_dba(formula: Formula | str, max_states: int = 1000) -> BuchiAutomaton:
     aps = tuple(sorted(f.aps()))
     if len(aps) > MAX_APS:
         raise AutomatonTooLarge(f"the formula uses {len(aps)} propositions; at most {MAX_APS} are supported")
+    g = nnf(f)
+    start = to_dnf(g)  # the initial state's name; FormulaTooLarge (MAX_DNF_CLAUSES) before any automaton is built
     try:
-        delta, accepting = _automaton(nnf(f), aps, max_states, [MAX_NBA_STEPS, MAX_NBA_STEPS])
+        delta, accepting = _automaton(g, aps, max_states, [MAX_NBA_STEPS, MAX_NBA_STEPS])
     except _NoDba as e:
         raise NoDeterministicBuchi(
             f"{f} has no deterministic Büchi automaton: it can demand that something holds forever from some "
@@ -246,7 +249,7 @@ def to_dba(formula: Formula | str, max_states: int = 1000) -> BuchiAutomaton:
             "again, leaving it between), a safety from the start (G a) or a reach (F a)",
             e.args[0]) from None
     dead, done = dead_states(delta, accepting), universal_states(delta, accepting)
-    return BuchiAutomaton(aps, 0, delta, accepting, frozenset(dead), _names(f, aps, delta, dead, done))
+    return BuchiAutomaton(aps, 0, delta, accepting, frozenset(dead), _names(start, aps, delta, dead, done))
 
 
 class _NoDba(Exception):
@@ -290,14 +293,14 @@ def _automaton(g: Formula, aps: tuple[str, ...], max_states: int,
     return reduce(delta, accepting)[:2]
 
 
-def _names(f: Formula, aps: tuple[str, ...], delta: list[list[int]], dead: set[int], done: set[int]) -> list[str]:
-    """Per state, the formula progressed along the first word that reaches it breadth-first,
-    without its unsatisfiable clauses and those that imply another (kept when the satisfiability
-    checks exceed their limits); 'true' for the accepting sink, 'false' for the rejecting one; a
-    repeated residual gets ' #k' (the automaton needs several states to track it)."""
+def _names(start: Dnf, aps: tuple[str, ...], delta: list[list[int]], dead: set[int], done: set[int]) -> list[str]:
+    """Per state, the formula (``start``: the DNF of its NNF) progressed along the first word that
+    reaches it breadth-first, without its unsatisfiable clauses and those that imply another (kept
+    when the satisfiability checks exceed their limits); 'true' for the accepting sink, 'false' for
+    the rejecting one; a repeated residual gets ' #k' (the automaton needs several states to track it)."""
     prog = _Progression(aps)
     tableau = Tableau(MAX_TABLEAU_NODES, MAX_NAME_STEPS)
-    residual = {0: to_dnf(nnf(f))}
+    residual = {0: start}
     frontier = [0]
     for q in frontier:  # grows while we iterate
         for a, t in enumerate(delta[q]):

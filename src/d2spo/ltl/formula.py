@@ -46,7 +46,7 @@ def check_size(f: Formula) -> None:
 class Formula:
     """Base class of all LTL syntax-tree nodes."""
 
-    __slots__ = ()
+    __slots__ = ("_hash", "_text")  # computed once per node (``_node``)
 
     def children(self) -> tuple[Formula, ...]:
         """Direct sub-formulas, left to right."""
@@ -64,24 +64,47 @@ class Formula:
         return frozenset(found)
 
     def __str__(self) -> str:
-        return _to_string(self)
+        try:
+            return self._text
+        except AttributeError:
+            object.__setattr__(self, "_text", _to_string(self))
+            return self._text
 
 
-@dataclass(frozen=True, slots=True)
+def _node(cls: type) -> type:
+    """``cls`` as a frozen dataclass with slots whose hash is computed once per node. Formulas
+    share sub-formulas (``translate.nnf`` of ``a <-> b`` holds ``a`` twice), so a hash or a string
+    that recursed through every child on every call would take time exponential in the depth of a
+    chain ``a <-> b <-> c <-> ...``; cached, both take one pass over the distinct nodes."""
+    cls = dataclass(frozen=True, slots=True)(cls)
+    of_fields = cls.__hash__
+
+    def __hash__(self) -> int:
+        try:
+            return self._hash
+        except AttributeError:
+            object.__setattr__(self, "_hash", of_fields(self))
+            return self._hash
+
+    cls.__hash__ = __hash__
+    return cls
+
+
+@_node
 class Const(Formula):
     """``true`` or ``false``."""
 
     value: bool
 
 
-@dataclass(frozen=True, slots=True)
+@_node
 class Prop(Formula):
     """An atomic proposition, e.g. ``A1`` (the robot is in area A1)."""
 
     name: str
 
 
-@dataclass(frozen=True, slots=True)
+@_node
 class Not(Formula):
     """``!arg``."""
 
@@ -91,7 +114,7 @@ class Not(Formula):
         return (self.arg,)
 
 
-@dataclass(frozen=True, slots=True)
+@_node
 class Next(Formula):
     """``X arg``: arg holds at the next position."""
 
@@ -101,7 +124,7 @@ class Next(Formula):
         return (self.arg,)
 
 
-@dataclass(frozen=True, slots=True)
+@_node
 class Eventually(Formula):
     """``F arg``: arg holds now or at some later position."""
 
@@ -111,7 +134,7 @@ class Eventually(Formula):
         return (self.arg,)
 
 
-@dataclass(frozen=True, slots=True)
+@_node
 class Always(Formula):
     """``G arg``: arg holds now and at every later position."""
 
@@ -121,7 +144,7 @@ class Always(Formula):
         return (self.arg,)
 
 
-@dataclass(frozen=True, slots=True)
+@_node
 class And(Formula):
     """``left & right``."""
 
@@ -132,7 +155,7 @@ class And(Formula):
         return (self.left, self.right)
 
 
-@dataclass(frozen=True, slots=True)
+@_node
 class Or(Formula):
     """``left | right``."""
 
@@ -143,7 +166,7 @@ class Or(Formula):
         return (self.left, self.right)
 
 
-@dataclass(frozen=True, slots=True)
+@_node
 class Implies(Formula):
     """``left -> right``."""
 
@@ -154,7 +177,7 @@ class Implies(Formula):
         return (self.left, self.right)
 
 
-@dataclass(frozen=True, slots=True)
+@_node
 class Iff(Formula):
     """``left <-> right``."""
 
@@ -165,7 +188,7 @@ class Iff(Formula):
         return (self.left, self.right)
 
 
-@dataclass(frozen=True, slots=True)
+@_node
 class Until(Formula):
     """``left U right``: right eventually holds, and left holds at every position before."""
 
@@ -176,7 +199,7 @@ class Until(Formula):
         return (self.left, self.right)
 
 
-@dataclass(frozen=True, slots=True)
+@_node
 class Release(Formula):
     """``left R right``: right holds up to and including the first position where left holds
     (forever if left never holds). Dual of until: ``!(a U b) == !a R !b``."""
@@ -188,7 +211,7 @@ class Release(Formula):
         return (self.left, self.right)
 
 
-@dataclass(frozen=True, slots=True)
+@_node
 class WeakUntil(Formula):
     """``left W right``: ``left U right``, or left holds forever."""
 
@@ -232,7 +255,7 @@ def _to_string(f: Formula) -> str:
     if isinstance(f, Prop):
         return f.name
     if type(f) in _UNARY_SYMBOL:
-        inner = _to_string(f.arg)  # type: ignore[attr-defined]
+        inner = str(f.arg)  # type: ignore[attr-defined]
         if _precedence(f.arg) < _UNARY:  # type: ignore[attr-defined]
             inner = f"({inner})"
         return _UNARY_SYMBOL[type(f)] + inner
@@ -244,8 +267,8 @@ def _to_string(f: Formula) -> str:
     right_needs = _precedence(right) < prec or (_precedence(right) == prec and not right_assoc)
     left_needs = left_needs or (type(left) in _BINARY and type(left) is not type(f))
     right_needs = right_needs or (type(right) in _BINARY and type(right) is not type(f))
-    left_s = f"({_to_string(left)})" if left_needs else _to_string(left)
-    right_s = f"({_to_string(right)})" if right_needs else _to_string(right)
+    left_s = f"({left})" if left_needs else str(left)
+    right_s = f"({right})" if right_needs else str(right)
     return f"{left_s} {symbol} {right_s}"
 
 

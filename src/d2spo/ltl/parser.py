@@ -22,6 +22,7 @@ greedily, so ``XA1`` is the proposition ``XA1`` while ``X A1`` and ``X(A1)`` are
 from __future__ import annotations
 
 import re
+from collections.abc import Iterable
 from typing import NamedTuple
 
 from d2spo.errors import LTLSyntaxError
@@ -225,6 +226,24 @@ class _Parser:
             self.take()
             return f
         raise self.fail(_OPERAND)
+
+
+def run_together(names: Iterable[str], labels: Iterable[str] | None = None) -> dict[str, str]:
+    """The names among ``names`` that read as unary operators run into a name, each with how it reads
+    with the operators apart: ``Fb`` -> ``F b``, ``GFa`` -> ``G F a``, ``XA1`` -> ``X A1``. The parser
+    reads names greedily, so each is one proposition. A name is listed when what follows its
+    operator letters is a letter and digits only (``Fb``, ``XA1``, ``Fx1``: ``Goal``, ``Fridge`` or
+    ``Xray`` are words, not ``G oal``) or, given ``labels`` (a layout's), one of them (``GFdock``);
+    never when it is itself one of ``labels`` (an area may be labelled ``Fb``). ``F1`` (no name after
+    the F) is never listed."""
+    labels = set(labels or ())
+    out = {}
+    for name in names:
+        rest = name.lstrip("".join(_UNARY_LETTERS))
+        meant = rest in labels or re.fullmatch(r"[A-Za-z][0-9]*", rest)
+        if rest != name and meant and rest not in _KEYWORDS and name not in labels:
+            out[name] = " ".join([*name[:len(name) - len(rest)], rest])
+    return out
 
 
 def parse(text: str) -> Formula:

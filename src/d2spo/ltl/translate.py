@@ -20,7 +20,7 @@ The construction, in four steps (docs/ltl.md has the details and the argument fo
 from __future__ import annotations
 
 import warnings
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 
 from d2spo.ltl.automaton import Automaton, AutomatonTooLarge
 from d2spo.ltl.formula import (
@@ -31,6 +31,7 @@ from d2spo.ltl.formula import (
     Const,
     Eventually,
     Formula,
+    FormulaTooLarge,
     Iff,
     Implies,
     Next,
@@ -53,10 +54,24 @@ MAX_TABLEAU_NODES = 200_000
 """Most tableau nodes the satisfiability checks of one translation may build."""
 MAX_TABLEAU_STEPS = 10_000_000
 """Most work the tableau may do in one translation: each formula it expands counts one step plus
-the formulas its branch has already processed (what that step copies). A bound on the time (about
-4 s on a 2-core CPU), so a formula whose check grows exponentially is refused instead of running
-for minutes: an ordered visit of 11 areas ``F(a & X F(b & X F(...))`` needs 8 million steps (3 s),
-12 areas are refused (15 took 184 s before this bound). The named tasks need at most 1100."""
+the formulas its branch has already processed (what that step copies). A bound on the time (1 to
+4 s on a 2-core CPU, by the formula: 0.8 s for the ordered visit of 12 areas, 3.3 s for
+``a W b W ... W h``), so a formula whose check grows exponentially is refused instead of running
+for minutes: an ordered visit of 11 areas ``F(a & X F(b & X F(...))`` needs 8 million steps
+(0.5 s), 12 areas are refused (15 took 184 s before this bound). The named tasks need at most
+1100."""
+MAX_NNF_SIZE = 4000
+"""Most operators and propositions in the negation normal form of a formula (or of its negation),
+counted as printed. ``a <-> b`` is ``(a & b) | (!a & !b)``, so a chain of n ``<->`` is about 2**n
+as printed (and so is a chain of ``W`` under a negation: ``!(a W b)`` is ``!b U (!a & !b)``);
+every later pass (satisfiability, state names) works on that printed form. The 10-long chain of
+``<->`` has about 3800; an 11-long one is refused. The named tasks have at most 30."""
+MAX_DNF_CLAUSES = 64
+"""Most clauses in the disjunctive normal form of a state of the automaton (``FormulaTooLarge``
+beyond). A chain of n ``<->`` over propositions has 2**(n-1) clauses, and the checks of ``decide``
+take time quadratic in the clauses: a 7-long chain (64 clauses) takes about 2 s (its monitor's
+check gives up, its DBA is built), an 8-long one is refused at once (it took 50 s; a 10-long one
+2 minutes). The named tasks have at most 4."""
 
 
 class NeverCompletedWarning(UserWarning):
@@ -122,8 +137,28 @@ def nnf(f: Formula, negate: bool = False) -> Formula:
     """Negation normal form of ``f`` (of ``!f`` if ``negate``), with constants folded.
 
     The result uses only Const, Prop, Not(Prop), And, Or, Next, Eventually, Always, Until, Release
-    and WeakUntil.
+    and WeakUntil. Each sub-formula is converted once per polarity and the results are shared, so
+    ``a <-> b <-> c <-> ...``, whose form as printed doubles with every ``<->``, is built in linear
+    time; ``FormulaTooLarge`` when that printed form has more than ``MAX_NNF_SIZE`` nodes.
     """
+    memo: dict[tuple[Formula, bool], Formula] = {}
+
+    def shared(g: Formula, neg: bool) -> Formula:
+        if (g, neg) not in memo:
+            memo[g, neg] = _nnf_step(g, neg, shared)
+        return memo[g, neg]
+
+    out = shared(f, negate)
+    if (size := printed_size(out)) > MAX_NNF_SIZE:
+        raise FormulaTooLarge(
+            f"the negation normal form of {'!' if negate else ''}({_abridged(f)}) has {size} operators and propositions, "
+            f"more than MAX_NNF_SIZE={MAX_NNF_SIZE} (each <-> doubles its operands, and so does a W under a "
+            "negation); simplify the formula, e.g. split a chain of <-> or W")
+    return out
+
+
+def _nnf_step(f: Formula, negate: bool, nnf: Callable[[Formula, bool], Formula]) -> Formula:
+    """One step of ``nnf`` at the root of ``f``; ``nnf(g, negate)`` converts a sub-formula."""
     if isinstance(f, Const):
         return Const(f.value != negate)
     if isinstance(f, Prop):
@@ -139,27 +174,48 @@ def nnf(f: Formula, negate: bool = False) -> Formula:
         both = And(f.left, f.right)
         neither = And(Not(f.left), Not(f.right))
         exactly_one = Or(And(f.left, Not(f.right)), And(Not(f.left), f.right))
-        return nnf(exactly_one if negate else Or(both, neither))
+        return nnf(exactly_one if negate else Or(both, neither), False)
     if isinstance(f, Next):
         return _next(nnf(f.arg, negate))
     if isinstance(f, Eventually):
-        return _always(nnf(f.arg, True)) if negate else _eventually(nnf(f.arg))
+        return _always(nnf(f.arg, True)) if negate else _eventually(nnf(f.arg, False))
     if isinstance(f, Always):
-        return _eventually(nnf(f.arg, True)) if negate else _always(nnf(f.arg))
+        return _eventually(nnf(f.arg, True)) if negate else _always(nnf(f.arg, False))
     if isinstance(f, Until):  # !(a U b) == !a R !b
         if negate:
             return _release(nnf(f.left, True), nnf(f.right, True))
-        return _until(nnf(f.left), nnf(f.right))
+        return _until(nnf(f.left, False), nnf(f.right, False))
     if isinstance(f, Release):  # !(a R b) == !a U !b
         if negate:
             return _until(nnf(f.left, True), nnf(f.right, True))
-        return _release(nnf(f.left), nnf(f.right))
+        return _release(nnf(f.left, False), nnf(f.right, False))
     if isinstance(f, WeakUntil):  # !(a W b) == !b U (!a & !b)
         if negate:
             not_b = nnf(f.right, True)
             return _until(not_b, _and(nnf(f.left, True), not_b))
-        return _weak_until(nnf(f.left), nnf(f.right))
+        return _weak_until(nnf(f.left, False), nnf(f.right, False))
     raise TypeError(f"not an LTL formula node: {f!r}")
+
+
+def printed_size(f: Formula) -> int:
+    """Nodes of ``f`` as printed: a sub-formula shared by two parents counts twice (one pass over
+    the distinct nodes, iterative)."""
+    size: dict[Formula, int] = {}
+    stack = [f]
+    while stack:
+        todo = [c for c in stack[-1].children() if c not in size]
+        if todo:
+            stack.extend(todo)
+        else:
+            g = stack.pop()
+            size[g] = 1 + sum(size[c] for c in g.children())
+    return size[f]
+
+
+def _abridged(f: Formula, width: int = 60) -> str:
+    """``str(f)``, cut to ``width`` characters for an error message."""
+    text = str(f)
+    return text if len(text) <= width else text[:width - 3] + "..."
 
 
 # --- 2. Progression over DNFs ------------------------------------------------------------------
@@ -176,11 +232,17 @@ def _consistent(clause: Clause) -> bool:
 
 
 def _drop_subsumed(clauses: Iterable[Clause]) -> Dnf:
-    """Remove each clause that contains another one (``c | (c & d) == c``)."""
+    """Remove each clause that contains another one (``c | (c & d) == c``). ``FormulaTooLarge``
+    when more than ``MAX_DNF_CLAUSES`` are left."""
     kept: list[Clause] = []
     for c in sorted(set(clauses), key=len):
         if not any(k <= c for k in kept):
             kept.append(c)
+            if len(kept) > MAX_DNF_CLAUSES:
+                raise FormulaTooLarge(
+                    f"the formula's disjunctive normal form has more than MAX_DNF_CLAUSES={MAX_DNF_CLAUSES} clauses "
+                    "(a chain a <-> b <-> ... of n propositions has 2**(n-1)); simplify the formula, e.g. split "
+                    "a chain of <->")
     return frozenset(kept)
 
 
