@@ -21,7 +21,8 @@ from d2spo.envs.state_fields import FORBIDDEN, TARGET, named_areas
 from d2spo.errors import ConfigError, TaskWarning
 from d2spo.ltl.automaton import UNREACHABLE
 from d2spo.ltl.buchi_task import endless_branch
-from d2spo.ltl.parser import run_together
+from d2spo.ltl.formula import Always, And, Eventually, Implies, Not, Or, Prop
+from d2spo.ltl.parser import parse, run_together
 from d2spo.ltl.tasks import close_task_names
 
 TIGHT_FRACTION = 0.6
@@ -308,9 +309,6 @@ def untriggered_responses(formula: str) -> list[str]:
     """The triggers p of the response conjuncts ``G (p -> F q)`` of ``formula`` (an automaton state's
     residual, where it reads ``G (!p | F q)``) that no conjunct ``G F p`` makes recur: alone, such a
     response is met by never meeting p, and every step away from p is an accepting visit."""
-    from d2spo.ltl.formula import Always, And, Eventually, Implies, Not, Or, Prop
-    from d2spo.ltl.parser import parse
-
     if not formula:
         return []
     conjuncts, todo = [], [parse(formula)]
