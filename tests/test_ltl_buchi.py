@@ -5,7 +5,6 @@ the reference ``holds`` of tests/_ltl_reference.py, written from the definitions
 from __future__ import annotations
 
 import itertools
-import time
 import warnings
 
 import pytest
@@ -211,10 +210,13 @@ NAMED = ["G !A4 & F A1", "G F A1 & G F A3 & G !A4", "G (A1 -> F A2)", "G !purple
 
 
 @pytest.mark.parametrize("text", NAMED)
-def test_named_tasks_translate_fast(text):
-    start = time.perf_counter()
+def test_named_tasks_translate_fast(text, monkeypatch):
+    """Fast as a bound on the work, not a clock: each named task translates within the NBA budget
+    ``buchi.MAX_NBA_STEPS`` documents for the suite's tasks (300 steps; the default is 1e6)."""
+    import sys
+
+    monkeypatch.setattr(sys.modules["d2spo.ltl.buchi"], "MAX_NBA_STEPS", 300)
     to_dba(text)
-    assert time.perf_counter() - start < 1.0  # about 10 ms at most on a 2-core CPU
     dba = check_exact(text, count=300)
     assert not dba.accepting_sinks and len(dba.rejecting) == (1 if "!" in text else 0)
 
