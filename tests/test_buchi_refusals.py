@@ -124,3 +124,40 @@ def test_a_later_lap_a_step_long_is_refused_too(capsys, task, refused):
         assert status == 2 and len(lines) == 1 and "so its visits would count moves at an area's edge" in lines[0]
     else:
         assert status == 0 and not lines, captured
+
+
+def test_an_episode_that_holds_one_visit_warns_that_no_lap_fits():
+    """A --max-steps that fits the first accepting visit but not the second (a user trial, a 6 m lab:
+    60 steps for a 4 m first visit and a 3.8 m lap) trained silently, with a route-optimal count of 1:
+    the patrol was a reach task. It is now one warning line; two visits or more say nothing."""
+    import warnings
+
+    from d2spo.envs.preflight import preflight
+    from d2spo.errors import TaskWarning
+
+    env, params = make_env(EnvConfig(max_steps=120), PATROL)  # paper: the first at 8.5 m, the second past 18 m
+    assert env.task.optimal_visits(120, 0.1, 0.95) == 1
+    with pytest.warns(TaskWarning, match=r"an episode of 120 steps .* holds only one accepting visit on layout "
+                                         r"'paper' \(route-optimal count 1\): the second needs .* raise --max-steps"):
+        preflight(env, params, repr(PATROL))
+    env, params = make_env(EnvConfig(max_steps=300), PATROL)
+    assert env.task.optimal_visits(300, 0.1, 0.95) >= 2
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", TaskWarning)
+        preflight(env, params, repr(PATROL))
+
+
+def test_a_patrol_whose_start_fails_it_is_refused_in_a_patrols_words(tmp_path):
+    """A patrol that starts inside its never-area said it 'cannot be completed' (no patrol ever is)
+    and stopped at 'the automaton reads that area at once', without saying what follows."""
+    import json
+    from importlib import resources
+
+    data = json.loads(resources.files("d2spo.envs").joinpath("layouts", "paper.json").read_text())
+    a4 = next(a for a in data["areas"] if a.get("label", a["name"]) == "A4")
+    path = tmp_path / "start-in-a4.json"
+    path.write_text(json.dumps({**data, "start": [*a4["center"], 0.0]}))
+    with pytest.raises(ConfigError, match=r"cannot make one accepting visit on layout 'paper': the start \(.*\) lies "
+                                          r"inside A4, .* which fails the task before the robot moves; move the "
+                                          r"start out of it$"):
+        make_env(EnvConfig(layout=str(path)), PATROL)

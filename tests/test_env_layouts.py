@@ -344,5 +344,7 @@ def test_a_start_inside_a_forbidden_area_is_named_in_the_refusal(tmp_path):
     a4 = next(a for a in data["areas"] if a.get("label", a["name"]) == "A4")
     path = tmp_path / "start-in-a4.json"
     path.write_text(json.dumps({**data, "start": [*a4["center"], 0.0]}))
-    with pytest.raises(ConfigError, match=r"the start \(.*\) lies inside A4, and the automaton reads that area at once"):
+    with pytest.raises(ConfigError, match=r"cannot be completed on layout 'paper': the start \(.*\) lies inside A4, and "
+                                          r"the automaton reads that area at once, which fails the task before the "
+                                          r"robot moves; move the start out of it$"):
         make_env(EnvConfig(layout=str(path)), "G !A4 & F A1")

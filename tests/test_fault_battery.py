@@ -296,7 +296,7 @@ def test_huge_arena_is_refused_up_front_or_stays_fast(monkeypatch):
     from d2spo.errors import ConfigError
     from d2spo.ltl.reward import RewardConfig
 
-    with pytest.raises(ConfigError, match="MAX_NODES"):
+    with pytest.raises(ConfigError, match=r"MAX_NODES.*; is the layout in metres\?$"):  # a lab in centimetres
         make_env(EnvConfig(layout="relaxed", layout_scale=40.0), task="F A1")
     arena = tuple(40.0 * x for x in layouts.load("relaxed").arena)
     assert max(arena) / 0.05 >= 4000  # the premise: uncapped, a 5 cm grid would be this large

@@ -108,7 +108,7 @@ def distance_fields(arena, box_lo, box_hi, area_center, area_radius, robot_radiu
         raise ConfigError("layout.arena", f"an arena of {arena[0]:g} m x {arena[1]:g} m needs a geodesic shaping grid "
                           f"of {nodes} nodes at {spacing:g} m; at most MAX_NODES={MAX_NODES} (20 m x 20 m) are "
                           "supported: draw the layout smaller, or train on it alone with --shaping-metric euclidean "
-                          "(a generalist always needs the fields)")
+                          "(a generalist always needs the fields); is the layout in metres?")
     boxes = tuple((tuple(map(float, lo)), tuple(map(float, hi))) for lo, hi in zip(np.asarray(box_lo), np.asarray(box_hi)))
     areas = tuple((float(c[0]), float(c[1]), float(r)) for c, r in zip(np.asarray(area_center), np.asarray(area_radius)))
     disks = tuple(tuple(map(float, d)) for d in disks)

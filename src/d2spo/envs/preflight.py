@@ -141,19 +141,21 @@ def check_feasible(task: CompiledTask, name: str, radius: float | None = None, r
             return
     elif any(reached[q] for q in aut.accepting):
         return
+    done = "make one accepting visit" if task.recurrence else "be completed"  # a patrol never completes
     ends = aut.accepting | aut.rejecting
     live = [q for q in range(aut.n_states) if reached[q] and q not in ends and distance[q] is not None]
     if not live:
         sx, sy = layout.start[:2]
         inside = [a.name for a in layout.areas if (a.center[0] - sx) ** 2 + (a.center[1] - sy) ** 2 <= a.radius ** 2]
         where = (f": the start ({sx:g}, {sy:g}) lies inside {', '.join(inside)}, and the automaton reads that area at "
-                 "once" if inside else ": the first area the robot can enter from the start rejects it")
-        raise ConfigError("task", f"{name} cannot be completed on layout {layout.name!r}{where}")
+                 "once, which fails the task before the robot moves; move the start out of it" if inside
+                 else ": the first area the robot can enter from the start rejects it")
+        raise ConfigError("task", f"{name} cannot {done} on layout {layout.name!r}{where}")
     q = min(live, key=lambda s: (distance[s], s))
     targets, forbidden = (named_areas(aut, layout, task.roles, role)[q] for role in (TARGET, FORBIDDEN))
     goal = " or ".join(targets) or "an area that makes progress"
     why = f" without entering {', '.join(forbidden)} (forbidden there)" if forbidden else ""
-    raise ConfigError("task", f"{name} cannot be completed on layout {layout.name!r}: in automaton state {q} "
+    raise ConfigError("task", f"{name} cannot {done} on layout {layout.name!r}: in automaton state {q} "
                       f"({aut.state_formulas[q]}) {robot or f'a robot of radius {radius:g} m'} cannot "
                       f"reach {goal}{why}")
 
@@ -344,3 +346,10 @@ def check_cycle(task: CompiledTask, max_steps: int, dt: float, v_max: float, nam
                           f"too short for one accepting visit on layout {task.layout.name!r}: the shortest route to "
                           f"the first is {length:.1f} m ({math.ceil(need)} steps at full speed); raise --max-steps "
                           "(unset, it follows the task)")
+    second = task.visits_length(2)
+    if math.isfinite(second) and second / (v_max * dt) / routes.OCTILE_EXCESS > max_steps:
+        warnings.warn(TaskWarning(
+            f"{name}: an episode of {max_steps} steps of {dt:g} s at {v_max:g} m/s holds only one accepting visit "
+            f"on layout {task.layout.name!r} (route-optimal count 1): the second needs {second:.1f} m "
+            f"({math.ceil(second / (v_max * dt))} steps at full speed), so no episode goes round again and the "
+            "robot never learns the lap; raise --max-steps (unset, it follows the task)"), stacklevel=3)

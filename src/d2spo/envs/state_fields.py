@@ -179,7 +179,7 @@ def state_fields(aut: Automaton, layout: Layout, roles: np.ndarray, label_mode: 
         raise ConfigError("layout.arena", f"an arena of {layout.arena[0]:g} m x {layout.arena[1]:g} m needs shaping "
                           f"fields of {nodes} nodes at {spacing:g} m; at most MAX_NODES={geodesic.MAX_NODES} (20 m x "
                           "20 m) are supported: draw the layout smaller, or train on it alone with --shaping-metric euclidean "
-                          "(a generalist always needs the fields)")
+                          "(a generalist always needs the fields); is the layout in metres?")
     event = label_mode == "event"
     clearance, spacing, robot_radius = float(clearance), float(spacing), float(robot_radius)
     clearance_cost, collide_cost = float(clearance_cost), float(collide_cost)
