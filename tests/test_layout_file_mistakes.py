@@ -112,6 +112,23 @@ def test_an_arena_larger_than_float32_positions_allow_is_one_line_and_no_numpy_w
     assert layouts.from_json(data).arena == (MAX_ARENA, 10.0)
 
 
+def test_a_heading_in_degrees_is_a_warning(tmp_path, capsys):
+    """``"start": [1.5, 1.0, 90]`` (degrees) was taken without a word as 90 rad; a heading is any
+    angle, so it is accepted, with one warning line saying it is read in radians."""
+    from d2spo.errors import D2SPOWarning
+
+    data = layouts.load("paper").to_json()
+    data["start"][2] = 90
+    with pytest.warns(D2SPOWarning, match=r"layout\.start: the heading 90 is larger than 2π; it is read in radians"):
+        assert layouts.from_json(data).start[2] == 90
+    data["start"][2] = -3.1
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        layouts.from_json(data)  # a heading within a turn: no warning
+
+
 def _office_starting_at(tmp_path, start):
     data = json.loads((Path(__file__).parent / "data" / "layouts" / "office.json").read_text())
     data["start"] = start

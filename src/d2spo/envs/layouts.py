@@ -18,6 +18,7 @@ import json
 import math
 import operator
 import os
+import warnings
 from importlib import resources
 from pathlib import Path
 
@@ -26,7 +27,7 @@ import numpy as np
 from d2spo.envs import generator
 from d2spo.envs.workspace import PROPOSITION_RULE, Area, DiskObstacle, Layout, Obstacle, is_proposition, validate
 from d2spo.envs.zones import zones_layout
-from d2spo.errors import ConfigError, in_file, is_finite_number, json_trouble
+from d2spo.errors import ConfigError, D2SPOWarning, in_file, is_finite_number, json_trouble
 from d2spo.inputs import read_regular
 
 BUILTIN = ("paper", "relaxed", "open", "physical-1", "physical-2", "physical-3", "physical-4")
@@ -95,6 +96,10 @@ def from_json(data: dict, default_name: str = "custom") -> Layout:
         raise ConfigError(f"{f}.description", f"expected a string, got {data['description']!r}")
     arena = _vector(_get(data, "arena", f), 2, f"{f}.arena", positive=True)
     start = _vector(_get(data, "start", f), 3, f"{f}.start")
+    if abs(start[2]) > 2 * math.pi:  # accepted (any angle is a heading), but 90 is rarely meant in radians
+        warnings.warn(D2SPOWarning(f"{f}.start: the heading {start[2]:g} is larger than 2π; it is read in "
+                                   f"radians (90° is {math.pi / 2:.4f}), as {start[2] % (2 * math.pi):.4f} rad"),
+                      stacklevel=2)
     obstacles_raw = _get(data, "obstacles", f)
     if not isinstance(obstacles_raw, list):
         raise ConfigError(f"{f}.obstacles", "expected a list")
