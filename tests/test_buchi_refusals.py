@@ -90,6 +90,27 @@ def test_a_recurrence_whose_next_visit_is_a_step_away_is_refused(capsys, task, r
         assert status == 0 and not lines and "to its first accepting visit (a patrol" in captured.out, captured
 
 
+def test_env_check_prints_a_patrols_route_optimal_count_as_eval_divides_by_it(capsys):
+    """A user trial: `env check` said how many visits a patrol needs to its first accepting visit, but
+    not the count its visits are scored against; it now prints the count `d2spo eval` and training's
+    summary use (``rollout.visit_optimum``), for the same episode limit, and nothing for a co-safe task."""
+    import re
+
+    from d2spo.cli import main
+    from d2spo.envs import EnvConfig, make_env
+
+    assert main(["env", "check", "--task", "patrol2"]) == 0
+    out = capsys.readouterr().out
+    found = re.search(r"route-optimal count: (\d+) accepting visits per episode of (\d+) steps \((\d+) on routes", out)
+    assert found, out
+    env, params = make_env(EnvConfig(layout="paper"), task="patrol2")
+    cfg = env.config
+    assert int(found[2]) == int(params.max_steps)
+    assert int(found[1]) == env.task.optimal_visits(int(params.max_steps), cfg.dt, cfg.v_max * cfg.v_gain) >= 2
+    assert int(found[3]) <= int(found[1])  # routes that keep a wider margin are no shorter
+    assert main(["env", "check", "--task", "phi1"]) == 0 and "route-optimal" not in capsys.readouterr().out
+
+
 @pytest.mark.parametrize("task, hint", [("G (A1 -> F A2)", "'& G F A1'"), ("G (A1 -> F A2) & G !A4", "'& G F A1'"),
                                         ("GF A1", None)])
 def test_a_response_refused_for_its_short_laps_is_told_to_make_its_trigger_recur(capsys, task, hint):

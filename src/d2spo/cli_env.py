@@ -18,6 +18,7 @@ from d2spo.envs.preflight import preflight, start_state
 from d2spo.errors import ConfigError
 from d2spo.ltl.buchi_task import is_recurrence
 from d2spo.plotstyle import check_picture_path
+from d2spo.rollout import visit_optimum
 from d2spo.safety.cbf import CBFConfig
 
 
@@ -92,6 +93,12 @@ class EnvCheckCmd:
         goal = " to its first accepting visit (a patrol: then again and again)" if is_recurrence(env.automaton) else ""
         print(f"task {self.task!r}: needs {n} area visit{'s' * (n != 1)}{goal} on this layout; episode limit "
               f"{int(params.max_steps)} steps of {env.config.dt:g} s for this robot; observation size {env.observation_size}")
+        optimum = visit_optimum(env.task, int(params.max_steps), env.config, None, margin=CBFConfig().d)
+        if optimum:  # what `d2spo eval` and training's summary divide a patrol's visits by
+            keep = optimum.get("route_optimal_visits_margin")
+            kept = f" ({keep} on routes that keep D²SPO's margin d = {optimum['margin']:g} m)" if keep is not None else ""
+            print(f"route-optimal count: {optimum['route_optimal_visits']} accepting visits per episode of "
+                  f"{int(params.max_steps)} steps{kept}; visits are reported as a fraction of it")
         return 0
 
 
