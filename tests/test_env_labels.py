@@ -248,7 +248,7 @@ def test_free_grid_and_clearance_exclude_the_pillar():
 def test_env_check_and_show_accept_the_office(tmp_path, capsys):
     assert cli.main(["env", "check", "--layout", str(OFFICE), "--task", TASK]) == 0
     out = capsys.readouterr().out
-    assert "2 obstacles, areas desk-1 (desk), desk-2 (desk), kitchen" in out and f"task {TASK!r}: needs 2" in out
+    assert "2 obstacles (1 box, 1 disk), areas desk-1 (desk), desk-2 (desk), kitchen" in out and f"task {TASK!r}: needs 2" in out
     assert "a generalist can be evaluated on it" in out
     wide = tmp_path / "wide.json"  # what only `eval` of a generalist used to say
     wide.write_text(json.dumps({**office_json(), "arena": [21.0, 6.0]}))

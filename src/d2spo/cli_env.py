@@ -74,9 +74,11 @@ class EnvCheckCmd:
     def run(self) -> int:
         env_cfg = self.env_config()
         cfg, lay = checked_layout(env_cfg)
-        n_obs = len(lay.obstacles)
+        n_obs, n_disks = len(lay.obstacles), len(lay.disks)
+        kinds = f" ({n_obs - n_disks} box{'es' * (n_obs - n_disks != 1)}, {n_disks} disk{'s' * (n_disks != 1)})" \
+            if n_disks else ""
         print(f"layout {lay.name!r}: arena {lay.arena[0]:g} x {lay.arena[1]:g} m, "
-              f"{n_obs} obstacle{'s' * (n_obs != 1)}, areas {lay.describe_areas()}; "
+              f"{n_obs} obstacle{'s' * (n_obs != 1)}{kinds}, areas {lay.describe_areas()}; "
               f"a robot of radius {cfg.robot_radius:g} m fits at the start and reaches every area")
         try:  # a layout of the user's own, for a generalist trained elsewhere (`eval` refuses it otherwise)
             check_fits(lay)
