@@ -5,6 +5,7 @@ build a learner."""
 
 from __future__ import annotations
 
+import json
 from importlib import resources
 from pathlib import Path
 
@@ -43,6 +44,14 @@ def layout_file(path: Path, builtin: str = "relaxed") -> Path:
     """A copy of a built-in layout at ``path``."""
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(resources.files("d2spo.envs").joinpath("layouts", f"{builtin}.json").read_text())
+    return path
+
+
+def paper_starting_in(path: Path, label: str) -> Path:
+    """The `paper` layout at ``path``, its start moved to the centre of the area labelled ``label``."""
+    data = json.loads(resources.files("d2spo.envs").joinpath("layouts", "paper.json").read_text())
+    area = next(a for a in data["areas"] if a.get("label", a["name"]) == label)
+    path.write_text(json.dumps({**data, "start": [*area["center"], 0.0]}))
     return path
 
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from _faults import paper_starting_in
 from test_buchi_env import NEVER, PATROL
 
 from d2spo.envs import EnvConfig, make_env
@@ -171,13 +172,7 @@ def test_an_episode_that_holds_one_visit_warns_that_no_lap_fits():
 def test_a_patrol_whose_start_fails_it_is_refused_in_a_patrols_words(tmp_path):
     """A patrol that starts inside its never-area said it 'cannot be completed' (no patrol ever is)
     and stopped at 'the automaton reads that area at once', without saying what follows."""
-    import json
-    from importlib import resources
-
-    data = json.loads(resources.files("d2spo.envs").joinpath("layouts", "paper.json").read_text())
-    a4 = next(a for a in data["areas"] if a.get("label", a["name"]) == "A4")
-    path = tmp_path / "start-in-a4.json"
-    path.write_text(json.dumps({**data, "start": [*a4["center"], 0.0]}))
+    path = paper_starting_in(tmp_path / "start-in-a4.json", "A4")
     with pytest.raises(ConfigError, match=r"cannot make one accepting visit on layout 'paper': the start \(.*\) lies "
                                           r"inside A4, .* which fails the task before the robot moves; move the "
                                           r"start out of it$"):

@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _faults import paper_starting_in
 from matplotlib.figure import Figure
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
@@ -338,12 +339,7 @@ def test_a_file_whose_robot_does_not_fit_is_named_in_the_refusal(tmp_path):
 def test_a_start_inside_a_forbidden_area_is_named_in_the_refusal(tmp_path):
     """`G !A4 & F A1` from a start inside A4 was refused because "the first area the robot can enter
     from the start rejects it": the start itself is in the area, and the refusal now says so."""
-    from importlib import resources
-
-    data = json.loads(resources.files("d2spo.envs").joinpath("layouts", "paper.json").read_text())
-    a4 = next(a for a in data["areas"] if a.get("label", a["name"]) == "A4")
-    path = tmp_path / "start-in-a4.json"
-    path.write_text(json.dumps({**data, "start": [*a4["center"], 0.0]}))
+    path = paper_starting_in(tmp_path / "start-in-a4.json", "A4")
     with pytest.raises(ConfigError, match=r"cannot be completed on layout 'paper': the start \(.*\) lies inside A4, and "
                                           r"the automaton reads that area at once, which fails the task before the "
                                           r"robot moves; move the start out of it$"):

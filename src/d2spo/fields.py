@@ -30,22 +30,18 @@ def _is_int(v: Any) -> bool:
     return isinstance(v, int) and not isinstance(v, bool)
 
 
-def _is_number(v: Any) -> bool:
-    return is_finite_number(v)
-
-
 KINDS: dict[str, tuple[Any, str]] = {
     "count": (lambda v: _is_int(v) and v >= 1, "a positive integer"),
     "natural": (lambda v: _is_int(v) and v >= 0, "an integer >= 0"),
     "seed": (lambda v: _is_int(v) and 0 <= v <= MAX_SEED, f"an integer in [0, {MAX_SEED}]"),
-    "finite": (_is_number, "a finite number"),
-    "positive": (lambda v: _is_number(v) and v > 0, "a finite number > 0"),
-    "non_negative": (lambda v: _is_number(v) and v >= 0, "a finite number >= 0"),
-    "at_least_one": (lambda v: _is_number(v) and v >= 1, "a finite number >= 1"),
-    "discount": (lambda v: _is_number(v) and 0 < v <= 1, "in (0, 1]"),
-    "rate": (lambda v: _is_number(v) and 0 < v <= 1, "in (0, 1]"),
-    "fraction": (lambda v: _is_number(v) and 0 <= v <= 1, "in [0, 1]"),
-    "lr": (lambda v: _is_number(v) and 0 < v <= MAX_LR, f"a learning rate in (0, {MAX_LR:g}]"),
+    "finite": (is_finite_number, "a finite number"),
+    "positive": (lambda v: is_finite_number(v) and v > 0, "a finite number > 0"),
+    "non_negative": (lambda v: is_finite_number(v) and v >= 0, "a finite number >= 0"),
+    "at_least_one": (lambda v: is_finite_number(v) and v >= 1, "a finite number >= 1"),
+    "discount": (lambda v: is_finite_number(v) and 0 < v <= 1, "in (0, 1]"),
+    "rate": (lambda v: is_finite_number(v) and 0 < v <= 1, "in (0, 1]"),
+    "fraction": (lambda v: is_finite_number(v) and 0 <= v <= 1, "in [0, 1]"),
+    "lr": (lambda v: is_finite_number(v) and 0 < v <= MAX_LR, f"a learning rate in (0, {MAX_LR:g}]"),
     "widths": (lambda v: isinstance(v, tuple) and len(v) >= 1 and all(_is_int(w) and w >= 1 for w in v),
                "a non-empty list of positive layer widths"),
     "counts": (lambda v: isinstance(v, tuple) and all(_is_int(w) and w >= 1 for w in v),

@@ -12,6 +12,7 @@ Precedence, tightest first: unary ``! X F G``; ``U R W`` (right-associative); ``
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 from d2spo.errors import UserError
 
@@ -64,11 +65,17 @@ class Formula:
         return frozenset(found)
 
     def __str__(self) -> str:
-        try:
-            return self._text
-        except AttributeError:
-            object.__setattr__(self, "_text", _to_string(self))
-            return self._text
+        return _once(self, "_text", _to_string)
+
+
+def _once(node: Formula, slot: str, compute) -> Any:
+    """``compute(node)``, kept in the node's ``slot`` (``Formula.__slots__``) after the first call: a
+    frozen node is never changed, so what is derived from it once holds for good."""
+    try:
+        return getattr(node, slot)
+    except AttributeError:
+        object.__setattr__(node, slot, compute(node))
+        return getattr(node, slot)
 
 
 def _node(cls: type) -> type:
@@ -80,11 +87,7 @@ def _node(cls: type) -> type:
     of_fields = cls.__hash__
 
     def __hash__(self) -> int:
-        try:
-            return self._hash
-        except AttributeError:
-            object.__setattr__(self, "_hash", of_fields(self))
-            return self._hash
+        return _once(self, "_hash", of_fields)
 
     cls.__hash__ = __hash__
     return cls
