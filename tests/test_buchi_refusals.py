@@ -112,6 +112,31 @@ def test_env_check_prints_a_patrols_route_optimal_count_as_eval_divides_by_it(ca
     assert main(["env", "check", "--task", "phi1"]) == 0 and "route-optimal" not in capsys.readouterr().out
 
 
+def test_a_hand_made_labs_route_optimal_count_lies_within_its_straight_line_bounds(capsys):
+    """A lab drawn by hand in a user trial (tests/data/layouts/lab-6x4.json: two rooms, a door, two
+    docks of one label, a pillar, stairs): the patrol `GF lab1 & GF dock & G !stairs` counted 26
+    visits in 1000 steps. Bounded here from straight lines, not from the grid search: the first
+    visit (start, west dock, lab1) and the lap (lab1 <-> west dock, the nearer dock) are at least
+    their straight lengths between the area disks' edges and at most the grid's 8.2% longer."""
+    import math
+    import re
+
+    from d2spo.cli import main
+    from d2spo.envs import routes
+
+    lab = str(Path(__file__).parent / "data" / "layouts" / "lab-6x4.json")
+    assert main(["env", "check", "--layout", lab, "--task", "GF lab1 & GF dock & G !stairs"]) == 0
+    count = int(re.search(r"route-optimal count: (\d+) accepting visits per episode of 1000 steps", capsys.readouterr().out)[1])
+    env, _ = make_env(EnvConfig(layout=lab), "GF lab1 & GF dock & G !stairs")
+    reach = 1000 * env.config.dt * env.config.v_max * env.config.v_gain * routes.OCTILE_EXCESS
+    gap = lambda a, b, r: math.dist(a, b) - r  # noqa: E731  from a point to a disk's edge
+    first = gap((1.5, 1.0), (0.6, 0.6), 0.35) + gap((0.6, 0.6), (0.8, 3.2), 0.35 + 0.4)  # start, dock-west, lab1
+    lap = 2 * gap((0.6, 0.6), (0.8, 3.2), 0.35 + 0.4)
+    most = 1 + math.floor((reach - first) / lap)
+    least = 1 + math.floor((reach - first * routes.OCTILE_EXCESS) / (lap * routes.OCTILE_EXCESS))
+    assert least <= count <= most, (least, count, most)
+
+
 @pytest.mark.parametrize("task, hint", [("G (A1 -> F A2)", "'& G F A1'"), ("G (A1 -> F A2) & G !A4", "'& G F A1'"),
                                         ("GF A1", None)])
 def test_a_response_refused_for_its_short_laps_is_told_to_make_its_trigger_recur(capsys, task, hint):
