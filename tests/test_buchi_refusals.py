@@ -112,6 +112,29 @@ def test_env_check_prints_a_patrols_route_optimal_count_as_eval_divides_by_it(ca
     assert main(["env", "check", "--task", "phi1"]) == 0 and "route-optimal" not in capsys.readouterr().out
 
 
+def test_env_check_takes_the_episode_limit_training_would_be_given(capsys):
+    """`env check --max-steps N` (as `d2spo train --max-steps N`): the time checks and a patrol's
+    route-optimal count use N, not the limit derived from the task; a limit too short for one
+    accepting visit is refused as training refuses it."""
+    import re
+
+    from d2spo.cli import main
+
+    counts = {}
+    for steps in (1000, 1500):
+        assert main(["env", "check", "--task", "patrol2", "--max-steps", str(steps)]) == 0
+        out = capsys.readouterr().out
+        assert f"episode limit {steps} steps" in out and "derived" not in out, out
+        counts[steps] = int(re.search(rf"route-optimal count: (\d+) accepting visits per episode of {steps} steps", out)[1])
+    env, _ = make_env(EnvConfig(layout="paper"), task="patrol2")
+    cfg = env.config
+    assert counts[1500] == env.task.optimal_visits(1500, cfg.dt, cfg.v_max * cfg.v_gain) > counts[1000]
+    assert main(["env", "check", "--task", "patrol2"]) == 0
+    assert "episode limit 1000 steps of 0.1 s for this robot (derived from the task" in capsys.readouterr().out
+    assert main(["env", "check", "--task", "patrol2", "--max-steps", "40"]) == 2
+    assert "too short for one accepting visit" in capsys.readouterr().err
+
+
 def test_a_hand_made_labs_route_optimal_count_lies_within_its_straight_line_bounds(capsys):
     """A lab drawn by hand in a user trial (tests/data/layouts/lab-6x4.json: two rooms, a door, two
     docks of one label, a pillar, stairs): the patrol `GF lab1 & GF dock & G !stairs` counted 26

@@ -33,6 +33,7 @@ from d2spo.config_diff import flags_given, other_learners_flag
 from d2spo.console import (
     as_typed,
     error,
+    flag_of_value,
     print_evaluation,
     show_warning,
     tyro_error_line,
@@ -322,7 +323,8 @@ def main(argv: list[str] | None = None) -> int:
             compile_cache.enable()  # before the first compilation: d2spo/compile_cache.py
             return int(cmd.run() or 0)
     except LTLSyntaxError as e:
-        error(f"{e} in {e.formula!r}")
+        flag = flag_of_value(e.formula, args)  # "--task: LTL syntax error at column 6: ..."
+        error(f"{flag + ': ' if flag else ''}{e} in {e.formula!r}")
         if sys.stderr.isatty():  # an interactive user also gets the caret under the column
             print("\n".join(e.pretty().splitlines()[1:]), file=sys.stderr)
         return 2

@@ -36,13 +36,18 @@ class EnvShowCmd:
     """If > 0, also draw a random-action rollout of this many steps."""
     seed: int = 0
     """Seed for the rollout."""
+    task: str | None = None
+    """The rollout's task (a name or a formula): the rollout ends where an episode of it would; default:
+    reach the last area's label."""
 
     def run(self) -> int:
         check_picture_path(self.out, "out")
         lay = layouts.load(self.layout)
         trajs, title = None, None
+        if self.task is not None and self.rollout_steps <= 0:
+            raise ConfigError("task", "is the random rollout's task: give --rollout-steps N too")
         if self.rollout_steps > 0:
-            task = f"F {lay.areas[-1].label}"  # the rollout's task: it ends on reaching the last area's label
+            task = self.task if self.task is not None else f"F {lay.areas[-1].label}"
             trajs = [random_rollout(self.layout, self.rollout_steps, self.seed, task=task)]
             title = f"layout {lay.name!r}: a random-action rollout, task {task!r} (seed {self.seed})"
         from d2spo.envs.render import save_layout_png  # matplotlib: imported only to draw
@@ -66,10 +71,14 @@ class EnvCheckCmd:
     """The robot's radius (m), as `d2spo train --robot-radius`; default: the preset's."""
     dynamics: Path | None = None
     """A dynamics JSON file (docs/env.md), as `d2spo train --dynamics`: the task's time check uses its speed."""
+    max_steps: int | None = None
+    """The episode limit, as `d2spo train --max-steps`: the time check and a patrol's route-optimal count
+    use it; default: the one training derives from the task (docs/ltl.md)."""
 
     def env_config(self) -> EnvConfig:
         motion = load_dynamics(self.dynamics) if self.dynamics is not None else {}
-        return EnvConfig(layout=self.layout, preset=self.preset, robot_radius=self.robot_radius, **motion)
+        return EnvConfig(layout=self.layout, preset=self.preset, robot_radius=self.robot_radius,
+                         max_steps=self.max_steps, **motion)
 
     def run(self) -> int:
         env_cfg = self.env_config()
@@ -93,8 +102,10 @@ class EnvCheckCmd:
         preflight(env, params, repr(self.task), margin=CBFConfig().d)
         n = int(params.aut.distance[start_state(env.task)])  # after the start's letter, as an episode begins
         goal = " to its first accepting visit (a patrol: then again and again)" if is_recurrence(env.automaton) else ""
+        derived = " (derived from the task; --max-steps sets it)" if self.max_steps is None else ""
         print(f"task {self.task!r}: needs {n} area visit{'s' * (n != 1)}{goal} on this layout; episode limit "
-              f"{int(params.max_steps)} steps of {env.config.dt:g} s for this robot; observation size {env.observation_size}")
+              f"{int(params.max_steps)} steps of {env.config.dt:g} s for this robot{derived}; "
+              f"observation size {env.observation_size}")
         optimum = visit_optimum(env.task, int(params.max_steps), env.config, None, margin=CBFConfig().d)
         if optimum:  # what `d2spo eval` and training's summary divide a patrol's visits by
             keep = optimum.get("route_optimal_visits_margin")

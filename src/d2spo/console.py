@@ -107,6 +107,20 @@ def as_typed(msg: str, args: list[str] = ()) -> str:
     return f"{typed[0]}: {rest}" if len(typed) == 1 else msg
 
 
+def flag_of_value(value: str, args: list[str] = ()) -> str | None:
+    """The flag ``value`` was typed after ("--task" in ``--task 'F (A1'`` or ``--task='F (A1'``, also as
+    the second value of a list flag), or None when the command line does not hold it (a tasks file's)."""
+    flag = None
+    for a in args:
+        if a.startswith("--"):
+            flag, eq, typed = a.partition("=")
+            if eq and typed == value:
+                return flag
+        elif a == value:
+            return flag
+    return None
+
+
 # ------------------------------------------------------------------------------------ d2spo eval
 def print_evaluation(res: dict, path: Path, filter_asked: bool | None) -> None:
     """``d2spo.evaluate.evaluate_run``'s result as a table (a row per layout when there are several),
