@@ -14,6 +14,12 @@ machine; '-' prints only), then per patrol the same average over only the layout
 keeps the barrier's margin d (``route_optimal_visits_margin`` > 0; a hint, not the issue's measure:
 on the others the barrier may hold the robot back by design), and a table per layout (the mean over
 the runs). Figures in bench/RESULTS.md, "2026-11-29, night" and "late night".
+
+``--handmade`` evaluates the same way on layouts no generator drew (tests/data/layouts/ and its
+handmade/): the suite on each hand-made layout with areas A1..A4, and on each layout with its own
+labels (rooms, docks, stairs) a patrol and a reach-with-a-never-part of its own (``OWN_TASKS``). A
+case the checks refuse (no route, a limit too short) is a line, not a figure. Printed beside the
+generator's table, one row per (layout, task).
 """
 
 from __future__ import annotations
@@ -28,6 +34,15 @@ from d2spo.evaluate import EvalConfig, evaluate_run, write_evaluation
 from d2spo.report import cpu_model
 
 TASKS = ("patrol2", "patrol3", "respond", "reach-never")
+DATA = Path(__file__).resolve().parent.parent / "tests" / "data" / "layouts"
+OWN_TASKS = {  # a hand-made layout with labels of its own: a patrol, then a reach with a never part
+    "lab-6x4": ("GF lab1 & GF dock & G !stairs", "GF lab1 & GF lab2 & G !stairs", "G !stairs & F (lab1 & F lab2)"),
+    "lab-12x6": ("GF desk & GF kitchen", "G !door & F (desk & F kitchen)"),
+    "warehouse-16": ("GF dock & GF A1 & G !A2", "G !A2 & F (dock & F A1)"),
+    "rooms-12x8": ("GF dock & GF lab & G !hazard", "G !hazard & F (storage & F office)"),
+    "twelve-areas": ("GF printer & GF desk & G !server", "G !server & F (kitchen & F lounge)"),
+    "office": ("GF desk & GF kitchen", "F (kitchen & F desk)"),
+}
 
 
 def _matches(res: dict, cfg: EvalConfig) -> bool:
@@ -114,6 +129,52 @@ def table(runs: list[Path], tasks: list[str], results: dict) -> str:
     return "\n".join(lines)
 
 
+def handmade_cases(tasks: list[str]) -> list[tuple[Path, str]]:
+    """(layout file, task) of ``--handmade``: ``tasks`` on each hand-made layout labelled A1..A4, the
+    ``OWN_TASKS`` on the others; a layout with neither (``lens``: three areas) is left out."""
+    cases = []
+    for path in sorted(DATA.glob("*.json")) + sorted((DATA / "handmade").glob("*.json")):
+        labels = {a.get("label", a.get("name")) for a in json.loads(path.read_text()).get("areas", [])}
+        own = OWN_TASKS.get(path.stem)
+        if own is not None:
+            cases += [(path, t) for t in own]
+        elif {"A1", "A2", "A3", "A4"} <= labels:
+            cases += [(path, t) for t in tasks]
+    return cases
+
+
+def handmade_table(runs: list[Path], cases: list[tuple[Path, str]], episodes: int, max_steps: int | None) -> str:
+    """One row per hand-made case: each run's fraction of the route-optimal visits (a patrol) or
+    completion, its safety; then the mean over the patrols and over the rest."""
+    from d2spo.errors import UserError
+
+    lines = ["| layout | task | " + " | ".join(f"{run.name}: score / safe" for run in runs) + " |",
+             "|---|---" + "|---" * len(runs) + "|"]
+    scores: dict[bool, list[float]] = {True: [], False: []}
+    safe = []
+    for path, task in cases:
+        cells = []
+        for run in runs:
+            cfg = EvalConfig(episodes, str(path), task=task, runtime_filter=True, max_steps=max_steps)
+            try:
+                res = evaluation(run, cfg)
+            except UserError as e:
+                cells.append(f"refused: {e}")
+                continue
+            patrol = "visit_fraction" in res
+            scores[patrol].append(score(res))
+            safe.append(res["safety_rate"])
+            optimum = f" of {res['per_layout'][0]['route_optimal_visits']}" if patrol else " complete"
+            cells.append(f"{100 * score(res):.1f}%{optimum} / {100 * res['safety_rate']:.2f}%")
+            print(f"{run.name} {path.stem} {task!r}: {cells[-1]}", flush=True)
+        lines.append(f"| {path.stem} | `{task}` | " + " | ".join(cells) + " |")
+    mean = lambda xs: f"**{100 * sum(xs) / len(xs):.1f}%** ({len(xs)} case-runs)" if xs else "-"  # noqa: E731
+    lines.append("")
+    lines.append(f"Patrols: mean fraction of the route-optimal visits {mean(scores[True])}; the rest: mean "
+                 f"completion {mean(scores[False])}; safety at worst {100 * min(safe, default=1.0):.2f}%.")
+    return "\n".join(lines)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=Path, nargs="+", required=True)
@@ -124,7 +185,13 @@ def main() -> None:
     ap.add_argument("--max-steps", type=int, default=None,
                     help="episode limit (d2spo eval --max-steps); default: each layout's, as d2spo eval")
     ap.add_argument("--results", default="bench/RESULTS.md")
+    ap.add_argument("--handmade", action="store_true",
+                    help="also the hand-made layouts of tests/data/layouts (the module docstring)")
+    ap.add_argument("--cases", type=int, default=None, help="with --handmade: the first N cases only (a check)")
     args = ap.parse_args()
+    from d2spo import compile_cache
+
+    compile_cache.enable()  # the commands' cache: a layout's rollout compiled once serves every run
     results = {}
     for run in args.runs:
         for task in args.tasks:
@@ -142,6 +209,10 @@ def main() -> None:
     layouts = per_layout(args.runs, args.tasks, results)
     if layouts:
         text += "\n\nPer layout, the mean over the runs:\n\n" + layouts
+    if args.handmade:
+        cases = handmade_cases(args.tasks)[:args.cases]
+        text += (f"\n\nThe same runs on the hand-made layouts (tests/data/layouts; {args.episodes} episodes{limit} "
+                 "each, filter on):\n\n" + handmade_table(args.runs, cases, args.episodes, args.max_steps))
     print(text)
     if args.results != "-":
         with open(args.results, "a") as f:

@@ -64,7 +64,7 @@ check task_suite $PY bench/task_suite.py --episodes 16 --tasks phi1 --eval-episo
 check patrol_laps $PY bench/patrol_laps.py "$W/patrol" --episodes 2 --margins 0.25 --plot "$W/laps.png"
 check generalist_stalls $PY bench/generalist_stalls.py "$W/gen" --layouts 1 --episodes 1 --policy last --probe
 check buchi_zero_shot $PY bench/buchi_zero_shot.py --runs "$W/gen" --tasks patrol2 reach-never --layouts 1 \
-  --episodes 2 --max-steps 100 --results -
+  --episodes 2 --max-steps 100 --results - --handmade --cases 3
 check policy_average $PY bench/policy_average.py --run "$W/gen" --windows 64 --out "$W/average.jsonl" \
   --keep-as "$W/average.msgpack"
 check generalisation $PY bench/generalisation.py --run "$W/gen" --specialist "$W/run" --layouts 1 --tasks phi1 \

@@ -65,7 +65,9 @@ def test_a_never_part_alone_is_refused_with_a_goal_the_formula_does_not_name(cap
     assert cli.main(["env", "check", "--task", "G !A4"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "G !A4 asks for nothing to reach" in err[0] and "'never' part alone" in err[0], err
-    assert "e.g. 'F A1' (with a never part: 'G !x & F A1')" in err[0]
+    assert "e.g. 'G !A4 & F A1'" in err[0]  # the formula's own never part kept (it said 'G !x & F A1')
+    assert cli.main(["env", "check", "--task", "true"]) == 2  # no never part to keep
+    assert "e.g. 'F A1' (with a never part: 'G !x & F A1')" in capsys.readouterr().err
 
 
 def test_a_never_part_over_no_label_names_the_missing_propositions_and_the_labels(capsys):
@@ -84,7 +86,8 @@ def test_ltl_notes_a_task_with_nothing_to_reach(formula, capsys):
     assert cli.main(["ltl", formula]) == 0
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"{formula!r} asks for nothing to reach" in err[0], err
-    assert err[0].startswith("d2spo: warning: ") and "add a goal, e.g. 'F A1'" in err[0]
+    goal = "'G !a & F A1'" if formula == "G !a" else "'F A1' (with a never part: 'G !x & F A1')"
+    assert err[0].startswith("d2spo: warning: ") and f"add a goal, e.g. {goal}" in err[0]
     assert cli.main(["ltl", "F a"]) == 0 and not capsys.readouterr().err.strip()
 
 

@@ -203,3 +203,27 @@ def test_a_cbf_config_on_its_own_takes_the_one_layout_counts():
             CBFConfig(updates_per_iter=3).eq9_steps) == (0, 3)
     with pytest.raises(ConfigError, match="updates_per_iter"):
         CBFConfig(updates_per_iter=0)
+
+
+@pytest.mark.parametrize("algo, extra, kept", [("td3-lag", [], {}), ("d2spo", [], {}),
+                                               ("d2spo", ["--num-envs", "32"], {"num_envs": 32}),
+                                               ("td3-lag", ["--td3-lag.td3.hidden", "64", "64"], {"td3.hidden": (64, 64)})])
+def test_no_fast_over_a_fast_runs_config_json_gives_the_learners_own_defaults(algo, extra, kept, tmp_path, recwarn):
+    """A user trial (2026-12-03): `train --config FAST/config.json --algo td3-lag --no-fast` kept the
+    32 envs and 64-64 networks --fast had recorded, and the baseline trained at half its own update
+    rate without a word. Now the values --fast gave go back to the learner's defaults unless a flag
+    sets them again, with a warning naming each; --fast itself over another learner says --no-fast."""
+    from d2spo import cli
+    from d2spo.errors import D2SPOWarning
+
+    path = tmp_path / "config.json"
+    path.write_text(__import__("json").dumps(config_to_dict(TrainConfig(algo="d2spo", fast=True))))
+    cfg = cli.parse(["train", "--config", str(path), "--algo", algo, "--no-fast", *extra]).config()
+    assert not cfg.fast and _speed(cfg) == {**DEFAULT_SETTINGS, **kept}
+    assert (cfg.cbf.updates_per_iter, cfg.cbf.nominal_updates_per_iter) == (5, 5)  # one layout's, without --fast
+    said = [str(w.message) for w in recwarn if issubclass(w.category, D2SPOWarning)]
+    assert len(said) == 1 and ("num_envs 32 -> 16" in said[0]) == ("num_envs" not in kept), said
+    assert ("cbf.updates_per_iter 10 -> 5" in said[0]) == (algo == "d2spo"), said  # td3-lag reads no cbf section
+    assert cli.parse(["train", "--config", str(path)]).config() == TrainConfig(algo="d2spo", fast=True)
+    with pytest.raises(ConfigError, match="over the --config file of a --fast run: --no-fast"):
+        cli.parse(["train", "--config", str(path), "--algo", "td3-lag"])

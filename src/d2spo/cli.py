@@ -22,7 +22,7 @@ import tyro
 from rich.console import Console
 
 from d2spo import compile_cache, interrupts
-from d2spo.algos import LEARNERS
+from d2spo.algos import LEARNERS, config_sections
 from d2spo.cli_certify import CertifyCmd
 from d2spo.cli_docs import DocsCmd
 from d2spo.cli_env import ENV_SUBCOMMANDS, EnvCmd
@@ -47,6 +47,7 @@ from d2spo.envs.preflight import (
     NOTHING_TO_REACH,
     check_feasible,
     check_lap,
+    goal_hint,
     missing_labels,
     warn_if_endless_branch,
     warn_if_run_together,
@@ -112,7 +113,7 @@ class LtlCmd:
                           "its rejecting state), so no policy can be trained on it", TaskWarning, stacklevel=2)
         elif aut.initial in aut.accepting:  # `true`, `G !a`: done before the robot moves
             warnings.warn(f"{self.formula!r} {NOTHING_TO_REACH}: no run has anything to do, and `d2spo train` refuses "
-                          "it; add a goal, e.g. 'F A1' (with a never part: 'G !x & F A1')", TaskWarning, stacklevel=2)
+                          f"it; add a goal, e.g. {goal_hint(self.formula, 'A1')}", TaskWarning, stacklevel=2)
         warn_if_endless_branch(aut, repr(self.formula))
         lay = None
         if self.all_letters:
@@ -189,12 +190,14 @@ class TrainCmd:
             given = [f for f, v in (("--out", self.out), ("--dynamics", self.dynamics)) if v is not None]
             if given := given + flags_given(cfg):
                 raise ConfigError("resume", f"continues the run with its own config.json; leave out {', '.join(given)}")
+        base = config_file(self.from_config) if self.from_config is not None else None
+        if base is not None and base.fast and not cfg.fast:
+            cfg = without_fast(cfg, self.from_config, getattr(self, "typed", ()))
         if self.dynamics is None:
             return cfg
         values = load_dynamics(self.dynamics)
         # A field no flag set takes the file's value: None, or with --config the file's default (its
         # config.json records every value of a robot given before, which the new file replaces)
-        base = config_file(self.from_config) if self.from_config is not None else None
 
         def unset(section: str, k: str) -> bool:
             now = getattr(getattr(cfg, section), k)
@@ -210,6 +213,33 @@ class TrainCmd:
 
     def run(self) -> int:
         return train_with_progress(self.config(), self.out, self.resume, self.progress)
+
+
+def without_fast(cfg: TrainConfig, path: Path, typed: tuple[str, ...]) -> TrainConfig:
+    """``--config`` of a ``--fast`` run with ``--no-fast`` (or the config.json of a --fast run given
+    to another learner, which must say --no-fast): the values --fast filled (``FAST_SETTINGS``, and
+    UPDATE(Ω, Θ)'s step counts) that no flag of ``typed`` (the command line) sets are unset, so that
+    this learner's own defaults fill them, and a warning names each change. They used to stay: a
+    baseline trained on a D²SPO --fast run's config took its 32 envs, half its own update rate,
+    without a word (a user trial, 2026-12-03)."""
+    def free(field: str) -> bool:  # no flag sets it: --num-envs, --td3.hidden, --td3-lag.td3.hidden, ...
+        name = field.replace("_", "-")
+        return not any(a.split("=", 1)[0] in (f"--{name}",) or a.split("=", 1)[0].endswith(f".{name}")
+                       for a in typed if a.startswith("--"))
+
+    steps = {k: None for k in ("updates_per_iter", "nominal_updates_per_iter") if free(f"cbf.{k}")}
+    new = dataclasses.replace(cfg, num_envs=None if free("num_envs") else cfg.num_envs,
+                              td3=dataclasses.replace(cfg.td3, hidden=None) if free("td3.hidden") else cfg.td3,
+                              cbf=dataclasses.replace(cfg.cbf, **steps))
+    changed = [f"{name} {was} -> {now}" for name, was, now in (
+        ("num_envs", cfg.num_envs, new.num_envs), ("td3.hidden", list(cfg.td3.hidden), list(new.td3.hidden)),
+        *((f"cbf.{k}", getattr(cfg.cbf, k), getattr(new.cbf, k)) for k in steps if "cbf" in config_sections(new.algo)))
+               if was != now]
+    if changed:
+        warnings.warn(f"{path} is a --fast run's config; without --fast, the values --fast gave it follow "
+                      f"{new.algo}'s defaults: {', '.join(changed)} (give them as flags to keep them)",
+                      D2SPOWarning, stacklevel=2)
+    return new
 
 
 @dataclasses.dataclass
@@ -301,14 +331,17 @@ def parse(args: list[str]):
     buf = io.StringIO()
     try:
         with contextlib.redirect_stderr(buf):
-            return tyro.cli(commands(algo_named(args, base), base), args=args, prog="d2spo",
-                            description="D²SPO: safe RL with LTL tasks and learned control barrier functions. "
-                                        "`d2spo --version` prints the version.")
+            cmd = tyro.cli(commands(algo_named(args, base), base), args=args, prog="d2spo",
+                           description="D²SPO: safe RL with LTL tasks and learned control barrier functions. "
+                                       "`d2spo --version` prints the version.")
     except SystemExit as e:
         if e.code not in (0, None):
             error(as_typed(tyro_error_line(buf.getvalue(), args), args) + f" ({usage_hint(args)})")
             raise SystemExit(2) from None
         raise
+    if isinstance(cmd, TrainCmd):  # the flags as typed: which of a --config file's values a flag set again
+        cmd.typed = tuple(args)
+    return cmd
 
 
 def main(argv: list[str] | None = None) -> int:

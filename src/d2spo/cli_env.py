@@ -16,6 +16,7 @@ from d2spo.envs.layout_bank import check_fits
 from d2spo.envs.nav import checked_layout
 from d2spo.envs.preflight import preflight, start_state
 from d2spo.errors import ConfigError
+from d2spo.fields import check_fields
 from d2spo.ltl.buchi_task import is_recurrence
 from d2spo.plotstyle import check_picture_path
 from d2spo.rollout import visit_optimum
@@ -41,6 +42,7 @@ class EnvShowCmd:
     reach the last area's label."""
 
     def run(self) -> int:
+        check_fields(self, natural=("rollout_steps",), seed=("seed",))  # as train's and eval's: -3 is no count
         check_picture_path(self.out, "out")
         lay = layouts.load(self.layout)
         trajs, title = None, None

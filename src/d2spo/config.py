@@ -241,7 +241,8 @@ class TrainConfig:
         on one layout only), else ``DEFAULT_SETTINGS``. config.json records the values."""
         if self.fast and (self.generalist or not has_runtime_filter(self.algo)):
             raise ConfigError("fast", f"is for d2spo and sl on one layout, not {self.algo}"
-                              f"{' --generalist' if self.generalist else ''}")
+                              f"{' --generalist' if self.generalist else ''}; leave it out (over the --config "
+                              "file of a --fast run: --no-fast)")
         table = FAST_SETTINGS if self.fast else DEFAULT_SETTINGS
         if self.num_envs is None:
             object.__setattr__(self, "num_envs", table["num_envs"])

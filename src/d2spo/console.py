@@ -44,6 +44,8 @@ _CACHE_SETUP = re.compile(r"[Pp]lease install|No module named")
 
 _BOX = re.compile(r"[╭╮╰╯│─]+")
 _CONFIG_ERROR = re.compile(r"^Error parsing [^-\s]\S*: ")
+_MISPLACED = "Unrecognized or misplaced options:"
+_APPLIED = re.compile(r" \(applied to ([^()]*)\)$")
 
 
 def tyro_error_line(text: str, args: list[str] = ()) -> str:
@@ -71,18 +73,36 @@ def tyro_error_line(text: str, args: list[str] = ()) -> str:
             section[flag].append(stripped[3:-7])
         elif section is None:
             body.append(stripped)
+    # A flag of another subcommand: tyro lists it as "misplaced", each word with "(applied to d2spo
+    # env check)"; said as for any unknown flag ("Unrecognized options: --label-mode, step")
+    # (tyro's note under them, "Arguments are applied to ...", left out)
+    misplaced = [_APPLIED.sub("", b) for b in body[1:] if _APPLIED.search(b)] if body[:1] == [_MISPLACED] else []
+    subcommand = "this command"
+    if misplaced:
+        if applied := _APPLIED.search(body[1]):
+            subcommand = applied.group(1)
+        body = [f"Unrecognized options: {', '.join(misplaced)}"]
     msg = " ".join(body) or "invalid command line"
     if _CONFIG_ERROR.match(msg):  # a config dataclass refused a value: its own message names the field
         return _CONFIG_ERROR.sub("", msg)
     command = " ".join(["d2spo", *[a for a in args if not a.startswith("-")]])
-    hints = []
+    hints, elsewhere = [], []
     for typo, flags in similar.items():
         ok = [f for f, where in flags.items() if not where or any(command.startswith(w) for w in where)]
         if ok:
             hints.append(" or ".join(ok[:3]) + (f" for {typo}" if typo else ""))
+        elsewhere += [f"{f} is a flag of {_listed(where)}, not of {subcommand}" for f, where in flags.items()
+                      if f in misplaced and where and f not in ok]
     if hints:
         msg += f" (did you mean {'; '.join(hints)}?)"
+    if elsewhere:
+        msg += f" ({'; '.join(elsewhere)})"
     return f"{title}: {msg}" if title and not msg.startswith(title) else msg
+
+
+def _listed(words: list[str]) -> str:
+    """``a``, ``a and b``, ``a, b and c``."""
+    return " and ".join([", ".join(words[:-1]), words[-1]] if len(words) > 1 else words)
 
 
 def as_typed(msg: str, args: list[str] = ()) -> str:

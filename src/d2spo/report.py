@@ -148,7 +148,9 @@ def build_report(out: Path) -> Path:
         if how:
             parts += [provenance(name, how), ""]
     if not found:
-        raise RunDirError(f"{out}: holds no tables or figures; run `d2spo reproduce all --out {out}` first")
+        raise RunDirError(f"{out}: holds no tables or figures of `d2spo reproduce` (the paper's tasks and layouts), which "
+                          f"`d2spo report` gathers; `d2spo reproduce all --out {out}` writes them. Runs of your own "
+                          "`d2spo train` are read from each run's summary.json and episodes.csv (docs/runs.md)")
     report = out / "report.md"
     report.write_text("\n".join(parts))
     return report

@@ -40,6 +40,15 @@ NOTHING_TO_REACH = ("asks for nothing to reach: its automaton accepts before the
 """What ``check_letters`` refuses (and ``d2spo ltl`` notes) in a task whose initial state accepts."""
 
 
+def goal_hint(formula: str, goal: str) -> str:
+    """The goal ``check_letters`` and ``d2spo ltl`` suggest for a task with nothing to reach: ``F goal``,
+    and with the formula's own never parts kept where it is only those (``G !haz`` -> ``G !haz & F
+    dock``; a user trial read the former ``G !x & F dock`` as a made-up x)."""
+    if re.fullmatch(r"[\sG!&()\w-]+", formula) and re.search(r"G\s*\(?\s*!", formula):
+        return f"'{formula} & F {goal}'"
+    return f"'F {goal}' (with a never part: 'G !x & F {goal}')"
+
+
 def check_letters(task: CompiledTask, what: str) -> None:
     """ConfigError unless a sequence of the letters the layout can produce completes the task, and
     unless the task needs one (``true``, ``A1 | !A1``: done before the first step); ``what`` names the
@@ -50,8 +59,9 @@ def check_letters(task: CompiledTask, what: str) -> None:
         goal = (others or list(task.layout.labels) or ["A1"])[0]  # an area the formula does not name, if any
         missing = missing_labels(task.automaton.aps, task.layout)  # `G !a4`: meant to name an area, names none
         hint = f" (layout {task.layout.name!r}: {missing})" if missing else ""
+        text = what[1:-1] if len(what) > 1 and what[0] == what[-1] == "'" else what  # the formula, repr() or not
         raise ConfigError("task", f"{what} {NOTHING_TO_REACH}, so there is nothing to learn; add a goal, e.g. "
-                          f"'F {goal}' (with a never part: 'G !x & F {goal}'){hint}")
+                          f"{goal_hint(text, goal)}{hint}")
     if int(arrays.distance[int(arrays.initial)]) >= UNREACHABLE:
         aut = task.automaton
         if aut.initial in getattr(aut, "rejecting", ()):  # no layout is to blame: no run satisfies it

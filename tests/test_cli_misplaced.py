@@ -1,0 +1,80 @@
+"""One-line errors a user trial met (2026-12-03): a flag of another subcommand, `env show`'s counts,
+and `d2spo report` on a folder of one's own runs."""
+
+from __future__ import annotations
+
+import pytest
+
+from d2spo import cli, console
+
+_MISPLACED_BOX = (  # tyro's message for `d2spo env check --label-mode step`, as it draws it
+    "╭─ Unrecognized options ───────────────────────────────────────────────────────╮\n"
+    "│ Unrecognized or misplaced options:                                           │\n"
+    "│   --label-mode (applied to d2spo env check)                                  │\n"
+    "│   step (applied to d2spo env check)                                          │\n"
+    "│                                                                              │\n"
+    "│ Arguments are applied to the directly preceding subcommand, so ordering can  │\n"
+    "│ matter.                                                                      │\n"
+    "│ ──────────────────────────────────────────────────────────────────────────── │\n"
+    "│ Perhaps you meant:                                                           │\n"
+    "│     --label-mode STR                                                         │\n"
+    "│         Labelling the distances assume: 'event' (no empty letter) or 'step'. │\n"
+    "│         (default: event)                                                     │\n"
+    "│         in d2spo ltl --help                                                  │\n"
+    "│         Labelling: 'event' (a letter when the set of areas changes to a      │\n"
+    "│         non-empty one) or 'step'. (default: event)                           │\n"
+    "│         in d2spo train --help                                                │\n"
+    "│ ──────────────────────────────────────────────────────────────────────────── │\n"
+    "│ For full helptext, run d2spo --help                                          │\n"
+    "╰──────────────────────────────────────────────────────────────────────────────╯\n"
+)
+
+
+def _one_error_line(capsys, args: list[str]) -> str:
+    try:
+        status = cli.main(args)
+    except SystemExit as e:  # tyro's parse errors leave through SystemExit, as in the command
+        status = e.code
+    err = capsys.readouterr().err.strip().splitlines()
+    assert status == 2 and len(err) == 1 and err[0].startswith("d2spo: error: "), err
+    return err[0]
+
+
+def test_a_flag_of_another_subcommand_reads_as_an_unknown_flag_and_says_where_it_is():
+    """It read "Unrecognized options: Unrecognized or misplaced options: --label-mode (applied to d2spo
+    env check) step (applied to d2spo env check)"."""
+    line = console.tyro_error_line(_MISPLACED_BOX, ["env", "check", "--label-mode", "step"])
+    assert line == ("Unrecognized options: --label-mode, step (--label-mode is a flag of d2spo ltl and "
+                    "d2spo train, not of d2spo env check)")
+
+
+@pytest.mark.parametrize("args, says", [
+    (["env", "check", "--label-mode", "step"], "--label-mode is a flag of d2spo ltl and d2spo train, not of "
+                                               "d2spo env check"),
+    (["env", "show", "--max-steps", "3"], "--max-steps is a flag of d2spo env check, d2spo eval and d2spo train, "
+                                          "not of d2spo env show"),
+])
+def test_the_command_names_the_subcommands_a_misplaced_flag_belongs_to(capsys, args, says):
+    line = _one_error_line(capsys, args)
+    assert line.startswith(f"d2spo: error: Unrecognized options: {args[2]}, {args[3]} ({says})"), line
+    assert "misplaced" not in line and "applied to" not in line
+
+
+@pytest.mark.parametrize("flags, says", [
+    (["--rollout-steps", "-3"], "--rollout-steps: must be an integer >= 0, got -3"),
+    (["--rollout-steps", "3", "--seed", "-1"], "--seed: must be an integer in [0, "),
+])
+def test_env_show_refuses_a_negative_count_or_seed_as_train_and_eval_do(capsys, tmp_path, flags, says):
+    """`env show --rollout-steps -3` drew the layout without a rollout, and `--seed -1` was taken."""
+    line = _one_error_line(capsys, ["env", "show", "--out", str(tmp_path / "x.png"), *flags])
+    assert line.startswith(f"d2spo: error: {says}"), line
+    assert not (tmp_path / "x.png").exists()
+
+
+def test_report_on_a_folder_of_ones_own_runs_says_what_it_reads(capsys, tmp_path):
+    """It said only "run `d2spo reproduce all --out runs` first" (36 runs of the paper's tasks) to a
+    user whose runs/ held `d2spo train` runs of their own layout and task."""
+    (tmp_path / "td3-lag-s0").mkdir()
+    (tmp_path / "td3-lag-s0" / "summary.json").write_text("{}")
+    line = _one_error_line(capsys, ["report", str(tmp_path)])
+    assert "holds no tables or figures of `d2spo reproduce`" in line and "summary.json" in line, line
