@@ -27,7 +27,7 @@ from d2spo.cli_certify import CertifyCmd
 from d2spo.cli_docs import DocsCmd
 from d2spo.cli_env import ENV_SUBCOMMANDS, EnvCmd
 from d2spo.cli_export import ExportCmd
-from d2spo.cli_reproduce import ReportCmd, ReproduceCmd
+from d2spo.cli_reproduce import CompareCmd, ReportCmd, ReproduceCmd
 from d2spo.config import TrainConfig, algo_named, config_file, config_file_named, flags_for, plain
 from d2spo.config_diff import flags_given, other_learners_flag
 from d2spo.console import (
@@ -293,7 +293,8 @@ def commands(algo: str, base: TrainConfig | None = None):
 
 
 SUBCOMMANDS = {"eval": EvalCmd, "ltl": LtlCmd, "env": EnvCmd, "demo": DemoCmd, "reproduce": ReproduceCmd,
-               "report": ReportCmd, "certify": CertifyCmd, "export": ExportCmd, "docs": DocsCmd}
+               "report": ReportCmd, "compare": CompareCmd, "certify": CertifyCmd, "export": ExportCmd,
+               "docs": DocsCmd}
 """The subcommands after ``train`` (whose flags depend on ``--algo``: ``commands``), by name."""
 
 

@@ -1,5 +1,6 @@
-"""The ``d2spo reproduce`` and ``d2spo report`` commands (``cli.commands`` lists them): the paper's
-tables and figures, trained and rendered by ``d2spo.reproduce`` and gathered by ``d2spo.report``."""
+"""The ``d2spo reproduce``, ``d2spo report`` and ``d2spo compare`` commands (``cli.commands`` lists
+them): the paper's tables and figures, trained and rendered by ``d2spo.reproduce`` and gathered by
+``d2spo.report``; a user's own runs side by side (``d2spo.compare``)."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from pathlib import Path
 import tyro
 
 from d2spo.errors import ConfigError
+from d2spo.fields import check_fields
 from d2spo.report import build_report
 from d2spo.reproduce import reproduce
 
@@ -61,4 +63,30 @@ class ReportCmd:
 
     def run(self) -> int:
         print(build_report(self.out))
+        return 0
+
+
+@dataclasses.dataclass
+class CompareCmd:
+    """Compare your own runs (any learners, seeds, task and layout: `d2spo train --algo A --seed S ...`):
+    one row per learner with safety, completion (a patrol: its visits of the route-optimal count) and
+    the collisions over all training episodes; writes OUT/compare.md, compare.csv and compare.png."""
+
+    runs: tyro.conf.Positional[list[Path]]
+    """Run directories of `d2spo train`, finished, of one task on one layout; runs of one learner are
+    its seeds."""
+    out: Path | None = Path("compare")
+    """Where to write compare.md, compare.csv and compare.png (the return and the cumulative collisions
+    over training); None (`--out None`): print the table only."""
+    smooth: int = 200
+    """Episodes per point of the return's moving average (at most a fifth of a short run)."""
+
+    def run(self) -> int:
+        from d2spo.compare import compare
+
+        check_fields(self, count=("smooth",))
+        text, written = compare(self.runs, self.out, self.smooth)
+        print(text, end="")
+        for path in written:
+            print(f"wrote {path}")
         return 0
