@@ -56,6 +56,7 @@ def test_outputs_and_summary(tmp_path, capsys):
     end = np.array([[float(r[7]), float(r[8])] for r in table[1:]])
     assert np.all((end >= 0.0) & (end <= 5.0)) and len(np.unique(end, axis=0)) > 1  # where each episode ended
     assert summary["safety_rate"] == pytest.approx(1.0 - collided[-50:].mean())
+    assert summary["collisions_all"] == collided.sum() >= collided[-50:].sum()  # every episode, not the window's
     # rejected: ended before the 40-step limit, neither collided nor done under training's (relaxed) labelling
     relaxed, length = (np.array([int(r[i]) for r in table[1:]]) for i in (5, 6))
     assert summary["rejection_rate"] == pytest.approx(((length < 40) & (collided == 0) & (relaxed == 0))[-50:].mean())

@@ -40,6 +40,8 @@ def summary_table(summary: dict, title: str):
             t.add_row("compile time the cache saved", f"{summary['compile_seconds_saved']:.0f} s")
     recurrence = "route_optimal_visits" in summary  # no episode completes it: scored by its visits
     t.add_row(f"safety rate (last {summary['window_episodes']})", pct(summary["safety_rate"]))
+    if "collisions_all" in summary:  # absent from a summary.json written before 2026-12-03
+        t.add_row(f"collisions, all {summary['episodes']} training episodes", f"{summary['collisions_all']:,}")
     if not recurrence:
         t.add_row(f"completion rate (last {summary['window_episodes']})", pct(summary["completion_rate"]))
         t.add_row("completion rate, relaxed labelling", pct(summary["completion_rate_relaxed"]))

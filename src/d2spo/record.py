@@ -255,6 +255,8 @@ class RunRecord:
             "compile_seconds_saved": round(self.meta.get("compile_seconds_saved", 0.0), 2),
             "env_steps_per_second": round(self.meta["env_steps"] / max(wall, 1e-9), 1),
             "window": cfg.window, **window_rates(self.writer.rows, cfg.window, int(params.max_steps)),
+            # every training episode's collisions, which the window does not see (D²SPO: safe while it learns)
+            "collisions_all": int(sum(row[3] for row in self.writer.rows)),
             "device": jax.devices()[0].platform,
         }
         if params.aut.visit is not None:  # a Büchi task: mean over the window
