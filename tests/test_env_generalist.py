@@ -70,6 +70,41 @@ def test_resets_draw_every_layout_and_observations_are_finite(built):
     assert abs(float(obs[0, sl["target"]][0]) - d / (d + 10.0)) < 1e-5
 
 
+def test_a_forbidden_area_beyond_the_forbidden_range_is_observed_as_none(built):
+    """``EnvConfig.forbidden_range`` R: the nearest forbidden area's part is what it was within R m of
+    its edge and all zeros beyond, as for a task that forbids nothing; unset, it is seen at any
+    distance. On narrow-gap-15 the default generalist stopped short of a gap whenever its task had a
+    never part, the forbidden area 10 m away (bench/RESULTS.md, "2026-12-03, later")."""
+    lays, _, _ = built
+    sl = None
+    parts = {}
+    for r in (None, 0.5, 100.0):
+        env, params = make_generalist_env(EnvConfig(preset="ideal", forbidden_range=r), "phi1", lays)
+        _, obs = jax.jit(lambda k, env=env, params=params: env.reset_batch(k, params, 16))(jax.random.PRNGKey(0))
+        sl = env.observation_slices
+        parts[r] = np.asarray(obs)
+    edge = []  # each start's distance to the nearest forbidden area's edge, read back off the ratio
+    for row in parts[None]:
+        f = row[sl["forbidden"]][0]
+        edge.append(10.0 * f / (1.0 - f))
+    far = np.asarray(edge) > 0.5
+    assert far.any() and np.all(parts[None][:, sl["forbidden"]][:, 3] == 1.0)
+    assert np.all(parts[0.5][far][:, sl["forbidden"]] == 0.0)
+    close = lambda a, b: np.allclose(a, b, atol=1e-6)  # noqa: E731  another program, the same values
+    assert close(parts[0.5][~far], parts[None][~far])
+    assert close(parts[100.0], parts[None])
+    others = np.ones(parts[None].shape[1], bool)
+    others[sl["forbidden"]] = False
+    assert close(parts[0.5][:, others], parts[None][:, others])  # only that part changes
+    with pytest.raises(ConfigError, match="forbidden_range"):
+        EnvConfig(forbidden_range=0.0)
+    from d2spo.config import TrainConfig
+
+    with pytest.raises(ConfigError, match="without --generalist it has no effect"):
+        TrainConfig(env=EnvConfig(forbidden_range=1.2)).check()
+    TrainConfig(generalist=True, env=EnvConfig(forbidden_range=1.2)).check()
+
+
 def test_observed_distances_beyond_twenty_metres_stay_apart():
     """A 20 m world's routes run past 40 m. Capped at 20 m (the encoding of runs before 2026-11-27,
     still read from their config.json), 25 m and 40 m looked alike and a robot stalled there; the

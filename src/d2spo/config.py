@@ -263,6 +263,9 @@ class TrainConfig:
             raise ConfigError("env.layout", "has no effect with --generalist: it trains on generated layouts "
                               f"({self.generalist_world}:0..{self.generalist_layouts - 1}); to run it on your "
                               "layout, train first, then `d2spo eval RUN --layout FILE --task ...` (zero-shot)")
+        if not self.generalist and self.env.forbidden_range is not None:
+            raise ConfigError("env.forbidden_range", "is what a generalist observes of a forbidden area; without "
+                              "--generalist it has no effect: leave it out")
         if self.generalist and self.anneal != AnnealConfig():
             raise ConfigError("anneal", "has no effect with --generalist: every layout it draws is labelled "
                               "with its areas' true radii (docs/config.md); leave --anneal.* out")

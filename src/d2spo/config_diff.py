@@ -19,7 +19,7 @@ _SHAPING_FIELDS = ("shaping", "shaping_metric", "shaping_clearance", "shaping_cl
 
 _GENERALIST_FIELDS = ("generalist_layouts", "generalist_redraw", "generalist_pairings", "generalist_world",
                       "generalist_tasks", "generalist_patrols", "validation_layouts", "validation_episodes")
-"""Settings only a generalist reads (``env.distance_obs`` too)."""
+"""Settings only a generalist reads (``env.distance_obs`` and ``env.forbidden_range`` too)."""
 
 
 def _runs_a_recurrence(cfg: TrainConfig) -> bool:
@@ -58,6 +58,7 @@ def effective_config(cfg: TrainConfig) -> dict:
         for name in _GENERALIST_FIELDS:
             d.pop(name, None)
         d["env"].pop("distance_obs", None)
+        d["env"].pop("forbidden_range", None)
     if not _runs_a_recurrence(cfg):
         d.pop("patrol_validation", None)
         d["env"].pop("recurrence_max_steps", None)

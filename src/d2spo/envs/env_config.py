@@ -40,6 +40,9 @@ class EnvConfig:
     distance_obs: str = "ratio"
     """A generalist's observed distances d (to the target, to the forbidden area): 'ratio',
     d / (d + 10 m), distinct at every distance; 'capped', min(d / 10 m, 2), alike beyond 20 m."""
+    forbidden_range: float | None = None
+    """A generalist observes the nearest area whose entry would reject the task only within this
+    distance (m) of its edge, beyond it as no forbidden area; None: at any distance (the default)."""
     label_radius: float | None = None
     """Initial labelling radius (m); None: each area's own."""
     collision_terminates: bool = True
@@ -94,9 +97,9 @@ class EnvConfig:
         dynamics.get_preset(self.preset)
         preset_fields = ("dt", "v_max", "omega_max", "robot_radius", "sensing_radius", "layout_scale", "v_gain",
                          "omega_gain", "actuator_tau", "noise_xy", "noise_theta", "slip")
-        check_fields(self, nullable=preset_fields + ("label_radius", "max_steps", "observe_path"),
+        check_fields(self, nullable=preset_fields + ("label_radius", "max_steps", "observe_path", "forbidden_range"),
                      positive=("dt", "v_max", "omega_max", "robot_radius", "sensing_radius", "layout_scale",
-                               "v_gain", "omega_gain", "label_radius"),
+                               "v_gain", "omega_gain", "label_radius", "forbidden_range"),
                      non_negative=("actuator_tau", "noise_xy", "noise_theta", "start_jitter_xy", "start_jitter_theta"),
                      count=("max_steps", "base_max_steps", "n_rays"), natural=("recurrence_max_steps",),
                      flag=("collision_terminates", "observe_path", "reverse"))

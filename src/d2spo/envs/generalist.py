@@ -25,7 +25,7 @@ and changes two things:
     the direction of steepest descent of that path (forward, left); 1 if there is a target;
   - ``forbidden`` [4]: the distance from the robot to the edge of the nearest area whose entry would
     reject the task (or undo progress), encoded alike; the direction to its centre (forward, left); 1
-    if there is one;
+    if there is one (within ``EnvConfig.forbidden_range`` of its edge, when that is set);
   - ``progress`` [1]: the automaton's distance to acceptance (area visits still needed) / its
     largest finite value.
 
@@ -246,6 +246,8 @@ class GeneralistEnv(Env):
         edge = jnp.where(forbids, jnp.maximum(centre - v.area_radius, 0.0), jnp.inf)
         j = jnp.argmin(edge)
         has = jnp.isfinite(edge[j])
+        if self.config.forbidden_range is not None:  # a far one as none (EnvConfig.forbidden_range)
+            has = has & (edge[j] <= self.config.forbidden_range)
         toward = jnp.where(has, rel[j] / jnp.maximum(centre[j], 1e-6), 0.0)
         forbidden = jnp.concatenate([jnp.where(has, seen(edge[j]), 0.0)[None], frame(toward),
                                      has[None]])
