@@ -224,8 +224,8 @@ def without_fast(cfg: TrainConfig, path: Path, typed: tuple[str, ...]) -> TrainC
     without a word (a user trial, 2026-12-03)."""
     def free(field: str) -> bool:  # no flag sets it: --num-envs, --td3.hidden, --td3-lag.td3.hidden, ...
         name = field.replace("_", "-")
-        return not any(a.split("=", 1)[0] in (f"--{name}",) or a.split("=", 1)[0].endswith(f".{name}")
-                       for a in typed if a.startswith("--"))
+        flags = [a.split("=", 1)[0] for a in typed if a.startswith("--")]
+        return not any(f == f"--{name}" or f.endswith(f".{name}") for f in flags)
 
     steps = {k: None for k in ("updates_per_iter", "nominal_updates_per_iter") if free(f"cbf.{k}")}
     new = dataclasses.replace(cfg, num_envs=None if free("num_envs") else cfg.num_envs,
