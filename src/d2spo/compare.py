@@ -28,8 +28,7 @@ SAME = ("task", "layout")
 
 
 def load(dirs: Sequence[Path]) -> list[dict]:
-    """Each run's summary.json with its episodes.csv's ``collided`` and ``return`` columns (``_collided``,
-    ``_return``); a directory that is not a finished run, a run given twice, or runs of different
+    """Each run's summary.json with its episodes.csv's ``collided`` column (``_collided``); a directory that is not a finished run, a run given twice, or runs of different
     tasks or layouts are a RunDirError."""
     runs, seen = [], set()
     for d in map(Path, dirs):
@@ -45,8 +44,7 @@ def load(dirs: Sequence[Path]) -> list[dict]:
         episodes = read_episodes(d / "episodes.csv")
         rows = np.asarray(episodes, dtype=np.float64).reshape(len(episodes), -1)
         runs.append({**summary, "_dir": d, "_generalist": bool(config.get("generalist")),
-                     "_collided": rows[:, 3] > 0 if len(rows) else np.zeros(0, bool),
-                     "_return": rows[:, 1] if len(rows) else np.zeros(0)})
+                     "_collided": rows[:, 3] > 0 if len(rows) else np.zeros(0, bool)})
     for field in SAME:
         values = {str(r.get(field)) for r in runs}
         if len(values) > 1:
@@ -141,24 +139,21 @@ def write_csv(path: Path, table: list[dict]) -> None:
 
 
 def figure(path: Path, runs: list[dict], smooth: int = 200) -> Path:
-    """Two panels: the return's moving average (mean over seeds, ± 1 std) and the cumulative
-    collisions over training (mean over seeds), per learner; seeds cut to the shortest run."""
-    from d2spo.plots import _figure, draw_reward_curves, smoothing_window
-    from d2spo.plotstyle import BLACK, BLUISH_GREEN, ORANGE, REDDISH_PURPLE, SKY_BLUE, VERMILLION, save_figure
+    """Two panels: the return's moving average (``plots.reward_curves``: mean over seeds, ± 1 std) and
+    the cumulative collisions over training (mean over seeds), per learner; seeds cut to the shortest run."""
+    from d2spo.plots import CURVE_COLOURS, _figure, draw_reward_curves, reward_curves
+    from d2spo.plotstyle import save_figure
 
-    palette = [SKY_BLUE, ORANGE, BLUISH_GREEN, REDDISH_PURPLE, VERMILLION, BLACK]
     fig = _figure(2)
     ret_ax, coll_ax = fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)
-    ret_ax.set_prop_cycle(color=palette)
-    coll_ax.set_prop_cycle(color=palette)
-    curves = {}
-    for name, rs in groups(runs).items():
-        n = min(len(r["_return"]) for r in rs)
+    ret_ax.set_prop_cycle(color=CURVE_COLOURS)
+    coll_ax.set_prop_cycle(color=CURVE_COLOURS)
+    by = groups(runs)
+    curves = reward_curves({name: [r["_dir"] for r in rs] for name, rs in by.items()}, smooth)
+    for name, rs in by.items():
+        n = min(len(r["_collided"]) for r in rs)
         if n == 0:
             continue
-        k = smoothing_window(n, smooth)
-        a = np.stack([np.convolve(r["_return"][:n], np.ones(k) / k, mode="valid") for r in rs])
-        curves[name] = (np.arange(a.shape[1]) + k, a.mean(0), a.std(0), len(rs))
         cum = np.stack([np.cumsum(r["_collided"][:n]) for r in rs]).mean(0)
         coll_ax.plot(np.arange(1, n + 1), cum, label=f"{name}: mean over {len(rs)} seed{'s' * (len(rs) != 1)}")
     draw_reward_curves(ret_ax, curves, f"return: {runs[0].get('task')!r} on {runs[0].get('layout')!r}")

@@ -294,12 +294,16 @@ def draw_reward_curves(ax, curves: Mapping[str, tuple], title: str) -> None:
         ax.text(0.5, 0.5, "no runs", ha="center", transform=ax.transAxes)
 
 
+CURVE_COLOURS = [SKY_BLUE, ORANGE, BLUISH_GREEN, REDDISH_PURPLE, VERMILLION, BLACK]
+"""The order learners' curves take their colours in (Figs. 2-3, ``d2spo compare``)."""
+
+
 def reward_figure(path: Path, panels: Sequence[tuple[str, Mapping[str, Iterable[Path]]]], smooth: int = 200) -> Path:
     """Figs. 2–3: one panel per (title, {label: run directories}), side by side."""
     fig = _figure(len(panels))
     for i, (title, runs) in enumerate(panels):
         ax = fig.add_subplot(1, len(panels), i + 1)
-        ax.set_prop_cycle(color=[SKY_BLUE, ORANGE, BLUISH_GREEN, REDDISH_PURPLE, VERMILLION, BLACK])
+        ax.set_prop_cycle(color=CURVE_COLOURS)
         draw_reward_curves(ax, reward_curves(runs, smooth), title)
     return save_figure(fig, path)
 
