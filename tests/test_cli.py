@@ -381,37 +381,3 @@ def test_ltl_plot_refuses_a_recurrence_train_refuses(tmp_path, capsys):
     assert cli.main(["env", "check", "--layout", "paper", "--task", "GF A1"]) == 2
     assert "not laps" in capsys.readouterr().err
 
-
-@pytest.mark.parametrize("args, prefix", [(["env", "check", "--task", "F (A1"], "--task: "),
-                                          (["env", "check", "--task=F (A1"], "--task: "),
-                                          (["ltl", "F (A1"], "")])
-def test_an_ltl_syntax_error_names_the_flag_it_was_typed_after(args, prefix, capsys):
-    """One line, exit 2, starting with the flag the formula came with (as every other flag's error
-    does), and none for a formula given as a positional argument."""
-    assert cli.main(args) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert err == [f"d2spo: error: {prefix}LTL syntax error at column 6: expected ')' to close the '(' at column 3, "
-                   "found end of formula in 'F (A1'"], err
-
-
-def test_flag_of_value_finds_a_list_flags_later_value():
-    from d2spo.console import flag_of_value
-
-    assert flag_of_value("b", ["train", "--tasks", "a", "b", "--seed", "1"]) == "--tasks"
-    assert flag_of_value("1", ["train", "--tasks", "a", "b", "--seed", "1"]) == "--seed"
-    assert flag_of_value("c", ["train", "--tasks", "a", "b"]) is None
-
-
-def test_env_show_draws_a_rollout_of_the_task_given_and_refuses_a_task_with_no_rollout(tmp_path, capsys):
-    """`env show --task T --rollout-steps N`: the random rollout is an episode of T (the title names it);
-    a task with no rollout to end is a mistake (one line, exit 2), as is a task the layout cannot do."""
-    import matplotlib.image
-
-    out = tmp_path / "show.png"
-    assert cli.main(["env", "show", "--task", "patrol2", "--rollout-steps", "40", "--out", str(out)]) == 0
-    assert matplotlib.image.imread(out).shape[0] > 100
-    for args in (["--task", "patrol2"], ["--task", "F A9", "--rollout-steps", "40"]):
-        assert cli.main(["env", "show", *args, "--out", str(tmp_path / "x.png")]) == 2
-        err = capsys.readouterr().err.strip().splitlines()
-        assert len(err) == 1 and err[0].startswith("d2spo: error: --task:"), err
-    assert not (tmp_path / "x.png").exists()

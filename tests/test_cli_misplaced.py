@@ -1,5 +1,5 @@
-"""One-line errors a user trial met (2026-12-03): a flag of another subcommand, `env show`'s counts,
-and `d2spo report` on a folder of one's own runs."""
+"""One-line errors and flags user trials met (2026-12-03): a flag of another subcommand, `env show`'s
+counts and task, `d2spo report` on a folder of one's own runs, an LTL syntax error's flag."""
 
 from __future__ import annotations
 
@@ -78,3 +78,38 @@ def test_report_on_a_folder_of_ones_own_runs_says_what_it_reads(capsys, tmp_path
     (tmp_path / "td3-lag-s0" / "summary.json").write_text("{}")
     line = _one_error_line(capsys, ["report", str(tmp_path)])
     assert "holds no tables or figures of `d2spo reproduce`" in line and "summary.json" in line, line
+
+
+@pytest.mark.parametrize("args, prefix", [(["env", "check", "--task", "F (A1"], "--task: "),
+                                          (["env", "check", "--task=F (A1"], "--task: "),
+                                          (["ltl", "F (A1"], "")])
+def test_an_ltl_syntax_error_names_the_flag_it_was_typed_after(args, prefix, capsys):
+    """One line, exit 2, starting with the flag the formula came with (as every other flag's error
+    does), and none for a formula given as a positional argument."""
+    assert cli.main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"d2spo: error: {prefix}LTL syntax error at column 6: expected ')' to close the '(' at column 3, "
+                   "found end of formula in 'F (A1'"], err
+
+
+def test_flag_of_value_finds_a_list_flags_later_value():
+    from d2spo.console import flag_of_value
+
+    assert flag_of_value("b", ["train", "--tasks", "a", "b", "--seed", "1"]) == "--tasks"
+    assert flag_of_value("1", ["train", "--tasks", "a", "b", "--seed", "1"]) == "--seed"
+    assert flag_of_value("c", ["train", "--tasks", "a", "b"]) is None
+
+
+def test_env_show_draws_a_rollout_of_the_task_given_and_refuses_a_task_with_no_rollout(tmp_path, capsys):
+    """`env show --task T --rollout-steps N`: the random rollout is an episode of T (the title names it);
+    a task with no rollout to end is a mistake (one line, exit 2), as is a task the layout cannot do."""
+    import matplotlib.image
+
+    out = tmp_path / "show.png"
+    assert cli.main(["env", "show", "--task", "patrol2", "--rollout-steps", "40", "--out", str(out)]) == 0
+    assert matplotlib.image.imread(out).shape[0] > 100
+    for args in (["--task", "patrol2"], ["--task", "F A9", "--rollout-steps", "40"]):
+        assert cli.main(["env", "show", *args, "--out", str(tmp_path / "x.png")]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("d2spo: error: --task:"), err
+    assert not (tmp_path / "x.png").exists()
