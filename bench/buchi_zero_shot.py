@@ -1,7 +1,8 @@
 """Generalists zero-shot on the Büchi suite (issue 34's generalist targets): one row per run, then the mean.
 
     .venv/bin/python bench/buchi_zero_shot.py --runs GEN-s0 GEN-s1 ... [--tasks patrol2 patrol3 respond reach-never]
-        [--layouts 20] [--first-seed 100000] [--episodes 50] [--max-steps N] [--results bench/RESULTS.md]
+        [--layouts 20] [--first-seed 100000] [--episodes 50] [--max-steps N] [--forbidden-range R]
+        [--results bench/RESULTS.md]
 
 Each run is a ``d2spo train --algo d2spo --generalist`` directory (train them first, one seed each:
 ``d2spo train --algo d2spo --generalist --task phi1 --seed S --out GEN-sS``). Each task runs as
@@ -51,7 +52,14 @@ def _matches(res: dict, cfg: EvalConfig) -> bool:
             and res.get("episodes") == cfg.episodes * cfg.layout_seeds and res.get("seed") == cfg.seed
             and res.get("runtime_filter") is True and res.get("dynamics") == "default"
             and str(res.get("policy", "")).startswith("best")
-            and (res.get("max_steps") == cfg.max_steps if res.get("max_steps_given") else cfg.max_steps is None))
+            and (res.get("max_steps") == cfg.max_steps if res.get("max_steps_given") else cfg.max_steps is None)
+            and (_range(res.get("forbidden_range")) == cfg.forbidden_range if res.get("forbidden_range_given")
+                 else cfg.forbidden_range is None))
+
+
+def _range(r: float | None) -> float:
+    """A stored evaluation's forbidden range as ``--forbidden-range`` gives it (None: ``inf``)."""
+    return float("inf") if r is None else r
 
 
 def evaluation(run: Path, cfg: EvalConfig) -> dict:
@@ -143,7 +151,8 @@ def handmade_cases(tasks: list[str]) -> list[tuple[Path, str]]:
     return cases
 
 
-def handmade_table(runs: list[Path], cases: list[tuple[Path, str]], episodes: int, max_steps: int | None) -> str:
+def handmade_table(runs: list[Path], cases: list[tuple[Path, str]], episodes: int, max_steps: int | None,
+                   forbidden_range: float | None = None) -> str:
     """One row per hand-made case: each run's fraction of the route-optimal visits (a patrol) or
     completion, its safety; then the mean over the patrols and over the rest."""
     from d2spo.errors import UserError
@@ -155,7 +164,8 @@ def handmade_table(runs: list[Path], cases: list[tuple[Path, str]], episodes: in
     for path, task in cases:
         cells = []
         for run in runs:
-            cfg = EvalConfig(episodes, str(path), task=task, runtime_filter=True, max_steps=max_steps)
+            cfg = EvalConfig(episodes, str(path), task=task, runtime_filter=True, max_steps=max_steps,
+                             forbidden_range=forbidden_range)
             try:
                 res = evaluation(run, cfg)
             except UserError as e:
@@ -184,6 +194,8 @@ def main() -> None:
     ap.add_argument("--episodes", type=int, default=50)
     ap.add_argument("--max-steps", type=int, default=None,
                     help="episode limit (d2spo eval --max-steps); default: each layout's, as d2spo eval")
+    ap.add_argument("--forbidden-range", type=float, default=None,
+                    help="d2spo eval --forbidden-range R: a forbidden area seen only within R m; default: as trained")
     ap.add_argument("--results", default="bench/RESULTS.md")
     ap.add_argument("--handmade", action="store_true",
                     help="also the hand-made layouts of tests/data/layouts (the module docstring)")
@@ -196,10 +208,12 @@ def main() -> None:
     for run in args.runs:
         for task in args.tasks:
             cfg = EvalConfig(args.episodes, f"random:{args.first_seed}", task=task, layout_seeds=args.layouts,
-                             runtime_filter=True, max_steps=args.max_steps)
+                             runtime_filter=True, max_steps=args.max_steps, forbidden_range=args.forbidden_range)
             results[run, task] = evaluation(run, cfg)
             print(f"{run.name} {task}: {100 * score(results[run, task]):.1f}%", flush=True)
     limit = "" if args.max_steps is None else f" of {args.max_steps} steps"
+    if args.forbidden_range is not None:
+        limit += f", a forbidden area seen within {args.forbidden_range:g} m"
     text = (f"Generalists zero-shot on random:{args.first_seed}..+{args.layouts - 1}, {args.episodes} episodes{limit} "
             f"each, filter on ({datetime.date.today()}, {platform.machine()}, {cpu_model()}); a patrol's "
             "fraction of the route-optimal visits, else completion:\n\n" + table(args.runs, args.tasks, results))
@@ -212,7 +226,8 @@ def main() -> None:
     if args.handmade:
         cases = handmade_cases(args.tasks)[:args.cases]
         text += (f"\n\nThe same runs on the hand-made layouts (tests/data/layouts; {args.episodes} episodes{limit} "
-                 "each, filter on):\n\n" + handmade_table(args.runs, cases, args.episodes, args.max_steps))
+                 "each, filter on):\n\n" + handmade_table(args.runs, cases, args.episodes, args.max_steps,
+                                                                     args.forbidden_range))
     print(text)
     if args.results != "-":
         with open(args.results, "a") as f:

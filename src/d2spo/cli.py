@@ -245,7 +245,7 @@ def without_fast(cfg: TrainConfig, path: Path, typed: tuple[str, ...]) -> TrainC
 @dataclasses.dataclass
 class EvalCmd:
     """Run a trained policy without exploration noise; prints safety and completion rates (per layout with
-    --layout-seeds) and writes them to RUN_DIR/eval-LAYOUT[xN]-DYNAMICS[-TASK][-TSTEPS][-best][-filter-aA-iN].json
+    --layout-seeds) and writes them to RUN_DIR/eval-LAYOUT[xN]-DYNAMICS[-TASK][-TSTEPS][-sSEED][-rR][-best][-filter-aA-iN].json
     (LAYOUT a layout file's stem and its content's hash; docs/runs.md)."""
 
     run_dir: tyro.conf.Positional[Path]

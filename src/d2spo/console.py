@@ -155,6 +155,8 @@ def print_evaluation(res: dict, path: Path, filter_asked: bool | None) -> None:
     if not task and res.get("generalist"):  # its training mixture's task: say which one ran
         task = f", task {res['task']!r}"
     which = f", {res['policy']} policy" if str(res.get("policy", "")).startswith("best") else ""
+    if res.get("forbidden_range") is not None:  # a generalist seeing a forbidden area only near it
+        task += f", forbidden area seen within {res['forbidden_range']:g} m"
     # the limit always: under other dynamics (--dt, --v-max, a file) the default follows the evaluated
     # robot's speed, as training's does, and differs from the trained one
     limit = "" if res.get("max_steps") is None else (

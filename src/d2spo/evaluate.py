@@ -98,12 +98,17 @@ class EvalConfig:
     """best: the validated policy where the run has one (a generalist's, kept on its validation layouts,
     `--validation-layouts`; a patrol's on one layout, `--patrol-validation`), else the last; last: the
     newest checkpoint's."""
+    forbidden_range: float | None = None
+    """Generalist only: observe a forbidden area only within this many metres of its edge, beyond it as if
+    none were forbidden (train's --forbidden-range; ``inf``: always, as its default); default: as trained."""
     overrides: Annotated[DynamicsOverrides, tyro.conf.arg(name="")] = dataclasses.field(default_factory=DynamicsOverrides)
 
     def __post_init__(self):
-        check_fields(self, nullable=("filter_iters", "filter_alpha", "max_steps"),
+        check_fields(self, nullable=("filter_iters", "filter_alpha", "max_steps", "forbidden_range"),
                      count=("episodes", "layout_seeds", "max_steps", "filter_iters"),
                      seed=("seed",), positive=("filter_alpha",))
+        if self.forbidden_range is not None and self.forbidden_range != float("inf"):  # inf: always observed
+            check_fields(self, positive=("forbidden_range",))
         check_choice(self, "policy", POLICY_CHOICES)
         if self.layout_seeds != 1 and _family(self.layout) is None:
             raise ConfigError("layout_seeds", f"only applies with a drawn layout, --layout "
@@ -230,6 +235,12 @@ def evaluate_run(run_dir: Path, ecfg: EvalConfig = EvalConfig(), keep_paths: int
         cfg = dataclasses.replace(cfg, cbf=dataclasses.replace(cfg.cbf, **cbf_changes))
     if ecfg.layout is None:  # the training layout: as it was when the run started
         check_layout_unchanged(run_dir, cfg, f"to evaluate on it as it is now, pass --layout {cfg.layout}")
+    if ecfg.forbidden_range is not None:
+        if not cfg.generalist:
+            raise ConfigError("forbidden_range", "is what a generalist observes of a forbidden area; this run "
+                              "is a specialist, which reads every area in its own slot")
+        far = None if np.isinf(ecfg.forbidden_range) else float(ecfg.forbidden_range)  # inf: always observed
+        cfg = dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, forbidden_range=far))
     if ecfg.max_steps is not None and not cfg.generalist:  # a generalist's limit: _generalist_rollouts
         cfg = dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, max_steps=ecfg.max_steps))
     layouts = ecfg.layouts()
@@ -254,6 +265,8 @@ def evaluate_run(run_dir: Path, ecfg: EvalConfig = EvalConfig(), keep_paths: int
         "task": ecfg.task or cfg.task, "task_given": ecfg.task is not None and ecfg.task != cfg.task,
         "max_steps": limit, "max_steps_given": ecfg.max_steps is not None,
         "runtime_filter": bool(cfg.d2spo.runtime_filter) if has_filter else None,
+        "forbidden_range": env_cfg.forbidden_range if cfg.generalist else None,
+        "forbidden_range_given": ecfg.forbidden_range is not None,
         "filter_iters": cfg.cbf.filter_iters if has_filter else None,
         "filter_alpha": cfg.cbf.filter_alpha if has_filter else None,
         "per_layout": [{"layout": lay or cfg.layout, **r} for lay, r in zip(layouts, results)],
@@ -353,9 +366,10 @@ def layout_tag(layout: str, sha256: str | None = None) -> str:
 
 
 def evaluation_path(run_dir: Path, res: dict) -> Path:
-    """Where ``write_evaluation`` puts ``res``: RUN_DIR/eval-LAYOUT[xN]-DYNAMICS[-TASK][-TSTEPS][-sSEED][-best]
+    """Where ``write_evaluation`` puts ``res``: RUN_DIR/eval-LAYOUT[xN]-DYNAMICS[-TASK][-TSTEPS][-sSEED][-rR][-best]
     [-filter-aA-iN].json, LAYOUT as ``layout_tag`` writes it, TSTEPS an episode limit asked for,
-    SEED another ``--seed`` than 0 (other episodes: another evaluation)."""
+    SEED another ``--seed`` than 0 (other episodes: another evaluation), R a forbidden range asked for
+    (``rinf``: none)."""
     n = len(res["per_layout"])  # random:0 over 3 layouts is another evaluation than random:0 alone
     tag = f"{layout_tag(res['layout'], res.get('layout_sha256'))}{f'x{n}' if n > 1 else ''}-{res['dynamics']}"
     if res.get("task_given"):
@@ -364,6 +378,8 @@ def evaluation_path(run_dir: Path, res: dict) -> Path:
         tag += f"-T{res['max_steps']}"
     if res.get("seed", 0) != 0:
         tag += f"-s{res['seed']}"
+    if res.get("forbidden_range_given"):  # what the generalist sees of a forbidden area: another evaluation
+        tag += f"-r{res['forbidden_range'] if res['forbidden_range'] is not None else float('inf'):g}"
     if str(res.get("policy", "")).startswith("best"):  # a validated run's kept policy
         tag += "-best"
     if res["runtime_filter"]:
