@@ -200,3 +200,16 @@ def test_a_specialist_on_a_layout_of_other_area_slots_is_refused_or_warned():
     with pytest.raises(ConfigError, match="trained on 4 areas and 3 automaton states; layout 'small.json' has 3 "
                                           "areas and the task 3 states here"):
         check_same_slots(trained, env("dock", "kitchen", "office"), "small.json")
+
+
+def test_the_runs_own_task_refused_on_a_typed_layout_names_the_layout(tmp_path, capsys, monkeypatch):
+    """`eval RUN --layout office.json` of a run that learnt phi1 (A1..A3; office has desk and kitchen):
+    the refusal named `--task`, which the user never typed; it names `--layout` and the run's task.
+    With `--task` typed, the task stays the culprit."""
+    monkeypatch.setattr("d2spo.evaluate.load_policy", lambda *a, **kw: (None, None, None, {"policy": "last"}))
+    run = started_run(tmp_path / "run", "paper")
+    office = str(Path(__file__).parent / "data" / "layouts" / "office.json")
+    line = one_error(capsys, "eval", run, "--layout", office)
+    assert line.startswith("d2spo: error: --layout: the run's task 'phi1' does not fit this layout: ") \
+        and "propositions with no area" in line, line
+    assert one_error(capsys, "eval", run, "--layout", office, "--task", "phi1").startswith("d2spo: error: --task: ")

@@ -246,13 +246,19 @@ def evaluate_run(run_dir: Path, ecfg: EvalConfig = EvalConfig(), keep_paths: int
     layouts = ecfg.layouts()
     env_cfg = eval_env_config(cfg, ecfg.layout, ecfg.dynamics, overrides)
     check_eval_memory(env_cfg, ecfg.episodes)  # before anything is built
-    if cfg.generalist:
-        results, limit, which = _generalist_rollouts(run_dir, cfg, ecfg, env_cfg, layouts, keep_paths, on_layout)
-    else:
-        _, learner, policy, meta = load_policy(run_dir, ecfg.policy, layout=ecfg.layout)
-        results = _specialist_rollouts(cfg, learner, policy, ecfg, overrides, keep_paths, on_layout)
-        # the episode limit run: the one asked for, else the longest of the layouts' own limits
-        limit, which = max(r["max_steps"] for r in results), meta["policy"]
+    try:
+        if cfg.generalist:
+            results, limit, which = _generalist_rollouts(run_dir, cfg, ecfg, env_cfg, layouts, keep_paths, on_layout)
+        else:
+            _, learner, policy, meta = load_policy(run_dir, ecfg.policy, layout=ecfg.layout)
+            results = _specialist_rollouts(cfg, learner, policy, ecfg, overrides, keep_paths, on_layout)
+            # the episode limit run: the one asked for, else the longest of the layouts' own limits
+            limit, which = max(r["max_steps"] for r in results), meta["policy"]
+    except ConfigError as e:  # the run's own task on a layout the user typed: the layout is what to change
+        if e.field != "task" or ecfg.task is not None or ecfg.layout is None:
+            raise
+        raise ConfigError("layout", f"the run's task {cfg.task!r} does not fit this layout: "
+                          f"{str(e).removeprefix('task: ')}") from None
     if on_layout is not None:
         on_layout(len(layouts), len(layouts), None)
     paths = [r.pop("paths") for r in results] if keep_paths else None
