@@ -49,8 +49,8 @@ def test_a_flag_of_another_subcommand_reads_as_an_unknown_flag_and_says_where_it
 
 
 @pytest.mark.parametrize("args, says", [
-    (["env", "check", "--label-mode", "step"], "--label-mode is a flag of d2spo ltl and d2spo train, not of "
-                                               "d2spo env check"),
+    (["env", "check", "--episodes", "3"], "--episodes is a flag of d2spo demo, d2spo eval, d2spo reproduce and "
+                                          "d2spo train, not of d2spo env check"),
     (["env", "show", "--max-steps", "3"], "--max-steps is a flag of d2spo env check, d2spo eval and d2spo train, "
                                           "not of d2spo env show"),
 ])
@@ -113,3 +113,15 @@ def test_env_show_draws_a_rollout_of_the_task_given_and_refuses_a_task_with_no_r
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("d2spo: error: --task:"), err
     assert not (tmp_path / "x.png").exists()
+
+
+def test_env_check_reads_the_letters_train_would_with_label_mode(capsys):
+    """`env check` had no --label-mode (a user trial: "--label-mode is a flag of d2spo ltl and d2spo
+    train"). `F (A1 & X A2)` needs A2 as the letter right after A1: there is one with letters read on
+    entering areas, none with a letter every step (the robot is still in A1 or between areas)."""
+    assert cli.main(["env", "check", "--task", "F (A1 & X A2)", "--label-mode", "event"]) == 0
+    assert "needs 2 area visits" in capsys.readouterr().out
+    line = _one_error_line(capsys, ["env", "check", "--task", "F (A1 & X A2)", "--label-mode", "step"])
+    assert "cannot be completed on layout 'paper'" in line, line
+    assert _one_error_line(capsys, ["env", "check", "--label-mode", "steps"]).startswith(
+        "d2spo: error: --label-mode: must be one of ['event', 'step'], got 'steps'")

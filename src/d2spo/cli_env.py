@@ -76,11 +76,14 @@ class EnvCheckCmd:
     max_steps: int | None = None
     """The episode limit, as `d2spo train --max-steps`: the time check and a patrol's route-optimal count
     use it; default: the one training derives from the task (docs/ltl.md)."""
+    label_mode: str = "event"
+    """Labelling, as `d2spo train --label-mode`: 'event' (a letter when the set of areas changes to a
+    non-empty one) or 'step' (a letter every step); the task's checks read the letters it gives."""
 
     def env_config(self) -> EnvConfig:
         motion = load_dynamics(self.dynamics) if self.dynamics is not None else {}
         return EnvConfig(layout=self.layout, preset=self.preset, robot_radius=self.robot_radius,
-                         max_steps=self.max_steps, **motion)
+                         max_steps=self.max_steps, label_mode=self.label_mode, **motion)
 
     def run(self) -> int:
         env_cfg = self.env_config()
