@@ -76,6 +76,10 @@ def test_a_file_beside_config_replaces_the_robot_the_config_recorded(tmp_path):
     cfg = cli.parse(["train", "--config", str(tmp_path / "config.json"), "--dynamics", str(fast),
                      "--v-max", "0.9"]).config()
     assert (cfg.env.v_max, cfg.env.omega_max) == (0.9, 3.0)
+    # a flag typed again with the config's own value wins too (it was taken for unset, the file's 1.5 won)
+    cfg = cli.parse(["train", "--config", str(tmp_path / "config.json"), "--dynamics", str(fast),
+                     "--v-max", "0.5"]).config()
+    assert (cfg.env.v_max, cfg.env.omega_max) == (0.5, 3.0)
     # a config of the default robot (5 and 5 steps) with a file: the file's robot's 10 and 10
     default = cli.parse(["train", "--episodes", "10"]).config()
     (tmp_path / "default.json").write_text(json.dumps(config_to_dict(default)))

@@ -197,11 +197,14 @@ class TrainCmd:
             return cfg
         values = load_dynamics(self.dynamics)
         # A field no flag set takes the file's value: None, or with --config the file's default (its
-        # config.json records every value of a robot given before, which the new file replaces)
+        # config.json records every value of a robot given before, which the new file replaces) unless
+        # typed again (`--config RUN/config.json --dynamics new.json --v-gain 0.85`, the config's value)
+        typed = getattr(self, "typed", ())
 
         def unset(section: str, k: str) -> bool:
             now = getattr(getattr(cfg, section), k)
-            return now is None or (base is not None and now == getattr(getattr(base, section), k))
+            return now is None or (base is not None and now == getattr(getattr(base, section), k)
+                                   and not flag_typed(f"{section}.{k}" if section == "cbf" else k, typed))
 
         env = dataclasses.replace(cfg.env, **{k: v for k, v in values.items() if unset("env", k)})
         # UPDATE(Ω, Θ)'s step counts the flags left unset follow the file's robot, not the preset's
@@ -215,6 +218,14 @@ class TrainCmd:
         return train_with_progress(self.config(), self.out, self.resume, self.progress)
 
 
+def flag_typed(field: str, typed: tuple[str, ...]) -> bool:
+    """Whether a flag of the command line ``typed`` sets the config field ``field`` (``num_envs``,
+    ``td3.hidden``, ``v_gain``): --num-envs, --td3.hidden, --td3-lag.td3.hidden, --v-gain=0.85, ..."""
+    name = field.replace("_", "-")
+    flags = [a.split("=", 1)[0] for a in typed if a.startswith("--")]
+    return any(f == f"--{name}" or f.endswith(f".{name}") for f in flags)
+
+
 def without_fast(cfg: TrainConfig, path: Path, typed: tuple[str, ...]) -> TrainConfig:
     """``--config`` of a ``--fast`` run with ``--no-fast`` (or the config.json of a --fast run given
     to another learner, which must say --no-fast): the values --fast filled (``FAST_SETTINGS``, and
@@ -222,10 +233,8 @@ def without_fast(cfg: TrainConfig, path: Path, typed: tuple[str, ...]) -> TrainC
     this learner's own defaults fill them, and a warning names each change. They used to stay: a
     baseline trained on a D²SPO --fast run's config took its 32 envs, half its own update rate,
     without a word (a user trial, 2026-12-03)."""
-    def free(field: str) -> bool:  # no flag sets it: --num-envs, --td3.hidden, --td3-lag.td3.hidden, ...
-        name = field.replace("_", "-")
-        flags = [a.split("=", 1)[0] for a in typed if a.startswith("--")]
-        return not any(f == f"--{name}" or f.endswith(f".{name}") for f in flags)
+    def free(field: str) -> bool:
+        return not flag_typed(field, typed)
 
     steps = {k: None for k in ("updates_per_iter", "nominal_updates_per_iter") if free(f"cbf.{k}")}
     new = dataclasses.replace(cfg, num_envs=None if free("num_envs") else cfg.num_envs,
