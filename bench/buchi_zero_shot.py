@@ -29,6 +29,7 @@ import argparse
 import datetime
 import json
 import platform
+import sys
 from pathlib import Path
 
 from d2spo.evaluate import EvalConfig, evaluate_run, write_evaluation
@@ -212,10 +213,11 @@ def main() -> None:
             results[run, task] = evaluation(run, cfg)
             print(f"{run.name} {task}: {100 * score(results[run, task]):.1f}%", flush=True)
     limit = "" if args.max_steps is None else f" of {args.max_steps} steps"
-    if args.forbidden_range is not None:
-        limit += f", a forbidden area seen within {args.forbidden_range:g} m"
+    seen = "" if args.forbidden_range is None else (
+        "; a forbidden area seen at any distance" if args.forbidden_range == float("inf")
+        else f"; a forbidden area seen within {args.forbidden_range:g} m")
     text = (f"Generalists zero-shot on random:{args.first_seed}..+{args.layouts - 1}, {args.episodes} episodes{limit} "
-            f"each, filter on ({datetime.date.today()}, {platform.machine()}, {cpu_model()}); a patrol's "
+            f"each, filter on{seen} ({datetime.date.today()}, {platform.machine()}, {cpu_model()}); a patrol's "
             "fraction of the route-optimal visits, else completion:\n\n" + table(args.runs, args.tasks, results))
     extra = margin_lines(args.runs, args.tasks, results)
     if extra:
@@ -226,7 +228,7 @@ def main() -> None:
     if args.handmade:
         cases = handmade_cases(args.tasks)[:args.cases]
         text += (f"\n\nThe same runs on the hand-made layouts (tests/data/layouts; {args.episodes} episodes{limit} "
-                 "each, filter on):\n\n" + handmade_table(args.runs, cases, args.episodes, args.max_steps,
+                 f"each, filter on{seen}):\n\n" + handmade_table(args.runs, cases, args.episodes, args.max_steps,
                                                                      args.forbidden_range))
     print(text)
     if args.results != "-":
@@ -235,4 +237,10 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from d2spo.errors import UserError
+
+    try:
+        main()
+    except UserError as e:  # a flag or run the evaluation refuses: its one line, as `d2spo eval` says it
+        print(f"buchi_zero_shot.py: error: {e}", file=sys.stderr)
+        sys.exit(2)

@@ -374,26 +374,31 @@ def test_eval_forbidden_range_hides_a_far_forbidden_area_in_its_own_file(gen_run
     """``d2spo eval GEN --forbidden-range R``: the generalist built for the evaluation sees a forbidden
     area only within R m (``EnvConfig.forbidden_range``), the result records R in its JSON, title and
     file name (``-rR``; ``-rinf`` for ``inf``, always seen); 0, nan or a specialist: one line, exit 2."""
-    from d2spo import zero_shot
+    from d2spo import plots, zero_shot
+    from d2spo.console import forbidden_note
     from d2spo.evaluate import evaluation_path
 
-    seen = []
+    seen, titles = [], []
     build = zero_shot.generalist_on
     monkeypatch.setattr(zero_shot, "generalist_on", lambda cfg, env_cfg, *a: seen.append(env_cfg.forbidden_range)
                         or build(cfg, env_cfg, *a))
+    monkeypatch.setattr(plots, "evaluation_figure", lambda path, paths, per, title: titles.append(title))
     assert _main(["eval", str(gen_run), "--task", "phi2", "--layout", "random:11", "--episodes", "2",
-                  "--runtime-filter", "False", "--forbidden-range", "1.2"]) == 0
+                  "--runtime-filter", "False", "--forbidden-range", "1.2", "--plot", str(tmp_path / "p.png")]) == 0
     assert seen == [1.2] and "forbidden area seen within 1.2 m" in " ".join(capsys.readouterr().out.split())
+    assert titles[0].endswith(", forbidden area seen within 1.2 m"), titles  # the picture says it too
     res = json.loads((gen_run / "eval-random11-ideal-phi2-r1.2.json").read_text())
     assert res["forbidden_range"] == 1.2 and res["forbidden_range_given"]
+    assert forbidden_note({**res, "forbidden_range": None}) == ", forbidden area always seen"  # inf asked
+    assert forbidden_note({**res, "forbidden_range": None, "forbidden_range_given": False}) == ""
     assert evaluation_path(gen_run, {**res, "forbidden_range": None}).name == "eval-random11-ideal-phi2-rinf.json"
     assert evaluation_path(gen_run, {**res, "forbidden_range_given": False}).name == "eval-random11-ideal-phi2.json"
     spec = tmp_path / "spec"
     spec.mkdir()
     (spec / "config.json").write_text((gen_run / "config.json").read_text().replace('"generalist": true',
                                                                                     '"generalist": false'))
-    for args, match in ((["--forbidden-range", "0"], "--forbidden-range: must be a finite number > 0"),
-                        (["--forbidden-range", "nan"], "--forbidden-range: must be a finite number > 0"),
+    for args, match in ((["--forbidden-range", "0"], "--forbidden-range: must be a number > 0 (inf: always seen)"),
+                        (["--forbidden-range", "nan"], "--forbidden-range: must be a number > 0 (inf: always seen)"),
                         (["--layout", "paper", "--forbidden-range", "1.2"], "this run is a specialist")):
         assert _main(["eval", str(gen_run if "paper" not in args else spec), *args]) == 2
         err = capsys.readouterr().err.strip().splitlines()

@@ -34,6 +34,7 @@ from d2spo.console import (
     as_typed,
     error,
     flag_of_value,
+    forbidden_note,
     print_evaluation,
     show_warning,
     tyro_error_line,
@@ -283,7 +284,7 @@ class EvalCmd:
 
             filt = "" if res["runtime_filter"] is None else f", runtime filter {'on' if res['runtime_filter'] else 'off'}"
             evaluation_figure(self.plot, paths, res["per_layout"],
-                              f"{self.run_dir.name}: {res['task']} / {res['dynamics']}{filt}")
+                              f"{self.run_dir.name}: {res['task']} / {res['dynamics']}{filt}{forbidden_note(res)}")
             print(f"wrote {self.plot}")
         return 0
 

@@ -142,6 +142,14 @@ def flag_of_value(value: str, args: list[str] = ()) -> str | None:
 
 
 # ------------------------------------------------------------------------------------ d2spo eval
+def forbidden_note(res: dict) -> str:
+    """What an evaluation's generalist saw of a forbidden area, for its titles: within R m (asked with
+    --forbidden-range R, or as trained), always (``--forbidden-range inf`` asked), else nothing."""
+    if res.get("forbidden_range") is not None:  # a generalist seeing a forbidden area only near it
+        return f", forbidden area seen within {res['forbidden_range']:g} m"
+    return ", forbidden area always seen" if res.get("forbidden_range_given") else ""
+
+
 def print_evaluation(res: dict, path: Path, filter_asked: bool | None) -> None:
     """``d2spo.evaluate.evaluate_run``'s result as a table (a row per layout when there are several),
     then where it was written. ``filter_asked``: the --runtime-filter flag (None: not given)."""
@@ -155,8 +163,7 @@ def print_evaluation(res: dict, path: Path, filter_asked: bool | None) -> None:
     if not task and res.get("generalist"):  # its training mixture's task: say which one ran
         task = f", task {res['task']!r}"
     which = f", {res['policy']} policy" if str(res.get("policy", "")).startswith("best") else ""
-    if res.get("forbidden_range") is not None:  # a generalist seeing a forbidden area only near it
-        task += f", forbidden area seen within {res['forbidden_range']:g} m"
+    task += forbidden_note(res)
     # the limit always: under other dynamics (--dt, --v-max, a file) the default follows the evaluated
     # robot's speed, as training's does, and differs from the trained one
     limit = "" if res.get("max_steps") is None else (

@@ -100,15 +100,16 @@ class EvalConfig:
     newest checkpoint's."""
     forbidden_range: float | None = None
     """Generalist only: observe a forbidden area only within this many metres of its edge, beyond it as if
-    none were forbidden (train's --forbidden-range; ``inf``: always, as its default); default: as trained."""
+    none were forbidden, as `train --forbidden-range` does; inf: at any distance, as a generalist trained
+    without it; default: as trained."""
     overrides: Annotated[DynamicsOverrides, tyro.conf.arg(name="")] = dataclasses.field(default_factory=DynamicsOverrides)
 
     def __post_init__(self):
         check_fields(self, nullable=("filter_iters", "filter_alpha", "max_steps", "forbidden_range"),
                      count=("episodes", "layout_seeds", "max_steps", "filter_iters"),
                      seed=("seed",), positive=("filter_alpha",))
-        if self.forbidden_range is not None and self.forbidden_range != float("inf"):  # inf: always observed
-            check_fields(self, positive=("forbidden_range",))
+        if self.forbidden_range is not None and not self.forbidden_range > 0:  # inf: always observed
+            raise ConfigError("forbidden_range", f"must be a number > 0 (inf: always seen), got {self.forbidden_range!r}")
         check_choice(self, "policy", POLICY_CHOICES)
         if self.layout_seeds != 1 and _family(self.layout) is None:
             raise ConfigError("layout_seeds", f"only applies with a drawn layout, --layout "
