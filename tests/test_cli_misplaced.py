@@ -122,6 +122,8 @@ def test_env_check_reads_the_letters_train_would_with_label_mode(capsys):
     assert cli.main(["env", "check", "--task", "F (A1 & X A2)", "--label-mode", "event"]) == 0
     assert "needs 2 area visits" in capsys.readouterr().out
     line = _one_error_line(capsys, ["env", "check", "--task", "F (A1 & X A2)", "--label-mode", "step"])
-    assert "cannot be completed on layout 'paper'" in line, line
+    assert "cannot be completed on layout 'paper'" in line and "--label-mode step: every step is a letter" in line
+    line = _one_error_line(capsys, ["env", "check", "--task", "G F A1", "--label-mode", "step"])
+    assert "(every step in an area reads its letter again, with --label-mode step)" in line, line
     assert _one_error_line(capsys, ["env", "check", "--label-mode", "steps"]).startswith(
         "d2spo: error: --label-mode: must be one of ['event', 'step'], got 'steps'")

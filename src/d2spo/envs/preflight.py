@@ -165,6 +165,9 @@ def check_feasible(task: CompiledTask, name: str, radius: float | None = None, r
     targets, forbidden = (named_areas(aut, layout, task.roles, role)[q] for role in (TARGET, FORBIDDEN))
     goal = " or ".join(targets) or "an area that makes progress"
     why = f" without entering {', '.join(forbidden)} (forbidden there)" if forbidden else ""
+    if task.label_mode == "step":  # reaching may be possible, the letters on the way are what fails
+        why += (" (--label-mode step: every step is a letter, the empty one between areas too, and X and U "
+                "read them step by step; 'event' reads one on entering areas)")
     raise ConfigError("task", f"{name} cannot {done} on layout {layout.name!r}: in automaton state {q} "
                       f"({aut.state_formulas[q]}) {robot or f'a robot of radius {radius:g} m'} cannot "
                       f"reach {goal}{why}")
@@ -311,8 +314,10 @@ def check_lap(task: CompiledTask, robot_radius: float, name: str) -> None:
                                          task.automaton.state_formulas[task.automaton.initial])
         hint = (f"; for a response, make its trigger recur: add '& G F {triggers[0]}' (the suite's respond: "
                 "'G (A1 -> F A2) & G F A1')" if triggers else "")
+        how = ("every step in an area reads its letter again, with --label-mode step" if task.label_mode == "step"
+               else "leaving an area and entering it again")
         raise ConfigError("task", f"{name}: on layout {task.layout.name!r} an accepting visit can follow the "
-                          f"last after {lap:.2f} m (leaving an area and entering it again), so its visits would "
+                          f"last after {lap:.2f} m ({how}), so its visits would "
                           "count moves at an area's edge, not laps; give two areas to alternate between, e.g. "
                           f"'GF a & GF b', or a goal to reach once, 'F a'{hint}")
 
