@@ -127,3 +127,14 @@ def test_env_check_reads_the_letters_train_would_with_label_mode(capsys):
     assert "(every step in an area reads its letter again, with --label-mode step)" in line, line
     assert _one_error_line(capsys, ["env", "check", "--label-mode", "steps"]).startswith(
         "d2spo: error: --label-mode: must be one of ['event', 'step'], got 'steps'")
+
+
+@pytest.mark.parametrize("sub", ["check", "show"])
+def test_env_subcommand_help_says_what_it_does_once(capsys, sub):
+    """`env check --help` printed its description twice, the second time as the title of a "cmd
+    options" box (a user trial, 2026-12-03)."""
+    with pytest.raises(SystemExit) as e:
+        cli.main(["env", sub, "--help"])
+    out = capsys.readouterr().out
+    first = {"check": "Validate a layout", "show": "Draw a layout"}[sub]
+    assert e.value.code == 0 and out.count(first) == 1 and "cmd options" not in out, out

@@ -129,7 +129,7 @@ EnvCommands = Union[tuple(Annotated[cmd, tyro.conf.subcommand(name, prefix_name=
 class EnvCmd:
     """Environment tools."""
 
-    cmd: tyro.conf.OmitSubcommandPrefixes[EnvCommands]
+    cmd: Annotated[tyro.conf.OmitSubcommandPrefixes[EnvCommands], tyro.conf.arg(name="")]
 
     def run(self) -> int:
         return self.cmd.run()
