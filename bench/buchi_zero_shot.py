@@ -214,7 +214,7 @@ def main() -> None:
             print(f"{run.name} {task}: {100 * score(results[run, task]):.1f}%", flush=True)
     limit = "" if args.max_steps is None else f" of {args.max_steps} steps"
     seen = "" if args.forbidden_range is None else (
-        "; a forbidden area seen at any distance" if args.forbidden_range == float("inf")
+        "; a forbidden area always seen" if args.forbidden_range == float("inf")
         else f"; a forbidden area seen within {args.forbidden_range:g} m")
     text = (f"Generalists zero-shot on random:{args.first_seed}..+{args.layouts - 1}, {args.episodes} episodes{limit} "
             f"each, filter on{seen} ({datetime.date.today()}, {platform.machine()}, {cpu_model()}); a patrol's "

@@ -123,6 +123,10 @@ def test_env_check_reads_the_letters_train_would_with_label_mode(capsys):
     assert "needs 2 area visits" in capsys.readouterr().out
     line = _one_error_line(capsys, ["env", "check", "--task", "F (A1 & X A2)", "--label-mode", "step"])
     assert "cannot be completed on layout 'paper'" in line and "--label-mode step: every step is a letter" in line
+    corridor = "tests/data/layouts/handmade/corridor-5.json"  # the margin fails it in either mode: geometry
+    assert cli.main(["env", "check", "--layout", corridor, "--task", "G !A2 & F A3", "--label-mode", "step"]) == 0
+    warned = capsys.readouterr().err
+    assert "while keeping 0.3 m" in warned and "--label-mode step" not in warned, warned
     line = _one_error_line(capsys, ["env", "check", "--task", "G F A1", "--label-mode", "step"])
     assert "(every step in an area reads its letter again, with --label-mode step)" in line, line
     assert _one_error_line(capsys, ["env", "check", "--label-mode", "steps"]).startswith(

@@ -80,6 +80,9 @@ def test_a_file_beside_config_replaces_the_robot_the_config_recorded(tmp_path):
     cfg = cli.parse(["train", "--config", str(tmp_path / "config.json"), "--dynamics", str(fast),
                      "--v-max", "0.5"]).config()
     assert (cfg.env.v_max, cfg.env.omega_max) == (0.5, 3.0)
+    cfg = cli.parse(["train", "--config", str(tmp_path / "config.json"), "--dynamics", str(fast),
+                     "--v_max", "0.5"]).config()  # tyro's other spelling of the flag
+    assert (cfg.env.v_max, cfg.env.omega_max) == (0.5, 3.0)
     # a config of the default robot (5 and 5 steps) with a file: the file's robot's 10 and 10
     default = cli.parse(["train", "--episodes", "10"]).config()
     (tmp_path / "default.json").write_text(json.dumps(config_to_dict(default)))

@@ -376,7 +376,7 @@ def test_eval_forbidden_range_hides_a_far_forbidden_area_in_its_own_file(gen_run
     file name (``-rR``; ``-rinf`` for ``inf``, always seen); 0, nan or a specialist: one line, exit 2."""
     from d2spo import plots, zero_shot
     from d2spo.console import forbidden_note
-    from d2spo.evaluate import evaluation_path
+    from d2spo.evaluate import EvalConfig, evaluate_run, evaluation_path
 
     seen, titles = [], []
     build = zero_shot.generalist_on
@@ -390,6 +390,24 @@ def test_eval_forbidden_range_hides_a_far_forbidden_area_in_its_own_file(gen_run
     res = json.loads((gen_run / "eval-random11-ideal-phi2-r1.2.json").read_text())
     assert res["forbidden_range"] == 1.2 and res["forbidden_range_given"]
     assert forbidden_note({**res, "forbidden_range": None}) == ", forbidden area always seen"  # inf asked
+
+    class Seen(Exception):
+        pass
+
+    def stop(cfg, env_cfg, *a):  # what the evaluation would build; nothing is compiled
+        seen.append(env_cfg.forbidden_range)
+        raise Seen
+
+    monkeypatch.setattr(zero_shot, "generalist_on", stop)
+    trained = tmp_path / "trained-r"  # a generalist trained with R = 1.2, evaluated as trained and with inf
+    trained.mkdir()
+    cfg = json.loads((gen_run / "config.json").read_text())
+    cfg["env"]["forbidden_range"] = 1.2
+    (trained / "config.json").write_text(json.dumps(cfg))
+    for run, asked in ((trained, None), (trained, float("inf")), (gen_run, float("inf"))):
+        with pytest.raises(Seen):
+            evaluate_run(run, EvalConfig(2, "random:11", task="phi2", forbidden_range=asked))
+    assert seen[1:] == [1.2, None, None]
     assert forbidden_note({**res, "forbidden_range": None, "forbidden_range_given": False}) == ""
     assert evaluation_path(gen_run, {**res, "forbidden_range": None}).name == "eval-random11-ideal-phi2-rinf.json"
     assert evaluation_path(gen_run, {**res, "forbidden_range_given": False}).name == "eval-random11-ideal-phi2.json"

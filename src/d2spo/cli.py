@@ -192,20 +192,21 @@ class TrainCmd:
             if given := given + flags_given(cfg):
                 raise ConfigError("resume", f"continues the run with its own config.json; leave out {', '.join(given)}")
         base = config_file(self.from_config) if self.from_config is not None else None
+        typed = getattr(self, "typed", ())  # the command line as typed (parse sets it)
         if base is not None and base.fast and not cfg.fast:
-            cfg = without_fast(cfg, self.from_config, getattr(self, "typed", ()))
+            cfg = without_fast(cfg, self.from_config, typed)
         if self.dynamics is None:
             return cfg
         values = load_dynamics(self.dynamics)
         # A field no flag set takes the file's value: None, or with --config the file's default (its
         # config.json records every value of a robot given before, which the new file replaces) unless
         # typed again (`--config RUN/config.json --dynamics new.json --v-gain 0.85`, the config's value)
-        typed = getattr(self, "typed", ())
 
         def unset(section: str, k: str) -> bool:
             now = getattr(getattr(cfg, section), k)
             return now is None or (base is not None and now == getattr(getattr(base, section), k)
-                                   and not flag_typed(f"{section}.{k}" if section == "cbf" else k, typed))
+                                   and not flag_typed(f"{section}.{k}" if section == "cbf" else k, typed,
+                                                      exact=section == "env"))
 
         env = dataclasses.replace(cfg.env, **{k: v for k, v in values.items() if unset("env", k)})
         # UPDATE(Ω, Θ)'s step counts the flags left unset follow the file's robot, not the preset's
@@ -219,12 +220,14 @@ class TrainCmd:
         return train_with_progress(self.config(), self.out, self.resume, self.progress)
 
 
-def flag_typed(field: str, typed: tuple[str, ...]) -> bool:
+def flag_typed(field: str, typed: tuple[str, ...], exact: bool = False) -> bool:
     """Whether a flag of the command line ``typed`` sets the config field ``field`` (``num_envs``,
-    ``td3.hidden``, ``v_gain``): --num-envs, --td3.hidden, --td3-lag.td3.hidden, --v-gain=0.85, ..."""
+    ``td3.hidden``, ``v_gain``): --num-envs, --td3.hidden, --td3-lag.td3.hidden, --v-gain=0.85, --v_gain ...
+    A field of a section is named with it (``cbf.d``): the flag's last parts must match; ``exact``:
+    only --FIELD itself (the env's fields, whose flags have no section: --v-max, --dt)."""
     name = field.replace("_", "-")
-    flags = [a.split("=", 1)[0] for a in typed if a.startswith("--")]
-    return any(f == f"--{name}" or f.endswith(f".{name}") for f in flags)
+    flags = [a.split("=", 1)[0].replace("_", "-") for a in typed if a.startswith("--")]  # tyro takes --v_max too
+    return any(f == f"--{name}" or (not exact and f.endswith(f".{name}")) for f in flags)
 
 
 def without_fast(cfg: TrainConfig, path: Path, typed: tuple[str, ...]) -> TrainConfig:

@@ -165,7 +165,8 @@ def check_feasible(task: CompiledTask, name: str, radius: float | None = None, r
     targets, forbidden = (named_areas(aut, layout, task.roles, role)[q] for role in (TARGET, FORBIDDEN))
     goal = " or ".join(targets) or "an area that makes progress"
     why = f" without entering {', '.join(forbidden)} (forbidden there)" if forbidden else ""
-    if task.label_mode == "step":  # reaching may be possible, the letters on the way are what fails
+    if (task.label_mode == "step" and robot is None  # the letters fail it, not the geometry: event labelling would not
+            and any(routes.reachable_states(aut, layout, "event", radius)[s] for s in aut.accepting)):
         why += (" (--label-mode step: every step is a letter, the empty one between areas too, and X and U "
                 "read them step by step; 'event' reads one on entering areas)")
     raise ConfigError("task", f"{name} cannot {done} on layout {layout.name!r}: in automaton state {q} "
