@@ -7,7 +7,7 @@ import pytest
 
 from d2spo import cli, console
 
-_MISPLACED_BOX = (  # tyro's message for `d2spo env check --label-mode step`, as it draws it
+_MISPLACED_BOX = (  # tyro's message for `d2spo env check --label-mode step` before env check took the flag
     "╭─ Unrecognized options ───────────────────────────────────────────────────────╮\n"
     "│ Unrecognized or misplaced options:                                           │\n"
     "│   --label-mode (applied to d2spo env check)                                  │\n"
