@@ -32,7 +32,8 @@ import platform
 import sys
 from pathlib import Path
 
-from d2spo.evaluate import EvalConfig, evaluate_run, write_evaluation
+from d2spo.evalfiles import write_evaluation
+from d2spo.evaluate import EvalConfig, evaluate_run
 from d2spo.report import cpu_model
 
 TASKS = ("patrol2", "patrol3", "respond", "reach-never")

@@ -11,7 +11,7 @@ from rich.console import Console
 
 from d2spo.console import print_certify, print_evaluation, print_repair_round
 from d2spo.errors import NaNError
-from d2spo.evaluate import evaluation_path, write_evaluation
+from d2spo.evalfiles import evaluation_path, write_evaluation
 
 
 def _res(run: str, per: list[tuple[str, float]], runtime_filter=None) -> dict:

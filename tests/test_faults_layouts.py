@@ -58,7 +58,7 @@ def test_a_specialist_evaluates_its_own_task_however_spelt(tmp_path, capsys, no_
 
 
 def test_evaluation_file_names_of_built_in_and_random_layouts_are_kept():
-    from d2spo.evaluate import evaluation_path, layout_sha256, layout_tag
+    from d2spo.evalfiles import evaluation_path, layout_sha256, layout_tag
 
     one = {"layout": "paper", "per_layout": [{}], "dynamics": "default", "runtime_filter": None}
     assert evaluation_path(Path("r"), one) == Path("r") / "eval-paper-default.json"

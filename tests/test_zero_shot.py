@@ -376,7 +376,8 @@ def test_eval_forbidden_range_hides_a_far_forbidden_area_in_its_own_file(gen_run
     file name (``-rR``; ``-rinf`` for ``inf``, always seen); 0, nan or a specialist: one line, exit 2."""
     from d2spo import plots, zero_shot
     from d2spo.console import forbidden_note
-    from d2spo.evaluate import EvalConfig, evaluate_run, evaluation_path
+    from d2spo.evalfiles import evaluation_path
+    from d2spo.evaluate import EvalConfig, evaluate_run
 
     seen, titles = [], []
     build = zero_shot.generalist_on

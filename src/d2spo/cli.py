@@ -54,7 +54,8 @@ from d2spo.envs.preflight import (
     warn_if_run_together,
 )
 from d2spo.errors import ConfigError, D2SPOWarning, LTLSyntaxError, NaNError, TaskWarning, UserError
-from d2spo.evaluate import EvalConfig, evaluate_run, write_evaluation
+from d2spo.evalfiles import write_evaluation
+from d2spo.evaluate import EvalConfig, evaluate_run
 from d2spo.fields import check_choice, check_fields
 from d2spo.ltl import task_automaton, task_formula
 from d2spo.ltl.buchi_task import is_recurrence
