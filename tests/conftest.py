@@ -76,6 +76,8 @@ _SHARED_PROGRAMS = {
     "test_certify_run.py": "tiny-d2spo",  # _tiny.tiny_cfg
     "test_export.py": "tiny-d2spo",
     "test_export_cli.py": "tiny-d2spo",  # the session fixture tiny_export, below
+    "test_zero_shot.py": "zero-shot",  # tests/_generalist_run.py: one generalist program, its eval's
+    "test_eval_options.py": "zero-shot",
 }
 
 
