@@ -186,7 +186,7 @@ def test_a_manifest_whose_checksum_was_deleted_is_refused(tiny, tmp_path):
     before the key; a manifest of the format version that always records it is damaged or edited without it."""
     import shutil
 
-    from d2spo.deploy.policy import CHECKSUMMED_SINCE, FORMAT_VERSION
+    from d2spo.deploy.manifest import CHECKSUMMED_SINCE, FORMAT_VERSION
 
     copy = tmp_path / "copy"
     shutil.copytree(tiny[1], copy)
@@ -332,7 +332,7 @@ def test_a_policy_with_non_finite_weights_is_not_exported(tmp_path):
 def _rehashed(manifest: dict, **edits) -> dict:
     """``manifest`` with top-level ``edits`` and its content_sha256 recomputed: what a writer with a bug, or
     an edit that also rewrote the checksum, leaves."""
-    from d2spo.deploy.policy import CONTENT_KEY, content_sha256
+    from d2spo.deploy.manifest import CONTENT_KEY, content_sha256
 
     m = {**manifest, **edits}
     return {**m, CONTENT_KEY: content_sha256(m)}

@@ -31,7 +31,7 @@ from d2spo.algos.common.networks import DeterministicActor, GaussianActor
 from d2spo.checkpoint import has_checkpoint, run_fingerprint
 from d2spo.config import config_to_dict
 from d2spo.console import version
-from d2spo.deploy.policy import CONTENT_KEY, FORMAT, FORMAT_VERSION, MANIFEST, WEIGHTS, content_sha256, file_sha256
+from d2spo.deploy.manifest import CONTENT_KEY, FORMAT, FORMAT_VERSION, MANIFEST, WEIGHTS, content_sha256, file_sha256
 from d2spo.envs import geodesic
 from d2spo.errors import ConfigError, NaNError, RunDirError
 from d2spo.fields import check_choice, check_fields

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from d2spo.deploy.policy import file_sha256
+from d2spo.deploy.manifest import file_sha256
 from d2spo.errors import UserError
 from d2spo.runio import atomic_write_bytes
 

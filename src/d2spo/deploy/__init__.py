@@ -13,7 +13,8 @@ so a robot needs only numpy (and onnxruntime for ``Policy.load(..., backend="onn
 docs/deploy.md describes the artefact and the calls.
 """
 
-from d2spo.deploy.policy import FORMAT, FORMAT_VERSION, Policy
+from d2spo.deploy.manifest import FORMAT, FORMAT_VERSION
+from d2spo.deploy.policy import Policy
 from d2spo.deploy.task import Automaton, TaskTracker
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "Automaton", "Policy", "TaskTracker"]
