@@ -11,7 +11,8 @@ from rich.console import Console
 
 from d2spo.console import print_certify, print_evaluation, print_repair_round
 from d2spo.errors import NaNError
-from d2spo.evalfiles import evaluation_path, write_evaluation
+from d2spo.evalfiles import evaluation_path, number_tag, write_evaluation
+from d2spo.evaluate import dynamics_label
 
 
 def _res(run: str, per: list[tuple[str, float]], runtime_filter=None) -> dict:
@@ -29,6 +30,11 @@ def test_evaluation_is_named_written_and_shown(tmp_path, capsys):
     assert evaluation_path(tmp_path, one) == tmp_path / "eval-paper-default-slip0.2.json"
     three = _res(str(tmp_path), [("random:0", 1.0), ("random:1", 0.75), ("random:2", 1.0)], runtime_filter=True)
     assert evaluation_path(tmp_path, three).name == "eval-random0x3-default-slip0.2-filter-a1.5-i5.json"
+    # numbers as :g writes them where that reads back exactly; two that agree to six digits stay apart
+    assert [number_tag(x) for x in (1.2, 0.05, 2.0, float("inf"), 1e-7)] == ["1.2", "0.05", "2", "inf", "1e-07"]
+    near = evaluation_path(tmp_path, {**three, "filter_alpha": 1.5000001})
+    assert near.name == "eval-random0x3-default-slip0.2-filter-a1.5000001-i5.json"
+    assert dynamics_label(None, {"slip": 0.2, "v_gain": 0.8500001}, "default") == "default-slip0.2-v_gain0.8500001"
 
     path = write_evaluation(tmp_path, three)
     assert json.loads(path.read_text()) == three

@@ -17,6 +17,14 @@ from d2spo.inputs import sha256_of
 from d2spo.runio import atomic_write_json
 
 
+def number_tag(value: float) -> str:
+    """A number's part of an evaluation's file name: as ``:g`` writes it (``1.2``, ``0.05``, ``inf``)
+    where that reads back as the same number, else its shortest exact form (``1.2000001``), so that
+    two values that agree to six digits never share a file."""
+    short = f"{value:g}"
+    return short if float(short) == float(value) else repr(float(value))
+
+
 def layout_sha256(layout: str) -> str | None:
     """SHA-256 of the layout file ``layout`` names; None for a built-in or procedural layout."""
     file = layout_file(layout)
@@ -48,11 +56,11 @@ def evaluation_path(run_dir: Path, res: dict) -> Path:
     if res.get("seed", 0) != 0:
         tag += f"-s{res['seed']}"
     if res.get("forbidden_range_given"):  # what the generalist sees of a forbidden area: another evaluation
-        tag += f"-r{res['forbidden_range'] if res['forbidden_range'] is not None else float('inf'):g}"
+        tag += f"-r{number_tag(res['forbidden_range'] if res['forbidden_range'] is not None else float('inf'))}"
     if str(res.get("policy", "")).startswith("best"):  # a validated run's kept policy
         tag += "-best"
     if res["runtime_filter"]:
-        tag += f"-filter-a{res['filter_alpha']:g}-i{res['filter_iters']}"
+        tag += f"-filter-a{number_tag(res['filter_alpha'])}-i{res['filter_iters']}"
     return Path(run_dir) / f"eval-{tag}.json"
 
 

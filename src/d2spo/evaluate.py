@@ -27,7 +27,7 @@ from d2spo.envs.env_config import EnvConfig
 from d2spo.envs.layouts import RANDOM_KINDS, random_seed
 from d2spo.envs.layouts import load as load_layout
 from d2spo.errors import ConfigError, TaskWarning
-from d2spo.evalfiles import layout_sha256
+from d2spo.evalfiles import layout_sha256, number_tag
 from d2spo.fields import check_choice, check_fields, field_docstring
 from d2spo.inputs import sha256_of
 from d2spo.ltl.tasks import same_task
@@ -171,7 +171,7 @@ def dynamics_label(dynamics: str | None, overrides: dict[str, float] | None, tra
     else:
         digest = sha256_of(Path(dynamics), lambda message: ConfigError("dynamics", message))
         base = f"{Path(dynamics).stem}-{digest[:12]}"
-    return base + "".join(f"-{k}{v:g}" for k, v in sorted((overrides or {}).items()))
+    return base + "".join(f"-{k}{number_tag(v)}" for k, v in sorted((overrides or {}).items()))
 
 
 def trained_dynamics(cfg: TrainConfig) -> str:
