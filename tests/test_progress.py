@@ -51,7 +51,7 @@ def test_plain_lines_when_not_a_terminal(monkeypatch):
     on_event({"phase": "compiling", "episodes": 0, "total": 1000})
     clock[0] = 12.0
     on_event({"phase": "compiled", "compile_seconds": 12.0, "episodes": 0, "total": 1000})
-    for t, n in ((22.0, 100), (40.0, 280), (52.0, 400), (70.0, 580), (112.0, 1000)):
+    for t, n in ((22.0, 20), (40.0, 280), (52.0, 400), (70.0, 580), (112.0, 1000)):
         clock[0] = t
         on_event(chunk(n, t - 12.0))
     on_event({"phase": "evaluating", "episodes": 100})
@@ -59,8 +59,11 @@ def test_plain_lines_when_not_a_terminal(monkeypatch):
     assert lines[0] == "tlgrl relaxed: compiling the learner (once per run)…"
     assert lines[1] == "tlgrl relaxed: compiled in 12.0 s; training 1000 episodes"
     # the first chunk, then a line once 30 s have passed since the last one (not at 40 s or 70 s), and the last
-    assert [ln.split(": ")[1].split()[0] for ln in lines[2:5]] == ["100/1000", "400/1000", "1000/1000"]
-    assert "0:00:22, eta 0:01:30, 10.0 ep/s" in lines[2]  # 10 ep/s since compiled: 900 left
+    assert [ln.split(": ")[1].split()[0] for ln in lines[2:5]] == ["20/1000", "400/1000", "1000/1000"]
+    # the first chunk ends few episodes (all started together): no ETA from them (2 ep/s, 8 min)
+    assert "0:00:22, eta …, 2.0 ep/s" in lines[2]
+    # then the pace since that line: 380 episodes in 30 s, 600 left, 47 s (not 60 s at 10 ep/s since compiled)
+    assert "0:00:52, eta 0:00:47, 12.7 ep/s" in lines[3]
     assert lines[5] == "tlgrl relaxed: evaluating the final policy (100 episodes)…" and len(lines) == 6
 
 

@@ -201,7 +201,8 @@ class _Bars:
 class _Lines:
     """Plain lines for a log: the phases, the first chunk that ends an episode, then a line once
     ``every`` seconds have passed since the last, and the last one, e.g.
-    ``label: 1200/20000 episodes (6%), 0:01:02, eta 0:10:00, 26.1 ep/s · safe …``."""
+    ``label: 1200/20000 episodes (6%), 0:01:02, eta 0:10:00, 26.1 ep/s · safe …``. The first line's
+    ETA is ``…``: its few episodes are those that ended first; later lines take the pace since it."""
 
     def __init__(self, file, every: float = 30.0):
         self.file, self.every = file, every
@@ -232,10 +233,15 @@ class _Lines:
                 self._print(f"{label}: evaluating the final policy ({d['episodes']} episodes)…")
             elif ((t["last"] is None and d["episodes"] > t["episodes0"]) or d["episodes"] >= total
                   or now - (t["last"] or t["train"] or t["start"]) >= self.every):
+                since = t["train"] if t["train"] is not None else t["start"]
+                if t["last"] is None:  # the first chunk's episodes are few: every env started at once
+                    rate = (d["episodes"] - t["episodes0"]) / max(now - since, 1e-9)
+                    eta, t["first"] = "…", (now, d["episodes"])
+                else:  # the pace since the first report, past the start's ramp
+                    then, done = t["first"] if now > t["first"][0] and d["episodes"] > t["first"][1] else (since, t["episodes0"])
+                    rate = (d["episodes"] - done) / max(now - then, 1e-9)
+                    eta = _clock((total - d["episodes"]) / rate) if rate > 0 else "?"
                 t["last"] = now
-                ran = now - (t["train"] if t["train"] is not None else t["start"])
-                rate = (d["episodes"] - t["episodes0"]) / max(ran, 1e-9)
-                eta = _clock((total - d["episodes"]) / rate) if rate > 0 else "?"
                 self._print(f"{label}: {d['episodes']}/{total} episodes ({100 * d['episodes'] / total:.0f}%), "
                             f"{_clock(now - t['start'])}, eta {eta}, {_stats(d, rate)}")
 
