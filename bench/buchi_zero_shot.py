@@ -238,10 +238,11 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    from d2spo.console import as_typed
     from d2spo.errors import UserError
 
     try:
         main()
     except UserError as e:  # a flag or run the evaluation refuses: its one line, as `d2spo eval` says it
-        print(f"buchi_zero_shot.py: error: {e}", file=sys.stderr)
+        print(f"buchi_zero_shot.py: error: {as_typed(str(e), sys.argv[1:])}", file=sys.stderr)
         sys.exit(2)
