@@ -142,3 +142,24 @@ def test_env_subcommand_help_says_what_it_does_once(capsys, sub):
     out = capsys.readouterr().out
     first = {"check": "Validate a layout", "show": "Draw a layout"}[sub]
     assert e.value.code == 0 and out.count(first) == 1 and "cmd options" not in out, out
+
+
+def test_env_show_draws_its_rollout_under_the_labelling_asked_for(tmp_path, capsys, monkeypatch):
+    """`env show --label-mode step --rollout-steps N`: the rollout's env reads a letter every step (its
+    episode ends where a step-labelled one would) and the title says so; without a rollout, or with a
+    labelling that does not exist, one line and exit 2."""
+    from d2spo import demo
+    from d2spo.envs import render
+
+    seen, titles = [], []
+    make = demo.make_env
+    monkeypatch.setattr(demo, "make_env", lambda cfg, **kw: seen.append(cfg.label_mode) or make(cfg, **kw))
+    monkeypatch.setattr(render, "save_layout_png", lambda lay, out, title=None, **kw: titles.append(title))
+    for mode in ("step", "event"):
+        assert cli.main(["env", "show", "--rollout-steps", "5", "--label-mode", mode, "--out", str(tmp_path / "x.png")]) == 0
+    assert seen == ["step", "event"] and titles[0].endswith("(seed 0, step labelling)") and "step" not in titles[1]
+    capsys.readouterr()
+    for args, says in ((["--label-mode", "step"], "--label-mode: applies to the random rollout only: give --rollout-steps N too"),
+                       (["--label-mode", "steps", "--rollout-steps", "5"], "--label-mode: ")):
+        assert _one_error_line(capsys, ["env", "show", *args, "--out", str(tmp_path / "y.png")]).startswith(
+            f"d2spo: error: {says}")

@@ -16,8 +16,9 @@ from d2spo.envs.layout_bank import check_fits
 from d2spo.envs.nav import checked_layout
 from d2spo.envs.preflight import preflight, start_state
 from d2spo.errors import ConfigError
-from d2spo.fields import check_fields
+from d2spo.fields import check_choice, check_fields
 from d2spo.ltl.buchi_task import is_recurrence
+from d2spo.ltl.labelling import LABEL_MODES
 from d2spo.plotstyle import check_picture_path
 from d2spo.rollout import visit_optimum
 from d2spo.safety.cbf import CBFConfig
@@ -40,18 +41,23 @@ class EnvShowCmd:
     task: str | None = None
     """The rollout's task (a name or a formula): the rollout ends where an episode of it would; default:
     reach the last area's label."""
+    label_mode: str = "event"
+    """The rollout's labelling, as `d2spo train --label-mode`: 'event' or 'step'; the task reads its letters."""
 
     def run(self) -> int:
         check_fields(self, natural=("rollout_steps",), seed=("seed",))  # as train's and eval's: -3 is no count
+        check_choice(self, "label_mode", LABEL_MODES)
         check_picture_path(self.out, "out")
         lay = layouts.load(self.layout)
         trajs, title = None, None
-        if self.task is not None and self.rollout_steps <= 0:
-            raise ConfigError("task", "is the random rollout's task: give --rollout-steps N too")
+        for name, given in (("task", self.task is not None), ("label_mode", self.label_mode != "event")):
+            if given and self.rollout_steps <= 0:
+                raise ConfigError(name, "applies to the random rollout only: give --rollout-steps N too")
         if self.rollout_steps > 0:
             task = self.task if self.task is not None else f"F {lay.areas[-1].label}"
-            trajs = [random_rollout(self.layout, self.rollout_steps, self.seed, task=task)]
-            title = f"layout {lay.name!r}: a random-action rollout, task {task!r} (seed {self.seed})"
+            trajs = [random_rollout(self.layout, self.rollout_steps, self.seed, task=task, label_mode=self.label_mode)]
+            labels = ", step labelling" if self.label_mode == "step" else ""
+            title = f"layout {lay.name!r}: a random-action rollout, task {task!r} (seed {self.seed}{labels})"
         from d2spo.envs.render import save_layout_png  # matplotlib: imported only to draw
 
         save_layout_png(lay, self.out, trajectories=trajs, title=title, trajectory_label="random actions (x: end)")

@@ -31,15 +31,17 @@ from d2spo.run import load_policy
 from d2spo.runio import make_run_dir, run_holder
 
 
-def random_rollout(layout: str, steps: int, seed: int, task: str | None = None) -> np.ndarray:
+def random_rollout(layout: str, steps: int, seed: int, task: str | None = None,
+                   label_mode: str = "event") -> np.ndarray:
     """Positions [T, 2] of one env driven by uniform random actions until its first episode ends.
 
-    The default task is to reach the layout's last area's label, which every layout can express.
+    The default task is to reach the layout's last area's label, which every layout can express;
+    ``label_mode`` is the labelling whose letters the task reads (``EnvConfig.label_mode``).
     """
 
     if task is None:
         task = f"F {layouts.load(layout).areas[-1].label}"
-    env, params = make_env(EnvConfig(layout=layout), task=task)
+    env, params = make_env(EnvConfig(layout=layout, label_mode=label_mode), task=task)
 
     def body(carry, key):
         state, alive = carry
