@@ -244,5 +244,8 @@ if __name__ == "__main__":
     try:
         main()
     except UserError as e:  # a flag or run the evaluation refuses: its one line, as `d2spo eval` says it
-        print(f"buchi_zero_shot.py: error: {as_typed(str(e), sys.argv[1:])}", file=sys.stderr)
+        msg = as_typed(str(e), sys.argv[1:])
+        if msg.startswith("layout_seeds: "):  # EvalConfig's name of this script's --layouts
+            msg = "--layouts: " + msg.removeprefix("layout_seeds: ")
+        print(f"buchi_zero_shot.py: error: {msg}", file=sys.stderr)
         sys.exit(2)

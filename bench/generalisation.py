@@ -63,7 +63,7 @@ def generalist_run(args) -> Path:
 
 
 def _cache_file(cache: Path, task: str) -> Path:
-    from d2spo.zero_shot import task_tag
+    from d2spo.evalfiles import task_tag
 
     return cache / f"{task_tag(task)}.json"
 

@@ -129,6 +129,9 @@ def test_env_check_reads_the_letters_train_would_with_label_mode(capsys):
     assert "while keeping 0.3 m" in warned and "--label-mode step" not in warned, warned
     line = _one_error_line(capsys, ["env", "check", "--task", "G F A1", "--label-mode", "step"])
     assert "(every step in an area reads its letter again, with --label-mode step)" in line, line
+    # `A4 U A1` from a start outside every area: the empty letter fails it at once (no area is entered)
+    line = _one_error_line(capsys, ["env", "check", "--task", "A4 U A1", "--label-mode", "step"])
+    assert "step labelling reads the empty letter (no area) at the start" in line and "first area" not in line, line
     assert _one_error_line(capsys, ["env", "check", "--label-mode", "steps"]).startswith(
         "d2spo: error: --label-mode: must be one of ['event', 'step'], got 'steps'")
 
@@ -159,7 +162,7 @@ def test_env_show_draws_its_rollout_under_the_labelling_asked_for(tmp_path, caps
         assert cli.main(["env", "show", "--rollout-steps", "5", "--label-mode", mode, "--out", str(tmp_path / "x.png")]) == 0
     assert seen == ["step", "event"] and titles[0].endswith("(seed 0, step labelling)") and "step" not in titles[1]
     capsys.readouterr()
-    for args, says in ((["--label-mode", "step"], "--label-mode: applies to the random rollout only: give --rollout-steps N too"),
-                       (["--label-mode", "steps", "--rollout-steps", "5"], "--label-mode: ")):
+    for args, says in ((["--label-mode", "step"], "--label-mode: applies to the random rollout only: give --rollout-steps N (N > 0) too"),
+                       (["--label-mode", "steps", "--rollout-steps", "5"], "--label-mode: must be one of ['event', 'step'], got 'steps'")):
         assert _one_error_line(capsys, ["env", "show", *args, "--out", str(tmp_path / "y.png")]).startswith(
             f"d2spo: error: {says}")

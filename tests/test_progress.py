@@ -65,6 +65,31 @@ def test_plain_lines_when_not_a_terminal(monkeypatch):
     # then the pace since that line: 380 episodes in 30 s, 600 left, 47 s (not 60 s at 10 ep/s since compiled)
     assert "0:00:52, eta 0:00:47, 12.7 ep/s" in lines[3]
     assert lines[5] == "tlgrl relaxed: evaluating the final policy (100 episodes)…" and len(lines) == 6
+    assert "1000/1000 episodes (100%), 0:01:52, eta 0:00:00," in lines[4]
+
+
+def test_plain_lines_eta_when_a_run_ends_at_once_or_no_episode_ends(monkeypatch):
+    """A run whose first line is its last (a short run, or a resumed one near its end) says eta 0:00:00,
+    not ``…``; a line after which no episode ended gives no ETA from the first chunk's few episodes."""
+    clock = [0.0]
+    monkeypatch.setattr(progress.time, "perf_counter", lambda: clock[0])
+
+    def lines_of(start: int, chunks) -> list[str]:
+        out = io.StringIO()
+        clock[0] = 0.0
+        on_event = progress.progress_display(Console(file=out, force_terminal=False), show=True).add("x", 1000)
+        on_event({"phase": "compiling", "episodes": start, "total": 1000})
+        clock[0] = 10.0
+        on_event({"phase": "compiled", "compile_seconds": 10.0, "episodes": start, "total": 1000})
+        for t, n in chunks:
+            clock[0] = t
+            on_event(chunk(n, t - 10.0))
+        return out.getvalue().splitlines()[2:]
+
+    for start in (0, 990):
+        assert [ln.split(", ")[2] for ln in lines_of(start, [(15.0, 1000)])] == ["eta 0:00:00"]
+    stalled = lines_of(0, [(15.0, 20), (50.0, 20), (90.0, 60)])
+    assert [ln.split(", ")[2] for ln in stalled] == ["eta …", "eta …", "eta 0:29:22"]  # 40 in 75 s since the first: 940 left
 
 
 def test_a_patrols_line_shows_visits_and_no_completion():

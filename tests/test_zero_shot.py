@@ -19,7 +19,8 @@ from d2spo.envs import EnvConfig, generator, layouts
 from d2spo.envs.generalist import view
 from d2spo.envs.task_plan import slot_max_steps
 from d2spo.errors import ConfigError
-from d2spo.zero_shot import generalist_layout, task_tag
+from d2spo.evalfiles import task_tag
+from d2spo.zero_shot import generalist_layout
 
 
 @pytest.fixture(scope="module")

@@ -52,7 +52,7 @@ class EnvShowCmd:
         trajs, title = None, None
         for name, given in (("task", self.task is not None), ("label_mode", self.label_mode != "event")):
             if given and self.rollout_steps <= 0:
-                raise ConfigError(name, "applies to the random rollout only: give --rollout-steps N too")
+                raise ConfigError(name, "applies to the random rollout only: give --rollout-steps N (N > 0) too")
         if self.rollout_steps > 0:
             task = self.task if self.task is not None else f"F {lay.areas[-1].label}"
             trajs = [random_rollout(self.layout, self.rollout_steps, self.seed, task=task, label_mode=self.label_mode)]

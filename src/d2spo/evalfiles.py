@@ -6,15 +6,23 @@ only names and writes it, so that a cached evaluation is found again (``bench/bu
 
 from __future__ import annotations
 
+import hashlib
 from pathlib import Path
 
 import numpy as np
 
-from d2spo import zero_shot
 from d2spo.envs.layouts import layout_file, random_seed
 from d2spo.errors import ConfigError, NaNError
 from d2spo.inputs import sha256_of
+from d2spo.ltl.tasks import TASKS
 from d2spo.runio import atomic_write_json
+
+
+def task_tag(task: str) -> str:
+    """A file-name-safe name of a task: its name, or ``f-`` and a hash of the formula."""
+    if task in TASKS:
+        return task
+    return "f-" + hashlib.sha256(task.encode()).hexdigest()[:10]
 
 
 def number_tag(value: float) -> str:
@@ -50,7 +58,7 @@ def evaluation_path(run_dir: Path, res: dict) -> Path:
     n = len(res["per_layout"])  # random:0 over 3 layouts is another evaluation than random:0 alone
     tag = f"{layout_tag(res['layout'], res.get('layout_sha256'))}{f'x{n}' if n > 1 else ''}-{res['dynamics']}"
     if res.get("task_given"):
-        tag += f"-{zero_shot.task_tag(res['task'])}"
+        tag += f"-{task_tag(res['task'])}"
     if res.get("max_steps_given"):  # another episode limit than the run's: another evaluation
         tag += f"-T{res['max_steps']}"
     if res.get("seed", 0) != 0:

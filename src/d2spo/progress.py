@@ -202,7 +202,8 @@ class _Lines:
     """Plain lines for a log: the phases, the first chunk that ends an episode, then a line once
     ``every`` seconds have passed since the last, and the last one, e.g.
     ``label: 1200/20000 episodes (6%), 0:01:02, eta 0:10:00, 26.1 ep/s · safe …``. The first line's
-    ETA is ``…``: its few episodes are those that ended first; later lines take the pace since it."""
+    ETA is ``…``: its few episodes are those that ended first; later lines take the pace since the first
+    line that ended episodes (``…`` while none has ended since), and the last says ``eta 0:00:00``."""
 
     def __init__(self, file, every: float = 30.0):
         self.file, self.every = file, every
@@ -234,13 +235,18 @@ class _Lines:
             elif ((t["last"] is None and d["episodes"] > t["episodes0"]) or d["episodes"] >= total
                   or now - (t["last"] or t["train"] or t["start"]) >= self.every):
                 since = t["train"] if t["train"] is not None else t["start"]
-                if t["last"] is None:  # the first chunk's episodes are few: every env started at once
+                first = t.get("first")
+                if first is not None and now > first[0] and d["episodes"] > first[1]:
+                    # the pace since the first line that ended episodes, past the start's ramp
+                    rate = (d["episodes"] - first[1]) / (now - first[0])
+                    eta = _clock((total - d["episodes"]) / rate)
+                else:  # no pace yet: the first episodes are few (every env started at once), or none since
                     rate = (d["episodes"] - t["episodes0"]) / max(now - since, 1e-9)
-                    eta, t["first"] = "…", (now, d["episodes"])
-                else:  # the pace since the first report, past the start's ramp
-                    then, done = t["first"] if now > t["first"][0] and d["episodes"] > t["first"][1] else (since, t["episodes0"])
-                    rate = (d["episodes"] - done) / max(now - then, 1e-9)
-                    eta = _clock((total - d["episodes"]) / rate) if rate > 0 else "?"
+                    eta = "…"
+                    if first is None and d["episodes"] > t["episodes0"]:
+                        t["first"] = (now, d["episodes"])
+                if d["episodes"] >= total:  # done: nothing left, whichever line it is
+                    eta = _clock(0)
                 t["last"] = now
                 self._print(f"{label}: {d['episodes']}/{total} episodes ({100 * d['episodes'] / total:.0f}%), "
                             f"{_clock(now - t['start'])}, eta {eta}, {_stats(d, rate)}")

@@ -110,7 +110,7 @@ def remove_tmp_files(directory: Path) -> None:
 def read_json(path: Path, what: str) -> dict:
     path = Path(path)
     if not path.exists():
-        if (path.parent / "manifest.json").is_file():  # what `d2spo export` writes (d2spo.deploy.policy.MANIFEST)
+        if (path.parent / "manifest.json").is_file():  # what `d2spo export` writes (d2spo.deploy.manifest.MANIFEST)
             raise RunDirError(f"{path.parent}: is an exported policy (`d2spo export`), not a run directory; give "
                               "the run it was exported from, or load it with d2spo.deploy.Policy.load")
         raise RunDirError(f"{path.parent}: no {path.name} ({what}); is this a d2spo run directory?"

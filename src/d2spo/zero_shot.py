@@ -20,7 +20,6 @@ areas that do not overlap (any labels, shared or not), ``layout_bank.M_MAX`` box
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 
 import jax
 import jax.numpy as jnp
@@ -37,7 +36,6 @@ from d2spo.envs.task_plan import slot_max_steps
 from d2spo.envs.workspace import Layout
 from d2spo.ltl.automaton import Automaton
 from d2spo.ltl.reward import PER_STATE
-from d2spo.ltl.tasks import TASKS
 from d2spo.rollout import make_rollout, rates, visit_optimum
 
 
@@ -53,13 +51,6 @@ def generalist_layout(env_cfg, name: str, task: str, margin: float = 0.0,
     preflight(env, params, repr(task), margin=margin, episode_time=max_steps is not None)
     layout_bank.check_fits(env.layout)
     return env.layout, int(params.max_steps)
-
-
-def task_tag(task: str) -> str:
-    """A file-name-safe name of a task: its name, or ``f-`` and a hash of the formula."""
-    if task in TASKS:
-        return task
-    return "f-" + hashlib.sha256(task.encode()).hexdigest()[:10]
 
 
 def generalist_on(cfg: TrainConfig, env_cfg, task: str, checked: list[tuple[Layout, int]], limit: int | None = None):

@@ -157,9 +157,15 @@ def check_feasible(task: CompiledTask, name: str, radius: float | None = None, r
     if not live:
         sx, sy = layout.start[:2]
         inside = [a.name for a in layout.areas if (a.center[0] - sx) ** 2 + (a.center[1] - sy) ** 2 <= a.radius ** 2]
-        where = (f": the start ({sx:g}, {sy:g}) lies inside {', '.join(inside)}, and the automaton reads that area at "
-                 "once, which fails the task before the robot moves; move the start out of it" if inside
-                 else ": the first area the robot can enter from the start rejects it")
+        if inside:
+            where = (f": the start ({sx:g}, {sy:g}) lies inside {', '.join(inside)}, and the automaton reads that area "
+                     "at once, which fails the task before the robot moves; move the start out of it")
+        elif task.label_mode == "step" and aut.delta[aut.initial][0] in aut.rejecting:
+            where = (": step labelling reads the empty letter (no area) at the start, which fails the task before "
+                     "the robot moves" + (" ('event' labelling, --label-mode event, reads no empty letter)"
+                                          if robot is None else ""))
+        else:
+            where = ": the first area the robot can enter from the start rejects it"
         raise ConfigError("task", f"{name} cannot {done} on layout {layout.name!r}{where}")
     q = min(live, key=lambda s: (distance[s], s))
     targets, forbidden = (named_areas(aut, layout, task.roles, role)[q] for role in (TARGET, FORBIDDEN))
