@@ -259,14 +259,16 @@ def chain(op: str, n: int) -> str:
 def test_nnf_converts_each_subformula_once_per_polarity():
     """``a <-> b`` is ``(a & b) | (!a & !b)``: each <-> doubles its operands as printed. The NNF of a
     chain shares them, so it has a few nodes per <-> (it was built as a tree: 2**n objects)."""
-    f = translate_module.nnf(parse(chain("<->", 10)))
+    from d2spo.ltl import nnf as nnf_module
+
+    f = nnf_module.nnf(parse(chain("<->", 10)))
     objects, todo = {}, [f]
     while todo:
         g = todo.pop()
         if id(g) not in objects:
             objects[id(g)] = g
             todo.extend(g.children())
-    assert len(objects) < 100 < 3000 < translate_module.printed_size(f) <= translate_module.MAX_NNF_SIZE
+    assert len(objects) < 100 < 3000 < nnf_module.printed_size(f) <= nnf_module.MAX_NNF_SIZE
 
 
 @pytest.mark.parametrize("text, limit, builds", [

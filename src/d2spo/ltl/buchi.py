@@ -5,7 +5,7 @@ run completes it. Formulas such as ``G F a``, ``G (a -> F b)`` or ``G !c & F a``
 prefix; they hold on an infinite run when it passes through accepting transitions infinitely
 often. ``to_dba`` builds that automaton (docs/ltl.md, "Büchi automata"):
 
-1. negation normal form (``translate.nnf``), then a tableau NBA (``nba.py``);
+1. negation normal form (``nnf.nnf``), then a tableau NBA (``nba.py``);
 2. Safra-Piterman determinisation to a parity automaton (``determinise.py``);
 3. the Büchi-type test and relabelling of that parity automaton (``determinise.buchi_marks``);
    a formula that fails it has no DBA and is refused with ``NoDeterministicBuchi``, which carries
@@ -38,20 +38,11 @@ from d2spo.ltl.buchi_reduce import dead_states, product, reduce, universal_state
 from d2spo.ltl.determinise import buchi_marks, determinise
 from d2spo.ltl.formula import And, Formula, Or, check_size
 from d2spo.ltl.nba import to_nba
+from d2spo.ltl.nnf import nnf
 from d2spo.ltl.parser import parse
+from d2spo.ltl.progression import DNF_TRUE, Dnf, Progression, clause_order, dnf_to_formula, negate_dnf, to_dnf
 from d2spo.ltl.tableau import Tableau
-from d2spo.ltl.translate import (
-    DNF_TRUE,
-    MAX_APS,
-    MAX_TABLEAU_NODES,
-    Dnf,
-    _clause_order,
-    _negate_dnf,
-    _Progression,
-    dnf_to_formula,
-    nnf,
-    to_dnf,
-)
+from d2spo.ltl.translate import MAX_APS, MAX_TABLEAU_NODES
 
 MAX_NBA_STEPS = 1_000_000
 """Most work (as ``translate.MAX_TABLEAU_STEPS`` counts it) spent expanding the nodes of the NBAs of
@@ -298,7 +289,7 @@ def _names(start: Dnf, aps: tuple[str, ...], delta: list[list[int]], dead: set[i
     reaches it breadth-first, without its unsatisfiable clauses and those that imply another (kept
     when the satisfiability checks exceed their limits); 'true' for the accepting sink, 'false' for
     the rejecting one; a repeated residual gets ' #k' (the automaton needs several states to track it)."""
-    prog = _Progression(aps)
+    prog = Progression(aps)
     tableau = Tableau(MAX_TABLEAU_NODES, MAX_NAME_STEPS)
     residual = {0: start}
     frontier = [0]
@@ -307,9 +298,9 @@ def _names(start: Dnf, aps: tuple[str, ...], delta: list[list[int]], dead: set[i
             if t not in residual:
                 residual[t] = prog.dnf(residual[q], a)
                 try:
-                    clauses = sorted((c for c in residual[t] if tableau.satisfiable(c)), key=_clause_order)
+                    clauses = sorted((c for c in residual[t] if tableau.satisfiable(c)), key=clause_order)
                     for c in list(clauses):  # drop each clause that implies another one
-                        if any(d != c and not tableau.satisfiable(c | _negate_dnf({d})) for d in clauses):
+                        if any(d != c and not tableau.satisfiable(c | negate_dnf({d})) for d in clauses):
                             clauses.remove(c)
                     residual[t] = frozenset(clauses)
                 except AutomatonTooLarge:
