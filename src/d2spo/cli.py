@@ -28,8 +28,9 @@ from d2spo.cli_env import ENV_SUBCOMMANDS, EnvCmd
 from d2spo.cli_export import ExportCmd
 from d2spo.cli_ltl import LtlCmd
 from d2spo.cli_reproduce import CompareCmd, ReportCmd, ReproduceCmd
-from d2spo.config import TrainConfig, algo_named, config_file, config_file_named, flags_for, plain
+from d2spo.config import TrainConfig, config_file
 from d2spo.config_diff import flags_given, other_learners_flag
+from d2spo.config_flags import algo_named, config_file_named, flags_for, plain
 from d2spo.console import (
     as_typed,
     error,
@@ -193,7 +194,7 @@ class EvalCmd:
 
 
 def commands(algo: str, base: TrainConfig | None = None):
-    """The subcommands, ``train`` with the flags of the learner ``algo`` (``config.flags_for``), their
+    """The subcommands, ``train`` with the flags of the learner ``algo`` (``config_flags.flags_for``), their
     defaults ``base``'s (the ``--config`` file's) if given."""
     flags = flags_for(algo)
     train = dataclasses.make_dataclass("TrainCmd", [("cfg", Annotated[flags, tyro.conf.arg(name="")])],
