@@ -35,6 +35,8 @@ from pathlib import Path
 from d2spo.evalfiles import write_evaluation
 from d2spo.evaluate import EvalConfig, evaluate_run
 from d2spo.report import cpu_model
+from d2spo.run import load_run_config
+from d2spo.zero_shot import seen_forbidden_range
 
 TASKS = ("patrol2", "patrol3", "respond", "reach-never")
 DATA = Path(__file__).resolve().parent.parent / "tests" / "data" / "layouts"
@@ -48,15 +50,21 @@ OWN_TASKS = {  # a hand-made layout with labels of its own: a patrol, then a rea
 }
 
 
-def _matches(res: dict, cfg: EvalConfig) -> bool:
-    """Whether a stored evaluation is the one ``cfg`` asks for (the validated policy, the filter on)."""
+def _matches(res: dict, cfg: EvalConfig, seen: float) -> bool:
+    """Whether a stored evaluation is the one ``cfg`` asks for (the validated policy, the filter on),
+    where ``seen`` is the forbidden range ``d2spo eval`` gives the run without ``--forbidden-range``
+    (``_default_range``): a file written before that default changed is evaluated again."""
     return (res.get("task") == cfg.task and res.get("layouts") == cfg.layouts()
             and res.get("episodes") == cfg.episodes * cfg.layout_seeds and res.get("seed") == cfg.seed
             and res.get("runtime_filter") is True and res.get("dynamics") == "default"
             and str(res.get("policy", "")).startswith("best")
             and (res.get("max_steps") == cfg.max_steps if res.get("max_steps_given") else cfg.max_steps is None)
-            and (_range(res.get("forbidden_range")) == cfg.forbidden_range if res.get("forbidden_range_given")
-                 else cfg.forbidden_range is None))
+            and _range(res.get("forbidden_range")) == (seen if cfg.forbidden_range is None else cfg.forbidden_range))
+
+
+def _default_range(run: Path) -> float:
+    """The forbidden range ``d2spo eval`` gives ``run`` when none is asked for (``zero_shot.seen_forbidden_range``)."""
+    return _range(seen_forbidden_range(load_run_config(run).env).forbidden_range)
 
 
 def _range(r: float | None) -> float:
@@ -65,9 +73,10 @@ def _range(r: float | None) -> float:
 
 
 def evaluation(run: Path, cfg: EvalConfig) -> dict:
+    seen = _default_range(run)
     for path in sorted(run.glob("eval-*.json")):
         res = json.loads(path.read_text())
-        if _matches(res, cfg):
+        if _matches(res, cfg, seen):
             return res
     res = evaluate_run(run, cfg)
     write_evaluation(run, res)
@@ -197,7 +206,8 @@ def main() -> None:
     ap.add_argument("--max-steps", type=int, default=None,
                     help="episode limit (d2spo eval --max-steps); default: each layout's, as d2spo eval")
     ap.add_argument("--forbidden-range", type=float, default=None,
-                    help="d2spo eval --forbidden-range R: a forbidden area seen only within R m; default: as trained")
+                    help="d2spo eval --forbidden-range R: a forbidden area seen only within R m (inf: at any "
+                         "distance); default: as d2spo eval, the run's own range, else the robot's lidar range")
     ap.add_argument("--results", default="bench/RESULTS.md")
     ap.add_argument("--handmade", action="store_true",
                     help="also the hand-made layouts of tests/data/layouts (the module docstring)")
@@ -214,7 +224,7 @@ def main() -> None:
             results[run, task] = evaluation(run, cfg)
             print(f"{run.name} {task}: {100 * score(results[run, task]):.1f}%", flush=True)
     limit = "" if args.max_steps is None else f" of {args.max_steps} steps"
-    seen = "" if args.forbidden_range is None else (
+    seen = "; a forbidden area seen as `d2spo eval` sees it by default" if args.forbidden_range is None else (
         "; a forbidden area always seen" if args.forbidden_range == float("inf")
         else f"; a forbidden area seen within {args.forbidden_range:g} m")
     text = (f"Generalists zero-shot on random:{args.first_seed}..+{args.layouts - 1}, {args.episodes} episodes{limit} "

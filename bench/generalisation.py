@@ -110,14 +110,14 @@ def evaluate_cases(run: Path, tasks: list[str], names: list[str], episodes: int,
 
     from d2spo.evaluate import eval_env_config
     from d2spo.run import load_policy
-    from d2spo.zero_shot import generalist_layout, generalist_on, rollouts
+    from d2spo.zero_shot import generalist_layout, generalist_on, rollouts, seen_forbidden_range
 
     cfg, _, policy, meta = load_policy(run)
     print(f"{run}: its {meta['policy']} policy (checkpoint after {meta.get('episodes')} training episodes)",
           flush=True)
     if not cfg.generalist:
         raise UserError(f"{run}: not a generalist run (d2spo train --generalist)")
-    env_cfg = eval_env_config(cfg, None)
+    env_cfg = seen_forbidden_range(eval_env_config(cfg, None))  # as d2spo eval sees it
     key = (str(run), meta["policy"], policy_hash(policy), names, episodes, keep_paths)
     out = {}
     for task in tasks:

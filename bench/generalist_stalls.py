@@ -72,7 +72,7 @@ def main() -> None:
     args = ap.parse_args()
 
     cfg, _, _, _ = load_policy(args.run)
-    env_cfg = eval_env_config(cfg, None)
+    env_cfg = zero_shot.seen_forbidden_range(eval_env_config(cfg, None))  # as d2spo eval sees it
     checked = [zero_shot.generalist_layout(env_cfg, f"random:{args.first_seed + i}", args.task, cfg.cbf.d)
                for i in range(args.layouts)]
     env, params, learner, limit = zero_shot.generalist_on(cfg, env_cfg, args.task, checked)

@@ -42,10 +42,10 @@ def main() -> None:
     from d2spo.errors import UserError
     from d2spo.evaluate import eval_env_config
     from d2spo.run import load_policy
-    from d2spo.zero_shot import generalist_layout, generalist_on, rollouts
+    from d2spo.zero_shot import generalist_layout, generalist_on, rollouts, seen_forbidden_range
 
     cfg, _, policy, meta = load_policy(args.run, args.policy)
-    env_cfg = eval_env_config(cfg, None)
+    env_cfg = seen_forbidden_range(eval_env_config(cfg, None))  # as d2spo eval sees it
     print(f"{args.run}: its {meta['policy']} policy", flush=True)
     rows = []
     cases = [(path, task) for path in sorted(HERE.glob("*.json")) for task in OWN_TASKS.get(path.stem, A_TASKS)]

@@ -13,7 +13,9 @@ than DeepLTL's, whose agent plans for itself (README, "What these ZoneEnv figure
 For each seed, one generalist trained with the defaults (``d2spo train --algo d2spo --generalist
 --task phi1 --seed S``; RUNS/gen-sS, reused when its summary.json is there) is evaluated on each
 task for ``--episodes`` episodes, each on a zones layout of its own (``zones:SEED`` for SEED =
-1000000 + i: ZoneEnv's conventions, docs/layouts.md), π_Ω alone and with the runtime filter.
+1000000 + i: ZoneEnv's conventions, docs/layouts.md), π_Ω alone and with the runtime filter,
+seeing a forbidden zone as ``d2spo eval`` does by default (within the robot's lidar range for a
+generalist trained without ``--forbidden-range``; the default since 2026-12-03, docs/config.md).
 Per task and seed: success (completed without a collision), mean steps of the successful episodes,
 collision rate. The episode limit is d2spo's time rule (the longest a specialist would get on the
 first 20 layouts, and at least the generalist's own slot limit), never more than ZoneEnv's 1000.
@@ -104,8 +106,10 @@ def _on_layouts(cfg, task: str, filt: bool, layouts: list, limit: int, bank=None
     runtime filter on or off; ``bank`` (that of another mode) is reused when given."""
     from d2spo.algos.generalist import build_generalist
     from d2spo.envs.generalist import view
+    from d2spo.zero_shot import seen_forbidden_range
 
     c = dataclasses.replace(cfg, task=task, generalist_tasks=0, generalist_patrols=0, generalist_pairings=1,
+                            env=seen_forbidden_range(cfg.env),  # as d2spo eval sees a forbidden area
                             d2spo=dataclasses.replace(cfg.d2spo, runtime_filter=filt))
     env, params, learner = build_generalist(c, layouts[:1], limit)
     bank = env.bank(layouts, max_steps=limit) if bank is None else bank

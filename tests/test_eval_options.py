@@ -138,7 +138,9 @@ def test_layout_seeds_walks_every_drawn_family_and_is_refused_elsewhere():
 def test_eval_forbidden_range_hides_a_far_forbidden_area_in_its_own_file(gen_run, capsys, monkeypatch, tmp_path):
     """``d2spo eval GEN --forbidden-range R``: the generalist built for the evaluation sees a forbidden
     area only within R m (``EnvConfig.forbidden_range``), the result records R in its JSON, title and
-    file name (``-rR``; ``-rinf`` for ``inf``, always seen); 0, nan or a specialist: one line, exit 2."""
+    file name (``-rR``; ``-rinf`` for ``inf``, always seen); without it, the range the run trained with,
+    else the robot's lidar range (``zero_shot.seen_forbidden_range``); 0, nan or a specialist: one line,
+    exit 2."""
     from d2spo import plots, zero_shot
     from d2spo.console import forbidden_note
     from d2spo.evalfiles import evaluation_path
@@ -170,10 +172,16 @@ def test_eval_forbidden_range_hides_a_far_forbidden_area_in_its_own_file(gen_run
     cfg = json.loads((gen_run / "config.json").read_text())
     cfg["env"]["forbidden_range"] = 1.2
     (trained / "config.json").write_text(json.dumps(cfg))
-    for run, asked in ((trained, None), (trained, float("inf")), (gen_run, float("inf"))):
+    cfg["env"]["forbidden_range"], cfg["env"]["sensing_radius"] = None, 2.0
+    wide = tmp_path / "lidar-2m"  # trained without a range, by a robot whose lidar sees 2 m
+    wide.mkdir()
+    (wide / "config.json").write_text(json.dumps(cfg))
+    for run, asked in ((trained, None), (trained, float("inf")), (gen_run, float("inf")), (gen_run, None),
+                       (wide, None), (wide, 0.5)):
         with pytest.raises(Seen):
             evaluate_run(run, EvalConfig(2, "random:11", task="phi2", forbidden_range=asked))
-    assert seen[1:] == [1.2, None, None]
+    # as trained with R; inf: always; trained without R: the lidar's range unless asked
+    assert seen[1:] == [1.2, None, None, 1.2, 2.0, 0.5]
     assert forbidden_note({**res, "forbidden_range": None, "forbidden_range_given": False}) == ""
     assert evaluation_path(gen_run, {**res, "forbidden_range": None}).name == "eval-random11-ideal-phi2-rinf.json"
     assert evaluation_path(gen_run, {**res, "forbidden_range_given": False}).name == "eval-random11-ideal-phi2.json"

@@ -11,7 +11,14 @@ import pytest
 
 from d2spo.algos.td3 import TD3Config, make_nets
 from d2spo.cli import main
-from d2spo.config import DEFAULT_SETTINGS, FAST_SETTINGS, TrainConfig, config_from_dict, config_to_dict
+from d2spo.config import (
+    DEFAULT_SETTINGS,
+    FAST_SETTINGS,
+    GENERALIST_SETTINGS,
+    TrainConfig,
+    config_from_dict,
+    config_to_dict,
+)
 from d2spo.envs import EnvConfig
 from d2spo.errors import ConfigError
 from d2spo.safety.cbf import CBFConfig
@@ -24,7 +31,16 @@ def _speed(cfg: TrainConfig) -> dict:
 @pytest.mark.parametrize("algo", ["d2spo", "sl", "td3", "tlgrl", "td3-lag", "sac-lag", "rcrl", "ppo-lag", "cpo"])
 def test_every_learner_keeps_the_default_settings_without_fast(algo):
     assert _speed(TrainConfig(algo=algo)) == DEFAULT_SETTINGS
-    assert _speed(TrainConfig(algo="d2spo", generalist=True)) == DEFAULT_SETTINGS
+
+
+def test_the_generalist_gets_256_256_networks_unless_told_and_an_old_run_reads_back_as_it_ran():
+    gen = TrainConfig(algo="d2spo", generalist=True)
+    assert _speed(gen) == GENERALIST_SETTINGS and gen.td3.hidden == (256, 256) != DEFAULT_SETTINGS["td3.hidden"]
+    assert config_to_dict(gen)["td3"]["hidden"] == [256, 256]  # recorded in config.json
+    told = TrainConfig(algo="d2spo", generalist=True, td3=TD3Config(hidden=(128, 128)))
+    assert told.td3.hidden == (128, 128)
+    old = config_to_dict(told)  # a generalist trained before 256 256 became its default
+    assert config_from_dict(old).td3.hidden == (128, 128)
 
 
 @pytest.mark.parametrize("algo", ["d2spo", "sl"])

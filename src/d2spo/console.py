@@ -144,7 +144,9 @@ def flag_of_value(value: str, args: list[str] = ()) -> str | None:
 # ------------------------------------------------------------------------------------ d2spo eval
 def forbidden_note(res: dict) -> str:
     """What an evaluation's generalist saw of a forbidden area, for its titles: within R m (asked with
-    --forbidden-range R, or as trained), always (``--forbidden-range inf`` asked), else nothing."""
+    --forbidden-range R, as trained, or the robot's lidar range, ``zero_shot.seen_forbidden_range``),
+    always (``--forbidden-range inf`` asked), else nothing (a specialist, or an evaluation made before
+    2026-12-03 of a generalist as trained)."""
     if res.get("forbidden_range") is not None:  # a generalist seeing a forbidden area only near it
         return f", forbidden area seen within {res['forbidden_range']:g} m"
     return ", forbidden area always seen" if res.get("forbidden_range_given") else ""

@@ -101,7 +101,8 @@ class EvalConfig:
     forbidden_range: float | None = None
     """Generalist only: observe a forbidden area only within this many metres of its edge, beyond it as if
     none were forbidden, as `train --forbidden-range` does; inf: at any distance, as a generalist trained
-    without it; default: as trained."""
+    without it sees it in training; default: the range it was trained with, else the robot's lidar range
+    (its sensing radius, 1.2 m for the default robot)."""
     overrides: Annotated[DynamicsOverrides, tyro.conf.arg(name="")] = dataclasses.field(default_factory=DynamicsOverrides)
 
     def __post_init__(self):
@@ -236,16 +237,15 @@ def evaluate_run(run_dir: Path, ecfg: EvalConfig = EvalConfig(), keep_paths: int
         cfg = dataclasses.replace(cfg, cbf=dataclasses.replace(cfg.cbf, **cbf_changes))
     if ecfg.layout is None:  # the training layout: as it was when the run started
         check_layout_unchanged(run_dir, cfg, f"to evaluate on it as it is now, pass --layout {cfg.layout}")
-    if ecfg.forbidden_range is not None:
-        if not cfg.generalist:
-            raise ConfigError("forbidden_range", "is what a generalist observes of a forbidden area; this run "
-                              "is a specialist, which reads every area in its own slot")
-        far = None if np.isinf(ecfg.forbidden_range) else float(ecfg.forbidden_range)  # inf: always observed
-        cfg = dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, forbidden_range=far))
+    if ecfg.forbidden_range is not None and not cfg.generalist:
+        raise ConfigError("forbidden_range", "is what a generalist observes of a forbidden area; this run "
+                          "is a specialist, which reads every area in its own slot")
     if ecfg.max_steps is not None and not cfg.generalist:  # a generalist's limit: _generalist_rollouts
         cfg = dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, max_steps=ecfg.max_steps))
     layouts = ecfg.layouts()
     env_cfg = eval_env_config(cfg, ecfg.layout, ecfg.dynamics, overrides)
+    if cfg.generalist:  # asked for, else as trained with one, else the lidar's range
+        env_cfg = zero_shot.seen_forbidden_range(env_cfg, ecfg.forbidden_range)
     check_eval_memory(env_cfg, ecfg.episodes)  # before anything is built
     try:
         if cfg.generalist:

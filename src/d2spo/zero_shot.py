@@ -39,6 +39,22 @@ from d2spo.ltl.reward import PER_STATE
 from d2spo.rollout import make_rollout, rates, visit_optimum
 
 
+def seen_forbidden_range(env_cfg, given: float | None = None):
+    """``env_cfg`` with the forbidden range of a zero-shot evaluation (``EnvConfig.forbidden_range``):
+    ``given`` when asked for (``d2spo eval --forbidden-range``; inf: a forbidden area seen at any
+    distance); else the run's own, when it was trained with one; else the robot's lidar range
+    (``sensing_radius``, 1.2 m for the default robot): a generalist trained seeing every forbidden
+    area at any distance is evaluated seeing one only as far as the robot senses (README,
+    "Departures from the paper"; bench/RESULTS.md, "2026-12-03, night")."""
+    if given is not None:
+        far = None if np.isinf(given) else float(given)
+    elif env_cfg.forbidden_range is not None:
+        return env_cfg
+    else:
+        far = float(env_cfg.resolved().sensing_radius)
+    return dataclasses.replace(env_cfg, forbidden_range=far)
+
+
 def generalist_layout(env_cfg, name: str, task: str, margin: float = 0.0,
                       max_steps: int | None = None) -> tuple[Layout, int]:
     """The layout ``name`` checked for a generalist and for ``task`` (module docstring, step 1) and
