@@ -101,12 +101,14 @@ def test_export_command_and_bad_input(tiny, tmp_path, capsys):
     assert "runtime filter on by default" in out and "note: the runtime filter" not in out  # asked for: no note
     assert Policy.load(tmp_path / "cli").filter_on and Policy.load(tmp_path / "cli").runtime_filter.iters == 5
     assert cli.main(["export", str(run), "--out", str(tmp_path / "cli")]) == 0  # an earlier export is replaced
-    assert not Policy.load(tmp_path / "cli").filter_on
-    # off as trained, silently before: eval turns it on under other dynamics, and a robot's are other
+    assert Policy.load(tmp_path / "cli").filter_on  # on unless told: eval turns it on under other dynamics
+    assert not json.loads((run / "config.json").read_text())["d2spo"]["runtime_filter"]  # trained without it
     out = capsys.readouterr().out.splitlines()
-    assert "runtime filter off by default" in out[0] and out[2] == FILTER_NOTE and "--runtime-filter True" in out[2]
+    assert "runtime filter on by default" in out[0] and out[2] == FILTER_NOTE and "--runtime-filter False" in out[2]
     assert cli.main(["export", str(run), "--out", str(tmp_path / "cli"), "--runtime-filter", "False"]) == 0
-    assert FILTER_NOTE not in capsys.readouterr().out  # off as asked
+    out = capsys.readouterr().out
+    assert "runtime filter off by default" in out and FILTER_NOTE not in out  # off as asked: no note
+    assert not Policy.load(tmp_path / "cli").filter_on
     assert "no such run directory" in one_error_line(capsys, ["export", str(tmp_path / "nothing"), "--out",
                                                                str(tmp_path / "o")])
     write_run(tmp_path / "nockpt", tiny_cfg())

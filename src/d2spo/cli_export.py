@@ -35,16 +35,18 @@ class ExportCmd:
         print(f"wrote {self.out}: {m['source']['algo']} on {m['source']['task']} / {m['source']['layout']}, "
               f"policy {m['source']['policy']}{line}")
         print(f"files: {files}; {sum(sizes.values()) / 1024:.0f} KiB in all")
-        if filt is not None and not filt["enabled"] and self.cfg.runtime_filter is None:
+        trained_on = m["config"].get("d2spo", {}).get("runtime_filter")
+        if filt is not None and self.cfg.runtime_filter is None and not trained_on:
             print(FILTER_NOTE)
         print(evaluated_line(self.run_dir, m))
         return 0
 
 
-FILTER_NOTE = ("note: the runtime filter is off by default, as trained; `d2spo eval` turns it on under other dynamics "
-               "than the run's, which a robot's are: export with --runtime-filter True, or act(..., filter=True)")
-"""Said by an export whose filter stays off by default because nobody asked: the export cannot know the
-robot's dynamics, so it keeps the run's setting where ``evaluate.filter_choice`` would turn it on."""
+FILTER_NOTE = ("note: the runtime filter is on by default in an export: a robot's dynamics are not the simulator's, "
+               "and `d2spo eval` turns it on under other dynamics; the run trained and was evaluated without it: "
+               "--runtime-filter False, or act(..., filter=False), for π_Ω alone")
+"""Said by an export whose filter is on by default because nobody asked, of a run that trained with it
+off (D²SPO's default): the figures the export's last line quotes are π_Ω's alone."""
 
 
 def evaluated_line(run_dir: Path, manifest: dict) -> str:

@@ -52,7 +52,9 @@ class ExportConfig:
     """best: the validated policy where there is one (a generalist's, a patrol's on one layout), else the
     last; last: the newest checkpoint's."""
     runtime_filter: bool | None = None
-    """D²SPO only: whether deploy filters by default; default: as trained (Policy.act(..., filter=) overrides)."""
+    """D²SPO only: whether deploy filters by default; default: on, since a robot's dynamics are not the
+    simulator's (`d2spo eval` turns the filter on under other dynamics); False: π_Ω alone, as a run trains
+    (Policy.act(..., filter=) overrides either)."""
     filter_iters: int | None = None
     """D²SPO only: linearise-and-project iterations of the runtime filter; default: as trained."""
     filter_alpha: float | None = None
@@ -297,7 +299,7 @@ def _filter(cfg, ecfg: ExportConfig, dt: float) -> dict:
     changes = {k: v for k, v in (("filter_iters", ecfg.filter_iters), ("filter_alpha_coef", ecfg.filter_alpha))
                if v is not None}
     cbf = dataclasses.replace(cfg.cbf, **changes)
-    on = cfg.d2spo.runtime_filter if ecfg.runtime_filter is None else ecfg.runtime_filter
+    on = True if ecfg.runtime_filter is None else ecfg.runtime_filter  # a robot: other dynamics (docs/deploy.md)
     return {"enabled": bool(on), "alpha": cbf.alpha, "alpha_coef": float(cbf.filter_alpha),
             "iters": int(cbf.filter_iters), "n_bisect": N_BISECT, "dt": dt,
             "condition": "c(u) = (h(b(s_n(s, u))) - h(b(s))) / dt + alpha(h(b(s))) >= 0, b on the map with every "
