@@ -44,7 +44,7 @@ class TD3Config:
     """TD3 hyper-parameters (Fujimoto et al., 2018; where our defaults differ: docs/config.md)."""
 
     hidden: tuple[int, ...] | None = None
-    """Hidden widths; None: 128 128, or 64 64 with --fast."""
+    """Hidden widths; None: 128 128, 256 256 with --generalist, or 64 64 with --fast."""
     actor_lr: float = 3e-4
     """Adam learning rate of the actor."""
     critic_lr: float = 3e-4
