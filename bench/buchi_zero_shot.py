@@ -52,19 +52,19 @@ OWN_TASKS = {  # a hand-made layout with labels of its own: a patrol, then a rea
 
 def _matches(res: dict, cfg: EvalConfig, seen: float) -> bool:
     """Whether a stored evaluation is the one ``cfg`` asks for (the validated policy, the filter on),
-    where ``seen`` is the forbidden range ``d2spo eval`` gives the run without ``--forbidden-range``
-    (``_default_range``): a file written before that default changed is evaluated again."""
+    ``seen`` the forbidden range it runs with (``_seen_range``): a file written before ``d2spo eval``'s
+    default range changed is evaluated again."""
     return (res.get("task") == cfg.task and res.get("layouts") == cfg.layouts()
             and res.get("episodes") == cfg.episodes * cfg.layout_seeds and res.get("seed") == cfg.seed
             and res.get("runtime_filter") is True and res.get("dynamics") == "default"
             and str(res.get("policy", "")).startswith("best")
             and (res.get("max_steps") == cfg.max_steps if res.get("max_steps_given") else cfg.max_steps is None)
-            and _range(res.get("forbidden_range")) == (seen if cfg.forbidden_range is None else cfg.forbidden_range))
+            and _range(res.get("forbidden_range")) == seen)
 
 
-def _default_range(run: Path) -> float:
-    """The forbidden range ``d2spo eval`` gives ``run`` when none is asked for (``zero_shot.seen_forbidden_range``)."""
-    return _range(seen_forbidden_range(load_run_config(run).env).forbidden_range)
+def _seen_range(run: Path, cfg: EvalConfig) -> float:
+    """The forbidden range ``d2spo eval`` runs ``run`` with under ``cfg`` (``zero_shot.seen_forbidden_range``)."""
+    return _range(seen_forbidden_range(load_run_config(run).env, cfg.forbidden_range).forbidden_range)
 
 
 def _range(r: float | None) -> float:
@@ -73,7 +73,7 @@ def _range(r: float | None) -> float:
 
 
 def evaluation(run: Path, cfg: EvalConfig) -> dict:
-    seen = _default_range(run)
+    seen = _seen_range(run, cfg)
     for path in sorted(run.glob("eval-*.json")):
         res = json.loads(path.read_text())
         if _matches(res, cfg, seen):
