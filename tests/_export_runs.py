@@ -1,5 +1,5 @@
-"""The tiny exported runs of tests/test_export.py and tests/test_export_cli.py (``tiny_run``; the
-session fixture ``tiny_export`` of tests/conftest.py builds ϕ1's once per worker for both files)."""
+"""The tiny exported runs of tests/test_export.py, tests/test_export_cli.py and tests/test_deploy_runtime.py
+(``tiny_run``; the session fixture ``tiny_export`` of tests/conftest.py builds ϕ1's once per worker for them)."""
 
 from __future__ import annotations
 

@@ -76,6 +76,7 @@ _SHARED_PROGRAMS = {
     "test_certify_run.py": "tiny-d2spo",  # _tiny.tiny_cfg
     "test_export.py": "tiny-d2spo",
     "test_export_cli.py": "tiny-d2spo",  # the session fixture tiny_export, below
+    "test_deploy_runtime.py": "tiny-d2spo",  # the same export, split from test_export_cli.py
     "test_zero_shot.py": "zero-shot",  # tests/_generalist_run.py: one generalist program, its eval's
     "test_eval_options.py": "zero-shot",
 }
@@ -113,8 +114,8 @@ def run_reference(tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def tiny_export(tmp_path_factory):
-    """The tiny ϕ1 run on ``paper`` and its export that tests/test_export.py and test_export_cli.py
-    share (tests/_export_runs.py): one per worker, as the two files are one xdist group."""
+    """The tiny ϕ1 run on ``paper`` and its export that tests/test_export.py, test_export_cli.py and
+    test_deploy_runtime.py share (tests/_export_runs.py): one per worker, as the files are one xdist group."""
     from _export_runs import tiny_run
     from _tiny import tiny_cfg
 
