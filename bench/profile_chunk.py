@@ -49,9 +49,9 @@ def _with_overrides(cfg: TrainConfig, sets: list[str]) -> TrainConfig:
 def _best(fn, arg, repeats: int) -> float:
     """Best wall time of ``fn`` over ``repeats`` calls, each on a fresh copy of ``arg`` made before the
     clock starts: ``fn`` donates its argument, as training's chunk does (d2spo/train.py). Without the
-    donation every call copied the whole replay buffer and datasets once (300,000 rows), which the
-    250 steps of a call then shared: 0.16 and 0.14 ms of the replay write's and the datasets' figures
-    per vectorised step were that copy."""
+    donation every call copied its whole argument once (the replay buffer: 300,000 rows), which the
+    250 steps of a call then shared: about 0.14 of the replay write's 0.16 ms per vectorised step was
+    that copy (bench/RESULTS.md, "2026-12-03, late night")."""
     def fresh():
         return jax.block_until_ready(jax.tree_util.tree_map(jnp.copy, arg))
 

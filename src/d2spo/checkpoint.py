@@ -118,12 +118,11 @@ def state_parts(state: Any):
     each large array (``_STREAMED_BYTES`` or more) is one part that is a view of its own memory,
     framed as flax frames it (a msgpack ext of type ``ndarray`` holding (shape, dtype name, raw
     bytes)). ``to_bytes`` built three copies of the whole state (each array's bytes, its ext, the
-    map): 1.1-1.5 s for the 161 MB state of ϕ1's learner, against 0.35 s to write and fsync it
+    map): 1.1-1.6 s for the 161 MB state of ϕ1's learner, against 0.35 s to write and fsync it
     (bench/RESULTS.md, "2026-12-03, late night"). States flax would split into chunks (an array
     over ``serialization.MAX_CHUNK_SIZE``) are serialised by flax, as one part."""
     tree = serialization.to_state_dict(state)
-    if any(np.size(x) * np.dtype(getattr(x, "dtype", np.float64)).itemsize > serialization.MAX_CHUNK_SIZE
-           for x in jax.tree_util.tree_leaves(tree)):
+    if any(getattr(x, "nbytes", 0) > serialization.MAX_CHUNK_SIZE for x in jax.tree_util.tree_leaves(tree)):
         yield serialization.msgpack_serialize(tree)
         return
     yield from _parts(tree, msgpack.Packer())

@@ -51,7 +51,7 @@ except ImportError as missing:  # gymnasium is an optional dependency (d2spo[gym
                       "(d2spo.envs.gymnax_env) need no gymnasium", name="gymnasium") from missing
 
 from d2spo.envs.env_config import EnvConfig
-from d2spo.envs.front_end import ENV_ID, env_config
+from d2spo.envs.front_end import ENV_ID, env_config, seed_key
 from d2spo.envs.nav import Env, make_env
 from d2spo.envs.params import EnvParams
 from d2spo.envs.spaces import observation_bounds
@@ -372,29 +372,6 @@ class VectorCostTuple(VectorWrapper):
     def step(self, actions):
         obs, reward, terminated, truncated, info = self.env.step(actions)
         return obs, reward, info["cost"], terminated, truncated, info
-
-
-def seed_key(seed: int, *more: int) -> jax.Array:
-    """The JAX key of a Gymnasium seed, any int >= 0: ``jax.random.key(seed)`` below 2**32 (as it always
-    was), its higher 32-bit words folded in above (``key`` alone keeps the low 32 bits: 2**32 was seed 0);
-    then every word of ``more`` (a vector env's list of seeds) folded in too."""
-    low, *rest = _words(seed)
-    key = jax.random.key(low)
-    for word in rest + [w for x in more for w in _words(x)]:
-        key = jax.random.fold_in(key, word)
-    return key
-
-
-def _words(seed: int) -> list[int]:
-    """``seed`` (an int >= 0) as 32-bit words, lowest first, at least one."""
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise ValueError(f"seed: expected an int >= 0, got {seed!r}")
-    seed, words = int(seed), []
-    while True:
-        words.append(seed & 0xFFFFFFFF)
-        seed >>= 32
-        if not seed:
-            return words
 
 
 def register() -> None:
