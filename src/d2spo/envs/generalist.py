@@ -57,7 +57,7 @@ from d2spo.envs import generator, layout_bank, sensors
 from d2spo.envs.env_config import EnvConfig
 from d2spo.envs.geometry import Geometry
 from d2spo.envs.layout_bank import LayoutBank
-from d2spo.envs.nav import Env, EnvState
+from d2spo.envs.nav import Env, EnvState, compiled_when_eager
 from d2spo.envs.params import EnvParams, robot_fields
 from d2spo.envs.task_plan import TaskPlan, task_plan
 from d2spo.envs.workspace import Layout
@@ -188,6 +188,7 @@ class GeneralistEnv(Env):
         return self.plan.bank(layouts, tasks, max_steps, method)
 
     # -- the layout of the state ------------------------------------------------------------
+    @compiled_when_eager()
     def step(self, key: jax.Array, state: GeneralState, action: jnp.ndarray, params: GeneralParams):
         """nav's step in the state's slot; an episode that ends restarts in a newly drawn slot.
         ``info`` also holds the step's obstacles (``box_lo``, ``box_hi`` [N_BOXES, 2], ``disk_center``
@@ -204,6 +205,7 @@ class GeneralistEnv(Env):
         n = params.bank.arena.shape[0]
         return self._start_in(jnp.clip(jnp.floor((u[0] + 1.0) * 0.5 * n).astype(jnp.int32), 0, n - 1), u, params)
 
+    @compiled_when_eager()
     def reset_in_slot(self, key: jax.Array, params: GeneralParams, b: jnp.ndarray) -> tuple[GeneralState, jnp.ndarray]:
         """``reset`` in slot b of the bank rather than a drawn one (an evaluation that gives every
         episode a layout of its own: ``rollout.make_rollout(..., slot_per_episode=True)``)."""

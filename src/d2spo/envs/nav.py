@@ -24,6 +24,7 @@ measures the shaping's distances on the layout.
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any
 
@@ -91,6 +92,41 @@ def _compute_once(x: jnp.ndarray) -> jnp.ndarray:
 def _uniform(key: jax.Array, n: int) -> jnp.ndarray:
     """n floats uniform in (-1, 1): one PRNG call serves all randomness of a step."""
     return jax.random.uniform(key, (n,), jnp.float32, minval=_LOW, maxval=1.0)
+
+
+def compiled_when_eager(static_argnums: tuple[int, ...] = ()):
+    """A method of an environment that, called on concrete arrays (outside ``jax.jit``, ``vmap`` or
+    ``scan``), runs as one compiled program, kept with the environment for its next calls, rather
+    than operation by operation: a Python loop over ``env.step`` compiles once instead of once per
+    operation and shape (tests/test_env_nav.py and friends: about twice as fast to their first
+    result). Traced calls, as in training, run the method itself, so the programs training compiles
+    are unchanged. ``static_argnums`` counts the arguments after ``self`` (``reset_batch``'s ``n``)."""
+
+    def wrap(method):
+        @functools.wraps(method)
+        def call(self, *args, **kwargs):
+            if kwargs or not _concrete(args, static_argnums):
+                return method(self, *args, **kwargs)
+            programs = self.__dict__.setdefault("_eager_programs", {})
+            program = programs.get(method)
+            if program is None:
+                program = programs[method] = jax.jit(functools.partial(method, self), static_argnums=static_argnums)
+            return program(*args)
+
+        return call
+
+    return wrap
+
+
+def _concrete(args: tuple, static_argnums: tuple[int, ...]) -> bool:
+    """Whether a call's arguments are all concrete: no tracer among them, and no list or tuple where
+    an array goes (an action given as a list: the method itself takes it as an array)."""
+    for i, a in enumerate(args):
+        if i in static_argnums:
+            continue
+        if isinstance(a, (list, tuple)) or any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(a)):
+            return False
+    return True
 
 
 class Env:
@@ -218,6 +254,7 @@ class Env:
         )
         return state
 
+    @compiled_when_eager()
     def reset(self, key: jax.Array, params: EnvParams) -> tuple[EnvState, jnp.ndarray]:
         """A new episode: the layout's start pose plus uniform jitter; the automaton reads L(z_0)."""
         state = self.reset_state(_uniform(key, 3), params)
@@ -225,6 +262,7 @@ class Env:
 
     # ----------------------------------------------------------------------------------- step
 
+    @compiled_when_eager()
     def step(
         self, key: jax.Array, state: EnvState, action: jnp.ndarray, params: EnvParams
     ) -> tuple[EnvState, jnp.ndarray, jnp.ndarray, jnp.ndarray, jnp.ndarray, dict[str, Any]]:
@@ -314,10 +352,12 @@ class Env:
 
     # ---------------------------------------------------------------------------------- batch
 
+    @compiled_when_eager(static_argnums=(2,))
     def reset_batch(self, key: jax.Array, params: EnvParams, n: int) -> tuple[EnvState, jnp.ndarray]:
         """``n`` environments: ``reset(k_i, params)`` with ``k_i = jax.random.split(key, n)[i]``."""
         return jax.vmap(self.reset, in_axes=(0, None))(jax.random.split(key, n), params)
 
+    @compiled_when_eager()
     def step_batch(self, key: jax.Array, state: EnvState, action: jnp.ndarray, params: EnvParams):
         """Step a batch (leading axis n): ``step(k_i, state[i], action[i], params)`` with
         ``k_i = jax.random.split(key, n)[i]``."""
