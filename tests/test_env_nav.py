@@ -99,6 +99,28 @@ def test_jit_and_no_jit_agree():
             np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-5)
 
 
+def test_an_eager_call_is_one_program_kept_and_a_traced_call_is_the_method_itself():
+    """``env.step`` on concrete arrays compiles once and keeps the program (``compiled_when_eager``),
+    with jit's results bit for bit; under ``jit`` the step is traced inline (no nested program), so
+    training's programs are what they were."""
+    env, params = make_env(EnvConfig(max_steps=6), "phi1")
+    key = jax.random.key(3)
+    state, _ = env.reset(key, params)
+    action = jnp.array([0.8, -0.3])
+    out = env.step(key, state, action, params)
+    programs = env.__dict__["_eager_programs"]
+    assert len(programs) == 2  # reset's and step's
+    step_program = next(p for f, p in programs.items() if f.__name__ == "step")
+    assert step_program._cache_size() == 1
+    again = env.step(jax.random.key(4), out[0], jnp.array([0.1, 0.2]), params)
+    assert step_program._cache_size() == 1 and len(programs) == 2  # the same shapes: no new program
+    for a, b in zip(jax.tree.leaves(out), jax.tree.leaves(jax.jit(env.step)(key, state, action, params))):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    jaxpr = jax.make_jaxpr(env.step)(key, state, action, params)
+    assert "pjit" not in {e.primitive.name for e in jaxpr.eqns}
+    assert np.asarray(again[1]).shape == (env.observation_size,)
+
+
 def test_reset_jitter_is_bounded_and_random():
     env, params, _, _ = build("phi1", max_steps=6)
     state, obs = jax.jit(env.reset_batch, static_argnums=2)(jax.random.key(0), params, 64)

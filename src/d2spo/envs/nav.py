@@ -120,7 +120,7 @@ def compiled_when_eager(static_argnums: tuple[int, ...] = ()):
 
 def _concrete(args: tuple, static_argnums: tuple[int, ...]) -> bool:
     """Whether a call's arguments are all concrete: no tracer among them, and no list or tuple where
-    an array goes (an action given as a list: the method itself takes it as an array)."""
+    an array goes (an action given as a list: the method itself refuses it, with its own error)."""
     for i, a in enumerate(args):
         if i in static_argnums:
             continue
