@@ -51,7 +51,7 @@ def test_an_evaluation_reads_the_task_with_the_true_radii():
     *_, done, info = env.step(key, state, np.zeros(env.action_size, np.float32), params)
     assert bool(done) and bool(info["completed_relaxed"]) and not bool(info["completed"])
     # ... an evaluation does not: it is neither a completion nor a rejection there
-    out = make_rollout(learner, env, 4, 40)(params, learner.policy(learner.init(key)), key)
+    out = make_rollout(learner, env, 4, 40)(params, learner.policy(jax.jit(learner.init)(key)), key)
     collided, completed, _, length = (np.asarray(x) for x in out[:4])
     assert (length > 1).all()
     r = rates(*out, max_steps=40)

@@ -147,7 +147,7 @@ def test_td3_lag_anneals_a_patrols_exploration_noise_as_d2spo_does():
         cfg = TrainConfig(algo="td3-lag", task=task, **small).check()
         learner = build(cfg)[2]
         assert learner.cfg.td3.exploration_noise_final == final, task
-        carry = learner.init(jax.random.PRNGKey(0))
+        carry = jax.jit(learner.init)(jax.random.PRNGKey(0))
         key, obs = jax.random.PRNGKey(1), carry.obs
         first, last = (learner.behaviour(carry.agent, obs, key, jnp.int32(e)) for e in (0, 100))
         assert (np.abs(np.asarray(first) - np.asarray(last)).max() > 1e-3) == (final is not None), task
