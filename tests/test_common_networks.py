@@ -12,6 +12,7 @@ from d2spo.algos.common.networks import (
     QNetwork,
     TwinQ,
     ValueNetwork,
+    first_critic,
     gaussian_entropy,
     gaussian_kl,
     gaussian_log_prob,
@@ -112,6 +113,28 @@ def test_modules_shapes_ranges_and_independence():
     _, ls = sac.apply(sp, big)
     assert float(jnp.min(ls)) >= -5.0 and float(jnp.max(ls)) <= 2.0
     assert float(jnp.max(ls) - jnp.min(ls)) > 0.1  # state dependent
+
+
+@pytest.mark.parametrize("layer_norm", [False, True])
+def test_the_first_critic_alone_is_the_twins_first_row(layer_norm):
+    """TD3's actor loss reads Q1 through ``first_critic``: its value and its gradient in the action
+    (what the actor's gradient goes through) equal the twin's row 0, to float32 rounding: one critic's
+    matrix products may round differently from the two's batched ones (bit for bit in the default
+    phi1 run at XLA's default level: bench/RESULTS.md, 2026-12-04), and it is one critic."""
+    twin = TwinQ((32, 32), layer_norm=layer_norm)
+    obs, act = jax.random.normal(jax.random.PRNGKey(1), (64, 7)), jax.random.uniform(jax.random.PRNGKey(2), (64, 2))
+    params = twin.init(jax.random.PRNGKey(0), obs, act)
+    q1 = first_critic(twin)
+    assert q1(params, obs, act).shape == (1, 64)
+
+    def through(apply):
+        return jax.jit(jax.value_and_grad(lambda a: jnp.sum(jnp.tanh(apply(params, obs, a)[0]))))(act)
+
+    (v_twin, g_twin), (v_one, g_one) = through(twin.apply), through(q1)
+    np.testing.assert_allclose(np.asarray(v_one), np.asarray(v_twin), rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(g_one), np.asarray(g_twin), rtol=1e-5, atol=1e-7)
+    # the second critic is not the first's: the test above can tell the rows apart
+    assert not np.array_equal(np.asarray(twin.apply(params, obs, act)[1]), np.asarray(q1(params, obs, act)[0]))
 
 
 def test_critic_layer_norm_adds_a_norm_per_hidden_layer_and_is_off_by_default():

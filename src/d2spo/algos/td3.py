@@ -23,7 +23,7 @@ from flax import struct
 
 from d2spo import replay
 from d2spo.algos.base import ChunkLog, RunSchedule, episode_log, params_finite
-from d2spo.algos.common.networks import DeterministicActor, TwinQ, init_params
+from d2spo.algos.common.networks import DeterministicActor, TwinQ, first_critic, init_params
 from d2spo.algos.common.td3_losses import soft_update, td3_actor_loss, td3_critic_loss
 from d2spo.algos.offpolicy import explore_and_store
 from d2spo.errors import ConfigError
@@ -227,7 +227,7 @@ def td3_update(nets: TD3Nets, agent: TD3Agent, batch: Transition, key: jax.Array
 
     def actor_step(_):
         (_, a_metrics), a_grads = jax.value_and_grad(td3_actor_loss, has_aux=True)(
-            agent.actor, critic, batch.obs, actor_apply, critic_apply, None, execute_fn, proposal_weight,
+            agent.actor, critic, batch.obs, actor_apply, first_critic(nets.critic), None, execute_fn, proposal_weight,
             batch.next_obs, cfg.smoothness, cfg.smoothness_dims, cfg.saturation, cfg.saturation_bound,
             cfg.speed_search, nets.actor.speed_low())
         a_upd, actor_opt = nets.actor_tx.update(a_grads, agent.actor_opt, agent.actor)

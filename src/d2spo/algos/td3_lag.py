@@ -26,6 +26,7 @@ from flax import struct
 
 from d2spo.algos.common.cost_critic import LagrangianShell, check_cost_options, default_lagrange
 from d2spo.algos.common.lagrange import LagrangeConfig, LagrangeState
+from d2spo.algos.common.networks import first_critic
 from d2spo.algos.common.td3_losses import cost_critic_loss, soft_update, td3_actor_loss, td3_critic_loss
 from d2spo.algos.offpolicy import OffPolicyLoop, delayed
 from d2spo.algos.td3 import TD3Agent, TD3Config, explore, init_agent, make_nets
@@ -114,7 +115,7 @@ class TD3LagLearner:
         def actor_step(old):  # actor, then every target network (TD3's delayed updates)
             actor, actor_opt, actor_t, critic_t, cost_t = old
             (_, am), g = jax.value_and_grad(td3_actor_loss, has_aux=True)(
-                actor, critic, batch.obs, actor_apply, critic_apply, penalty)
+                actor, critic, batch.obs, actor_apply, first_critic(self.nets.critic), penalty)
             upd, actor_opt = self.nets.actor_tx.update(g, actor_opt, actor)
             actor = optax.apply_updates(actor, upd)
             new = (actor, actor_opt, soft_update(actor_t, actor, t.tau), soft_update(critic_t, critic, t.tau),
