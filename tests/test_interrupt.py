@@ -93,3 +93,17 @@ def test_sigterm_ends_the_command_with_one_line_and_143_and_a_run_with_the_resum
     assert proc.returncode == 143, proc.stderr[-2000:]
     assert proc.stderr.strip().splitlines() == [f"d2spo: error: terminated; `d2spo train --resume {run}` continues "
                                                 "from its last checkpoint"], proc.stderr
+
+
+@pytest.mark.skipif(os.name != "posix", reason="needs SIGINT")
+def test_ctrl_c_after_the_command_finished_leaves_with_its_status_and_no_line():
+    """A Ctrl-C that lands after the command's work is done (a short training that ended just
+    before it) died of the signal in interpreter teardown: exit -2, stderr empty (seen in the fault
+    battery). Now the command leaves at once with the status it finished with, saying nothing."""
+    code = ("import os, signal, sys, time\nfrom d2spo import cli\n"
+            "class Cmd:\n    def run(self):\n        return 0\n"
+            "cli.parse = lambda args: Cmd()\nstatus = cli.main()\n"
+            "os.kill(os.getpid(), signal.SIGINT)\ntime.sleep(20)\nprint('teardown ran on', flush=True)\n"
+            "sys.exit(status)\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert (proc.returncode, proc.stderr, proc.stdout) == (0, "", "")

@@ -269,7 +269,10 @@ def main(argv: list[str] | None = None) -> int:
             warnings.showwarning = show_warning
             cmd = parse(args)
             compile_cache.enable()  # before the first compilation: d2spo/compile_cache.py
-            return int(cmd.run() or 0)
+            status = int(cmd.run() or 0)
+            if argv is None and threading.current_thread() is threading.main_thread():
+                interrupts.finished(status)  # a Ctrl-C in teardown now leaves with this status
+            return status
     except LTLSyntaxError as e:
         flag = flag_of_value(e.formula, args)  # "--task: LTL syntax error at column 6: ..."
         error(f"{flag + ': ' if flag else ''}{e} in {e.formula!r}")

@@ -76,6 +76,21 @@ def leave_if_swallowed(unraisable) -> None:
     sys.__unraisablehook__(unraisable)
 
 
+def finished(status: int) -> None:
+    """The command's work is done (its files written, its summary printed), and ``status`` is its
+    exit status: from here on SIGINT and SIGTERM end the process at once with that status and no
+    line, instead of raising an interrupt in interpreter teardown, which Python reports by dying of
+    the signal (exit -2, silently: seen when a Ctrl-C landed just after a short training ended)."""
+
+    def leave(signum, frame) -> None:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(status)
+
+    signal.signal(signal.SIGINT, leave)
+    signal.signal(signal.SIGTERM, leave)
+
+
 def install() -> None:
     """Make ``interrupted`` the SIGINT handler, ``terminated`` the SIGTERM one and
     ``leave_if_swallowed`` the unraisable hook (the `d2spo` command, from its main thread; a caller
