@@ -56,6 +56,7 @@ check layout_fields $PY bench/layout_fields.py --layouts 2 --chunk 2 --bank 0
 check env_throughput $PY bench/env_throughput.py --sizes 1,64 --repeats 1
 check compile_times $PY bench/compile_times.py --fast --no-pretrain
 check profile_chunk $PY bench/profile_chunk.py --steps 10 --repeats 1
+check td3_flops $PY bench/td3_flops.py --repeats 1 --updates 20 --hidden 32 32 --batch 32
 check train_throughput $PY bench/train_throughput.py --algos tlgrl ppo-lag sac-lag --chunks 1 --td3-hidden 32 32 \
   --td3-batch 32 --learning-starts 0
 check vmap_seeds $PY bench/vmap_seeds.py --algos ppo-lag --seeds 2 --chunks 1
