@@ -54,12 +54,13 @@ def test_train_reads_the_file_and_flags_override_it(tmp_path):
     assert cfg.env.v_max == 0.5 and cfg.env.omega_max == 1.0 and cfg.env.slip == 0.0
     assert cfg.env.v_gain == 0.7  # the flag wins over the file
     assert cli.parse(["train"]).config().env.v_max is None  # no file: the preset's
-    # UPDATE(Ω, Θ)'s steps: halved only for the default robot; a file's robot takes the former 10
+    # UPDATE(Ω, Θ)'s steps: a patrol's halved only for the default robot; a file's robot takes 10
     # unless a flag says otherwise (config.TrainConfig._resolve_update_steps)
     steps = lambda c: (c.cbf.nominal_updates_per_iter, c.cbf.updates_per_iter)  # noqa: E731
-    assert steps(cli.parse(["train"]).config()) == (5, 5)
-    assert steps(cfg) == (10, 10)
-    assert steps(cli.parse(["train", "--dynamics", str(path), "--cbf.updates-per-iter", "5"]).config()) == (10, 5)
+    assert steps(cli.parse(["train", "--task", "patrol2"]).config()) == (5, 5)
+    assert steps(cli.parse(["train", "--task", "patrol2", "--dynamics", str(path)]).config()) == (10, 10)
+    assert steps(cli.parse(["train", "--task", "patrol2", "--dynamics", str(path), "--cbf.updates-per-iter",
+                            "5"]).config()) == (10, 5)
 
 
 
@@ -83,8 +84,8 @@ def test_a_file_beside_config_replaces_the_robot_the_config_recorded(tmp_path):
     cfg = cli.parse(["train", "--config", str(tmp_path / "config.json"), "--dynamics", str(fast),
                      "--v_max", "0.5"]).config()  # tyro's other spelling of the flag
     assert (cfg.env.v_max, cfg.env.omega_max) == (0.5, 3.0)
-    # a config of the default robot (5 and 5 steps) with a file: the file's robot's 10 and 10
-    default = cli.parse(["train", "--episodes", "10"]).config()
+    # a patrol's config of the default robot (5 and 5 steps) with a file: the file's robot's 10 and 10
+    default = cli.parse(["train", "--task", "patrol2", "--episodes", "10"]).config()
     (tmp_path / "default.json").write_text(json.dumps(config_to_dict(default)))
     cfg = cli.parse(["train", "--config", str(tmp_path / "default.json"), "--dynamics", str(fast)]).config()
     assert (cfg.cbf.nominal_updates_per_iter, cfg.cbf.updates_per_iter) == (10, 10)

@@ -32,13 +32,14 @@ from d2spo.fields import check_choice, check_fields
 from d2spo.safety.nominal import nominal_next, straight_through_next
 
 ALPHAS = ("linear", "cubic")
-UPDATE_STEPS = 5
+UPDATE_STEPS = 10
 """Steps of each half of UPDATE(Ω, Θ) (f_n, then Eq. (9)) when ``updates_per_iter`` and
-``nominal_updates_per_iter`` are unset: a run on one layout with the default robot (README,
-"Departures from the paper": half the former count, measured to hold Tables II-III)."""
-FORMER_UPDATE_STEPS = 10
-"""The same for the generalist and the other presets (TrainConfig fills it in), and every run
-trained before 2026-11-30: halving them was measured to cost completions there."""
+``nominal_updates_per_iter`` are unset (TrainConfig fills them in), save for a recurrence below."""
+RECURRENCE_UPDATE_STEPS = 5
+"""The same for a recurrence (a patrol) on one layout with the default robot, without --fast: half
+the count, where it made more accepting visits (README, "Departures from the paper"). From
+2026-11-30 to 2026-12-04 it was every task's on one layout; Table II's completions then fell
+below 99.5% on four seeds of six (bench/RESULTS.md, "2026-12-04, morning")."""
 
 
 @dataclass(frozen=True)
