@@ -99,9 +99,9 @@ class CBFConfig:
     batch_size: int = 256
     """Minibatch size from each of P_exp, X_L and T."""
     updates_per_iter: int | None = None
-    """Gradient steps on Eq. (9) per UPDATE(Ω, Θ); None: 5 on one layout with the default robot, else 10."""
+    """Gradient steps on Eq. (9) per UPDATE(Ω, Θ); None: 10, or 5 for a patrol on one layout with the default robot."""
     nominal_updates_per_iter: int | None = None
-    """Gradient steps on the nominal model per UPDATE; None: 5 on one layout with the default robot, else 10."""
+    """Gradient steps on the nominal model per UPDATE; None: 10, or 5 for a patrol on one layout with the default robot."""
     pretrain_samples: int = 16_384
     """Synthetic poses drawn for the cautious start."""
     pretrain_steps: int = 2_000
