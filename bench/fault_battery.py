@@ -53,8 +53,9 @@ from fault_battery_harness import (
 # ------------------------------------------------------------------------------------ the cases
 def case_01_ctrl_c_while_compiling(c: Case, quick: bool) -> None:
     """Ctrl-C (SIGINT to the process group, 0.5 s after config.json appears) while `train` compiles
-    (cache off): exit 130 within 2 s of the signal with one line; the process group gone 40 s later (it once died by SIGSEGV 25-37 s
-    after); no temporary files, the lock free: `--resume` then finishes with exit 0."""
+    (cache off): exit 130 within 2 s of the signal with one line; the process group gone 40 s later
+    (it once died by SIGSEGV 25-37 s after); no temporary files, the lock free: `--resume` then
+    finishes with exit 0."""
     out = c.tmp / "run"
     argv = [str(D2SPO), "train", *tiny(), "--out", str(out)]
     t0 = time.monotonic()

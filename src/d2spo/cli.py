@@ -261,7 +261,8 @@ def parse(args: list[str]):
 
 def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else list(argv)
-    if argv is None and threading.current_thread() is threading.main_thread():
+    command = argv is None and threading.current_thread() is threading.main_thread()  # the `d2spo` command
+    if command:
         interrupts.install()
     try:
         with warnings.catch_warnings():
@@ -270,7 +271,7 @@ def main(argv: list[str] | None = None) -> int:
             cmd = parse(args)
             compile_cache.enable()  # before the first compilation: d2spo/compile_cache.py
             status = int(cmd.run() or 0)
-            if argv is None and threading.current_thread() is threading.main_thread():
+            if command:
                 interrupts.finished(status)  # a Ctrl-C in teardown now leaves with this status
             return status
     except LTLSyntaxError as e:

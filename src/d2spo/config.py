@@ -37,6 +37,7 @@ from d2spo.errors import ConfigError, json_trouble
 from d2spo.fields import check_fields
 from d2spo.inputs import read_regular
 from d2spo.ltl.anneal import AnnealConfig
+from d2spo.ltl.buchi_task import task_is_recurrence
 from d2spo.ltl.tasks import MAX_PATROLS
 from d2spo.memory import check_memory
 from d2spo.safety.cbf import RECURRENCE_UPDATE_STEPS, UPDATE_STEPS, CBFConfig
@@ -225,30 +226,20 @@ class TrainConfig:
         --fast, where half the count made more accepting visits; ``UPDATE_STEPS`` everywhere else.
         Half the count was every one-layout task's default from 2026-11-30 to 2026-12-04: on ϕ1,
         vmapped seeds 0-5 then completed 98.70-99.95% of their last 2000 episodes, four under
-        Table II's 99.5%, against 99.90-100% on seeds 3-5 with 10 and 10 (bench/RESULTS.md,
-        "2026-12-04, morning"); --fast's ϕ1 seed 0 85.20% against 99.70% (2026-12-01).
+        Table II's 99.5%, against 99.80-100% with 10 and 10 (bench/RESULTS.md,
+        "2026-12-04, late morning"); --fast's ϕ1 seed 0 85.20% against 99.70% (2026-12-01).
         config.json records them; the names filled here are kept in ``filled_update_steps`` (not a
         field), so that a --dynamics file applied after the flags decides them again
         (``cli.TrainCmd.config``)."""
         default_robot = self.env.preset == "default" and all(
             getattr(self.env, f.name) is None for f in dataclasses.fields(Preset))
-        halved = not (self.generalist or self.fast) and default_robot and self._task_is_a_recurrence()
+        halved = not (self.generalist or self.fast) and default_robot and task_is_recurrence(self.task) is True
         steps = RECURRENCE_UPDATE_STEPS if halved else UPDATE_STEPS
         unset = {name: steps for name in ("updates_per_iter", "nominal_updates_per_iter")
                  if getattr(self.cbf, name) is None}
         if unset:
             object.__setattr__(self, "cbf", dataclasses.replace(self.cbf, **unset))
         object.__setattr__(self, "filled_update_steps", tuple(unset))
-
-    def _task_is_a_recurrence(self) -> bool:
-        """Whether ``task`` translates to a recurrence (a patrol); False for a finite task and for
-        one that does not translate (refused with its own message where the task is built)."""
-        from d2spo.ltl.buchi_task import is_recurrence, task_automaton
-        from d2spo.ltl.tasks import task_formula
-        try:
-            return is_recurrence(task_automaton(task_formula(self.task)))
-        except Exception:  # noqa: BLE001 - the task's own error comes where it is built, with its column
-            return False
 
     def _resolve_speed_settings(self) -> None:
         """Fill ``num_envs`` and ``td3.hidden`` where None: ``FAST_SETTINGS`` with ``fast`` (D²SPO and SL

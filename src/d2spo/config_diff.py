@@ -25,14 +25,8 @@ _GENERALIST_FIELDS = ("generalist_layouts", "generalist_redraw", "generalist_pai
 def _runs_a_recurrence(cfg: TrainConfig) -> bool:
     """Whether the run can meet a recurrence (a patrol): a generalist (its mixture may hold patrols),
     or a task whose automaton is one; True too when the task does not translate (nothing is assumed)."""
-    if cfg.generalist:
-        return True
-    from d2spo.ltl.buchi_task import is_recurrence, task_automaton
-    from d2spo.ltl.tasks import task_formula
-    try:
-        return is_recurrence(task_automaton(task_formula(cfg.task)))
-    except Exception:  # noqa: BLE001 - a task that does not translate is refused where it is built
-        return True
+    from d2spo.ltl.buchi_task import task_is_recurrence
+    return cfg.generalist or task_is_recurrence(cfg.task) is not False
 
 
 def _drop_key(node: Any, key: str) -> None:

@@ -54,10 +54,11 @@ import numpy as np
 from flax import struct
 
 from d2spo.envs import generator, layout_bank, sensors
+from d2spo.envs.eager import compiled_when_eager
 from d2spo.envs.env_config import EnvConfig
 from d2spo.envs.geometry import Geometry
 from d2spo.envs.layout_bank import LayoutBank
-from d2spo.envs.nav import Env, EnvState, compiled_when_eager
+from d2spo.envs.nav import Env, EnvState
 from d2spo.envs.params import EnvParams, robot_fields
 from d2spo.envs.task_plan import TaskPlan, task_plan
 from d2spo.envs.workspace import Layout

@@ -111,6 +111,16 @@ def is_recurrence(aut: Automaton) -> bool:
     return isinstance(aut, BuchiTask) and not aut.accepting and any(map(any, aut.visits))
 
 
+def task_is_recurrence(task: str) -> bool | None:
+    """Whether the task name or formula ``task`` translates to a recurrence (``is_recurrence``); None
+    when it does not translate (its own error comes where the task is built, with its column)."""
+    from d2spo.ltl.tasks import task_formula
+    try:
+        return is_recurrence(task_automaton(task_formula(task)))
+    except Exception:  # noqa: BLE001 - any refusal of the task: the callers decide what it means
+        return None
+
+
 def buchi_task(dba: BuchiAutomaton) -> BuchiTask:
     """``dba`` as the environment runs it (``BuchiTask``); its completed states over every letter."""
     done = dba.completed_states()

@@ -39,7 +39,7 @@ RECURRENCE_UPDATE_STEPS = 5
 """The same for a recurrence (a patrol) on one layout with the default robot, without --fast: half
 the count, where it made more accepting visits (README, "Departures from the paper"). From
 2026-11-30 to 2026-12-04 it was every task's on one layout; Table II's completions then fell
-below 99.5% on four seeds of six (bench/RESULTS.md, "2026-12-04, morning")."""
+below 99.5% on four seeds of six (bench/RESULTS.md, "2026-12-04, late morning")."""
 
 
 @dataclass(frozen=True)
