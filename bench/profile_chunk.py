@@ -118,7 +118,7 @@ def main() -> None:
     def datasets(s):
         k, data = s
         k, k1 = jax.random.split(k)
-        return k, sd.update_datasets(data, k1, str_, features_fn=L.features, cfg=L.cbf_cfg)[0]
+        return k, sd.update_datasets(data, k1, str_, features_fn=L.features_for_grad, cfg=L.cbf_cfg)[0]
 
     def td3(s):
         k, agent = s
@@ -145,7 +145,7 @@ def main() -> None:
         def u_rl_fn(ob):
             return L.nets.actor.apply(carry.agent.actor, ob)
 
-        st, _ = update(k1, st, carry.data, nets=L.safety_nets, cfg=L.cbf_cfg, features_fn=L.features, dt=L.dt,
+        st, _ = update(k1, st, carry.data, nets=L.safety_nets, cfg=L.cbf_cfg, features_fn=L.features_for_grad, dt=L.dt,
                        u_rl_fn=u_rl_fn)
         return k, st
 

@@ -157,22 +157,29 @@ def test_lidar_is_differentiable_in_pose():
     np.testing.assert_allclose(np.asarray(jac(facing))[0], [-1.0, 0.0, 0.0], atol=1e-4)
 
 
-def test_unrolled_and_reduced_ray_casts_are_identical():
+CASTS = {"unrolled": {"unroll": True}, "reduced": {"unroll": False}, "first hit": {"for_grad": True}}
+"""The three ways ``sensors.lidar`` takes the minimum over obstacles: one chain per obstacle, one
+reduction, or the first obstacle found without gradient and differentiated alone (``for_grad``: D²SPO's
+features_for_grad, which T_e, the cautious start, UPDATE(D) and the runtime filter differentiate)."""
+
+
+def test_every_way_of_casting_gives_the_same_ranges_and_gradients():
     poses = jax.random.uniform(jax.random.key(0), (200, 3), minval=-0.2, maxval=5.2)
     mask = jnp.arange(8) % 3 != 0
 
-    def scan(unroll):
-        return jax.jit(jax.vmap(lambda z: sensors.lidar(z, GEOM, mask, K, H, unroll=unroll)))(poses)
+    def scan(how):
+        return jax.jit(jax.vmap(lambda z: sensors.lidar(z, GEOM, mask, K, H, **CASTS[how])))(poses)
 
-    np.testing.assert_array_equal(np.asarray(scan(True)), np.asarray(scan(False)))
-    # and their gradients in the pose, which the runtime filter takes (it casts without unrolling:
-    # D2SPOLearner.features_for_grad, as do T_e and the cautious start)
-    def jacobians(unroll):
-        return jax.jit(jax.vmap(jax.jacrev(lambda z: sensors.lidar(z, GEOM, mask, K, H, unroll=unroll))))(poses)
+    for how in ("reduced", "first hit"):
+        np.testing.assert_array_equal(np.asarray(scan("unrolled")), np.asarray(scan(how)))
 
-    unrolled, reduced = np.asarray(jacobians(True)), np.asarray(jacobians(False))
+    def jacobians(how):
+        return np.asarray(jax.jit(jax.vmap(jax.jacrev(lambda z: sensors.lidar(z, GEOM, mask, K, H, **CASTS[how]))))(poses))
+
+    unrolled = jacobians("unrolled")
     assert np.abs(unrolled).max() > 0.5  # the poses see obstacles
-    np.testing.assert_allclose(unrolled, reduced, rtol=1e-6, atol=1e-6)
+    for how in ("reduced", "first hit"):
+        np.testing.assert_allclose(unrolled, jacobians(how), rtol=1e-6, atol=1e-6)
     # boxes and disks, as a generalist's world has (28 and 12 there: the unrolled gradient of that
     # many compiles for about 25 s, the reason the filter does not unroll)
     k_lo, k_disk, k_pose = jax.random.split(jax.random.key(1), 3)
@@ -180,28 +187,52 @@ def test_unrolled_and_reduced_ray_casts_are_identical():
     world = Geometry(lo, lo + 0.4, jnp.zeros(2), jnp.full(2, 5.0),
                      jax.random.uniform(k_disk, (4, 2), minval=0.0, maxval=5.0), jnp.full((4,), 0.3))
     poses = jax.random.uniform(k_pose, (300, 3), minval=0.2, maxval=4.8)
+    visible = jnp.arange(10) % 4 != 1  # a box and a disk unsensed among them
 
-    def both(unroll):
-        cast = lambda z: sensors.lidar(z, world, jnp.ones(10, bool), K, H, unroll=unroll)  # noqa: E731
+    def both(how):
+        cast = lambda z: sensors.lidar(z, world, visible, K, H, **CASTS[how])  # noqa: E731
         return jax.jit(jax.vmap(lambda z: (cast(z), jax.jacrev(cast)(z))))(poses)
 
-    (x_u, j_u), (x_r, j_r) = both(True), both(False)
+    x_u, j_u = both("unrolled")
     assert np.abs(np.asarray(j_u)).max() > 0.5
-    # compiled beside their gradient, XLA may fuse the two differently: equal up to rounding (1 ulp)
-    np.testing.assert_allclose(np.asarray(x_u), np.asarray(x_r), rtol=1e-6, atol=1e-6)
-    np.testing.assert_allclose(np.asarray(j_u), np.asarray(j_r), rtol=1e-6, atol=1e-6)
+    for how in ("reduced", "first hit"):
+        x, j = both(how)
+        # compiled beside their gradient, XLA may fuse the two differently: equal up to rounding (1 ulp).
+        # Near a disk's tangent the gradient divides by sqrt(b² - c), which magnifies an ulp of it: the
+        # first-hit cast, compiled in another shape, differs there by up to 2e-5 (relative)
+        np.testing.assert_allclose(np.asarray(x_u), np.asarray(x), rtol=1e-6, atol=1e-6)
+        np.testing.assert_allclose(np.asarray(j_u), np.asarray(j), rtol=1e-6 if how == "reduced" else 5e-5, atol=1e-6)
+
+
+def test_the_first_hit_cast_differentiates_the_nearest_obstacle_only():
+    """Two boxes in a row ahead: the ray ahead reads the near one, and moving the far one changes
+    neither the range nor its gradient in the pose; the gradient in the near box's corners is the
+    ray's, that in the far box's is zero."""
+    pose = jnp.array([0.5, 2.0, 0.0])
+
+    def ahead(lo, hi):
+        world = Geometry(lo, hi, jnp.zeros(2), jnp.full(2, 5.0))
+        return sensors.lidar(pose, world, jnp.ones(2, bool), K, H, for_grad=True)[0]
+
+    lo = jnp.array([[1.2, 1.5], [1.6, 1.5]])
+    hi = lo + 1.0
+    assert float(ahead(lo, hi)) == pytest.approx(0.7, abs=1e-6)
+    g_lo, g_hi = jax.grad(ahead, argnums=(0, 1))(lo, hi)
+    np.testing.assert_allclose(np.asarray(g_lo), [[1.0, 0.0], [0.0, 0.0]], atol=1e-6)
+    np.testing.assert_allclose(np.asarray(g_hi), np.zeros((2, 2)), atol=1e-6)
 
 
 def test_a_layout_of_round_pillars_only_casts_without_unrolling():
-    """No boxes at all (a lab of round pillars): the reduced cast, which D²SPO's features take, used to
-    take the minimum of an empty array ("zero-size array to reduction"); it equals the unrolled one."""
+    """No boxes at all (a lab of round pillars): the reduced cast, which D²SPO's features took, used to
+    take the minimum of an empty array ("zero-size array to reduction"); every cast equals the unrolled one."""
     pillars = Geometry(jnp.zeros((0, 2)), jnp.zeros((0, 2)), jnp.zeros(2), jnp.full(2, 5.0),
                        jnp.array([[2.0, 2.5], [3.5, 1.0]]), jnp.array([0.3, 0.2]))
     pose = jnp.array([1.0, 2.5, 0.0])
-    reduced = sensors.lidar(pose, pillars, jnp.ones(2, bool), K, H, unroll=False)
-    np.testing.assert_array_equal(np.asarray(reduced), np.asarray(sensors.lidar(pose, pillars, jnp.ones(2, bool), K, H,
-                                                                                unroll=True)))
-    assert float(reduced[0]) == pytest.approx(0.7, abs=1e-5)  # the ray ahead meets the pillar at x = 1.7
+    unrolled = sensors.lidar(pose, pillars, jnp.ones(2, bool), K, H, unroll=True)
+    for how in ("reduced", "first hit"):
+        cast = sensors.lidar(pose, pillars, jnp.ones(2, bool), K, H, **CASTS[how])
+        np.testing.assert_array_equal(np.asarray(cast), np.asarray(unrolled))
+    assert float(unrolled[0]) == pytest.approx(0.7, abs=1e-5)  # the ray ahead meets the pillar at x = 1.7
 
 
 def test_cbf_input_is_the_scan_and_the_nearest_sensed_obstacle():

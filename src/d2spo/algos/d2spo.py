@@ -189,22 +189,22 @@ class D2SPOLearner(PipelinedChunks, TD3Learner):
         return self.layouts.arena(self.params)[1]
 
     # -- the sensor model x = b(z, O_s), envs/sensors.py, with this learner's arena, K and H ------
-    def features(self, pose: jax.Array, ctx: Sensed, unroll: bool | None = None) -> jax.Array:
+    def features(self, pose: jax.Array, ctx: Sensed, unroll: bool | None = None, for_grad: bool = False) -> jax.Array:
         """x = ``sensors.cbf_input(pose, ctx, ...)``: the ``features_fn`` the safety code is given
-        (``unroll``: the lidar's, ``sensors.lidar``)."""
-        return sensors.cbf_input(pose, ctx, self.arena_lo, self.arena_hi, self.env.n_rays, self.H, unroll)
+        (``unroll`` and ``for_grad``: the lidar's, ``sensors.lidar``)."""
+        return sensors.cbf_input(pose, ctx, self.arena_lo, self.arena_hi, self.env.n_rays, self.H, unroll, for_grad)
 
     def features_for_grad(self, pose: jax.Array, ctx: Sensed) -> jax.Array:
         """``features`` where they are differentiated in the pose: Eq. (9)'s T_e in UPDATE(Ω, Θ), the
         cautious start (its synthetic data too), the runtime filter, and UPDATE(D)'s Newton steps onto
-        the unsafe ring (``safety.datasets.synthesize_unsafe``). The lidar's minimum over obstacles is one reduction
-        there, not an unrolled chain per obstacle: the same values and gradients up to float
-        rounding (tests/test_env_geometry.py), and XLA no longer copies each obstacle's gradient into many
-        fusions. Compiling the generalist (28 boxes, 12 disks) took 130 s instead of 245 s and its
-        filtered `d2spo eval` 9.7 s instead of 38.4 s (bench/RESULTS.md, "2026-11-29, evening"). In
-        UPDATE(D) it took the phi1 chunk from 13,275 to 10,953 ops, in the synthetic data ``init`` from
-        11,828 to 9,506, with phi1's run the same bit for bit (bench/RESULTS.md, "2026-11-30, mid-morning")."""
-        return self.features(pose, ctx, unroll=False)
+        the unsafe ring (``safety.datasets.synthesize_unsafe``). Each ray's first obstacle is found
+        on values held constant and only its range is differentiated (``sensors.lidar``'s
+        ``for_grad``): the same values, and the same gradients but on ties between obstacles
+        (tests/test_env_geometry.py). The minimum's gradient ran backwards through every obstacle's
+        range: this took a phi1 chunk from 0.98 to 0.88 ms per vectorised step (bench/RESULTS.md,
+        "2026-12-04, afternoon"). Before it, from 2026-11-29, the minimum was one reduction here, not
+        an unrolled chain per obstacle, which halved the generalist's compile time."""
+        return self.features(pose, ctx, for_grad=True)
 
     def sensed(self, mask: jax.Array) -> Sensed:
         """O_s: this layout's obstacles with the sensed ``mask`` [..., M]."""
