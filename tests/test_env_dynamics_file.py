@@ -61,6 +61,10 @@ def test_train_reads_the_file_and_flags_override_it(tmp_path):
     assert steps(cli.parse(["train", "--task", "patrol2", "--dynamics", str(path)]).config()) == (10, 10)
     assert steps(cli.parse(["train", "--task", "patrol2", "--dynamics", str(path), "--cbf.updates-per-iter",
                             "5"]).config()) == (10, 5)
+    # and the minibatch: 128 for ϕ1 with the default robot, 256 for a file's (cbf.ONE_LAYOUT_BATCH_SIZE)
+    assert cli.parse(["train"]).config().cbf.batch_size == 128
+    assert cli.parse(["train", "--dynamics", str(path)]).config().cbf.batch_size == 256
+    assert cli.parse(["train", "--dynamics", str(path), "--cbf.batch-size", "64"]).config().cbf.batch_size == 64
 
 
 

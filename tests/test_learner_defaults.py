@@ -213,6 +213,37 @@ def test_update_omega_theta_is_halved_for_a_patrol_on_one_layout_with_the_defaul
     assert _update_steps(given) == (steps[0], 7)
 
 
+@pytest.mark.parametrize(("kw", "batch"), [
+    ({}, 128),  # ϕ1 on paper: 3 minutes with Tables II-III held (bench/RESULTS.md, "2026-12-04, afternoon")
+    ({"task": "relaxed"}, 128),
+    ({"task": "G !A4 & F A3"}, 128),  # a never part, but finite
+    ({"algo": "sl"}, 128),
+    ({"env": EnvConfig(preset="turtlebot")}, 256),  # Fig. 4's robot: measured at 256
+    ({"env": EnvConfig(v_gain=0.9)}, 256),  # the default preset, but not its robot
+    ({"task": PATROL}, 256),  # measured with 5 and 5 steps at 256
+    ({"task": "G F (A1 & F A2"}, 256),  # no formula: refused where it is built, not here
+    ({"generalist": True}, 256),
+    ({"fast": True}, 256),
+])
+def test_the_safety_minibatch_is_128_for_a_finite_task_on_one_layout_only(kw, batch):
+    """``cbf.batch_size`` None: 128 for a task that is not a recurrence, on one layout, with the
+    default robot, without --fast; 256 everywhere else; a value given is kept, and config.json
+    records the resolved one."""
+    cfg = TrainConfig(**kw)
+    assert cfg.cbf.batch_size == batch == cfg.cbf.minibatch
+    assert config_from_dict(config_to_dict(cfg)).cbf.batch_size == batch
+    assert TrainConfig(**kw, cbf=CBFConfig(batch_size=64)).cbf.minibatch == 64
+
+
+def test_a_config_json_of_before_the_minibatch_default_reads_back_256():
+    d = config_to_dict(TrainConfig())
+    d["cbf"]["batch_size"] = 256  # what every run recorded before 2026-12-04 (afternoon)
+    assert config_from_dict(d).cbf.minibatch == 256
+    assert CBFConfig().minibatch == 256  # a CBFConfig on its own
+    with pytest.raises(ConfigError, match="batch_size"):
+        CBFConfig(batch_size=0)
+
+
 def test_a_config_json_without_the_update_steps_reads_back_the_former_ten():
     d = config_to_dict(TrainConfig())
     del d["cbf"]["updates_per_iter"], d["cbf"]["nominal_updates_per_iter"]
@@ -243,9 +274,11 @@ def test_no_fast_over_a_fast_runs_config_json_gives_the_learners_own_defaults(al
     cfg = cli.parse(["train", "--config", str(path), "--algo", algo, "--no-fast", *extra]).config()
     assert not cfg.fast and _speed(cfg) == {**DEFAULT_SETTINGS, **kept}
     assert (cfg.cbf.updates_per_iter, cfg.cbf.nominal_updates_per_iter) == (10, 10)  # ϕ1's, with or without --fast
+    assert cfg.cbf.batch_size == 128  # --fast's 256 gives way to ϕ1's own
     said = [str(w.message) for w in recwarn if issubclass(w.category, D2SPOWarning)]
     assert len(said) == 1 and ("num_envs 32 -> 16" in said[0]) == ("num_envs" not in kept), said
     assert "cbf.updates_per_iter" not in said[0], said
+    assert ("cbf.batch_size 256 -> 128" in said[0]) == (algo == "d2spo"), said
     assert cli.parse(["train", "--config", str(path)]).config() == TrainConfig(algo="d2spo", fast=True)
     with pytest.raises(ConfigError, match="over the --config file of a --fast run: --no-fast"):
         cli.parse(["train", "--config", str(path), "--algo", "td3-lag"])

@@ -110,10 +110,10 @@ class TrainCmd:
                                                       exact=section == "env"))
 
         env = dataclasses.replace(cfg.env, **{k: v for k, v in values.items() if unset("env", k)})
-        # UPDATE(Ω, Θ)'s step counts the flags left unset follow the file's robot, not the preset's
+        # UPDATE(Ω, Θ)'s step counts and minibatch the flags left unset follow the file's robot, not the preset's
         steps = set(getattr(cfg, "filled_update_steps", ()))
         if base is not None:
-            steps |= {k for k in ("updates_per_iter", "nominal_updates_per_iter") if unset("cbf", k)}
+            steps |= {k for k in ("updates_per_iter", "nominal_updates_per_iter", "batch_size") if unset("cbf", k)}
         cbf = dataclasses.replace(cfg.cbf, **dict.fromkeys(sorted(steps)))
         return dataclasses.replace(cfg, env=env, cbf=cbf)
 
@@ -134,14 +134,14 @@ def flag_typed(field: str, typed: tuple[str, ...], exact: bool = False) -> bool:
 def without_fast(cfg: TrainConfig, path: Path, typed: tuple[str, ...]) -> TrainConfig:
     """``--config`` of a ``--fast`` run with ``--no-fast`` (or the config.json of a --fast run given
     to another learner, which must say --no-fast): the values --fast filled (``FAST_SETTINGS``, and
-    UPDATE(Ω, Θ)'s step counts) that no flag of ``typed`` (the command line) sets are unset, so that
+    UPDATE(Ω, Θ)'s step counts and minibatch) that no flag of ``typed`` (the command line) sets are unset, so that
     this learner's own defaults fill them, and a warning names each change. They used to stay: a
     baseline trained on a D²SPO --fast run's config took its 32 envs, half its own update rate,
     without a word (a user trial, 2026-12-03)."""
     def free(field: str) -> bool:
         return not flag_typed(field, typed)
 
-    steps = {k: None for k in ("updates_per_iter", "nominal_updates_per_iter") if free(f"cbf.{k}")}
+    steps = {k: None for k in ("updates_per_iter", "nominal_updates_per_iter", "batch_size") if free(f"cbf.{k}")}
     new = dataclasses.replace(cfg, num_envs=None if free("num_envs") else cfg.num_envs,
                               td3=dataclasses.replace(cfg.td3, hidden=None) if free("td3.hidden") else cfg.td3,
                               cbf=dataclasses.replace(cfg.cbf, **steps))

@@ -40,7 +40,7 @@ from d2spo.ltl.anneal import AnnealConfig
 from d2spo.ltl.buchi_task import task_is_recurrence
 from d2spo.ltl.tasks import MAX_PATROLS
 from d2spo.memory import check_memory
-from d2spo.safety.cbf import RECURRENCE_UPDATE_STEPS, UPDATE_STEPS, CBFConfig
+from d2spo.safety.cbf import BATCH_SIZE, ONE_LAYOUT_BATCH_SIZE, RECURRENCE_UPDATE_STEPS, UPDATE_STEPS, CBFConfig
 
 PAPER_EPISODES = 20_000
 """Training episodes of a run on one layout (the paper's)."""
@@ -230,13 +230,18 @@ class TrainConfig:
         "2026-12-04, late morning"); --fast's ϕ1 seed 0 85.20% against 99.70% (2026-12-01).
         config.json records them; the names filled here are kept in ``filled_update_steps`` (not a
         field), so that a --dynamics file applied after the flags decides them again
-        (``cli.TrainCmd.config``)."""
+        (``cli.TrainCmd.config``). The minibatch (``cbf.batch_size``) likewise, where unset:
+        ``ONE_LAYOUT_BATCH_SIZE`` for a task that is not a recurrence, on one layout, with the default
+        robot, without --fast; ``BATCH_SIZE`` elsewhere. Since 2026-12-04 (afternoon), for ϕ1 in 3
+        minutes with the tables held (bench/RESULTS.md); ``filled_update_steps`` names it too."""
         default_robot = self.env.preset == "default" and all(
             getattr(self.env, f.name) is None for f in dataclasses.fields(Preset))
-        halved = not (self.generalist or self.fast) and default_robot and task_is_recurrence(self.task) is True
-        steps = RECURRENCE_UPDATE_STEPS if halved else UPDATE_STEPS
-        unset = {name: steps for name in ("updates_per_iter", "nominal_updates_per_iter")
-                 if getattr(self.cbf, name) is None}
+        ours = not (self.generalist or self.fast) and default_robot
+        recurrence = task_is_recurrence(self.task)
+        steps = RECURRENCE_UPDATE_STEPS if ours and recurrence is True else UPDATE_STEPS
+        batch = ONE_LAYOUT_BATCH_SIZE if ours and recurrence is False else BATCH_SIZE
+        unset = {name: value for name, value in (("updates_per_iter", steps), ("nominal_updates_per_iter", steps),
+                                                  ("batch_size", batch)) if getattr(self.cbf, name) is None}
         if unset:
             object.__setattr__(self, "cbf", dataclasses.replace(self.cbf, **unset))
         object.__setattr__(self, "filled_update_steps", tuple(unset))

@@ -201,7 +201,7 @@ class D2SPOLearner(PipelinedChunks, TD3Learner):
         on values held constant and only its range is differentiated (``sensors.lidar``'s
         ``for_grad``): the same values, and the same gradients but on ties between obstacles
         (tests/test_env_geometry.py). The minimum's gradient ran backwards through every obstacle's
-        range: this took a phi1 chunk from 0.98 to 0.88 ms per vectorised step (bench/RESULTS.md,
+        range: this took a phi1 chunk from 1.09 to 1.01 ms per vectorised step (bench/RESULTS.md,
         "2026-12-04, afternoon"). Before it, from 2026-11-29, the minimum was one reduction here, not
         an unrolled chain per obstacle, which halved the generalist's compile time."""
         return self.features(pose, ctx, for_grad=True)
@@ -337,7 +337,7 @@ class D2SPOLearner(PipelinedChunks, TD3Learner):
 
         new, metrics = update(k_safe, c.safety, c.data, nets=self.safety_nets, cfg=self.cbf_cfg,
                               features_fn=self.features_for_grad, dt=self.dt, u_rl_fn=u_rl_fn)
-        enough = c.data.p_exp.size >= self.cbf_cfg.batch_size
+        enough = c.data.p_exp.size >= self.cbf_cfg.minibatch
         safety = jax.tree_util.tree_map(lambda a, b: jnp.where(enough, a, b), new, c.safety)
         return safety, jax.tree_util.tree_map(lambda v: jnp.where(enough, v, jnp.nan), metrics)
 

@@ -120,9 +120,9 @@ def _first_hit(ranges, *obstacles: jnp.ndarray) -> jnp.ndarray:
     (the first on a tie), then that obstacle's range is computed again, differentiably. The values
     are the minimum's (bit for bit at XLA's default optimisation level; to rounding at others), and
     so is the gradient, except on a tie between two obstacles, where the minimum's would split
-    itself between them. The minimum's own gradient
-    runs backwards through all N × K ranges: through this one it took Eq. (9)'s lidar from 0.25 to
-    0.13 ms per batch of 256 poses (bench/RESULTS.md, "2026-12-04, afternoon")."""
+    itself between them. The minimum's own gradient runs backwards through all N × K ranges:
+    through this one it took Eq. (9)'s lidar from 0.25 to 0.14 ms per batch of 256 poses
+    (bench/RESULTS.md, "2026-12-04, afternoon")."""
     t_all = jax.lax.stop_gradient(ranges(*(a[:, None] for a in obstacles)))  # [N, K]
     # argmin, not a comparison with the minimum: XLA may compute t_all twice in two kernels, an ulp
     # apart (at the test suite's optimisation level it did, and no range equalled the minimum)

@@ -40,6 +40,14 @@ RECURRENCE_UPDATE_STEPS = 5
 the count, where it made more accepting visits (README, "Departures from the paper"). From
 2026-11-30 to 2026-12-04 it was every task's on one layout; Table II's completions then fell
 below 99.5% on four seeds of six (bench/RESULTS.md, "2026-12-04, late morning")."""
+BATCH_SIZE = 256
+"""Minibatch size of UPDATE(Ω, Θ) (from each of T, P_exp and X_L) and of the cautious start when
+``batch_size`` is unset (TrainConfig fills it in), save for the one below."""
+ONE_LAYOUT_BATCH_SIZE = 128
+"""The same for a task that is not a recurrence, on one layout, with the default robot, without
+--fast (where ``RECURRENCE_UPDATE_STEPS`` would halve a patrol's steps): half the arithmetic
+of UPDATE(Ω, Θ), with Tables II-III held (README, "Departures from the paper"; bench/RESULTS.md,
+"2026-12-04, afternoon")."""
 
 
 @dataclass(frozen=True)
@@ -96,8 +104,8 @@ class CBFConfig:
     """Capacity of P_exp (and so of X_s)."""
     unsafe_capacity: int = 100_000
     """Capacity of X_L (synthesised unsafe samples)."""
-    batch_size: int = 256
-    """Minibatch size from each of P_exp, X_L and T."""
+    batch_size: int | None = None
+    """Minibatch from each of P_exp, X_L and T; None: 128 on one layout (default robot; not a patrol, not --fast), else 256."""
     updates_per_iter: int | None = None
     """Gradient steps on Eq. (9) per UPDATE(Ω, Θ); None: 10, or 5 for a patrol on one layout with the default robot."""
     nominal_updates_per_iter: int | None = None
@@ -131,13 +139,18 @@ class CBFConfig:
         return UPDATE_STEPS if self.updates_per_iter is None else self.updates_per_iter
 
     @property
+    def minibatch(self) -> int:
+        """Minibatch size: batch_size, or ``BATCH_SIZE`` if unset (a TrainConfig always sets it)."""
+        return BATCH_SIZE if self.batch_size is None else self.batch_size
+
+    @property
     def nominal_steps(self) -> int:
         """Steps on f_n per UPDATE(Ω, Θ): nominal_updates_per_iter, or ``UPDATE_STEPS`` if unset."""
         return UPDATE_STEPS if self.nominal_updates_per_iter is None else self.nominal_updates_per_iter
 
     def __post_init__(self):
         check_choice(self, "alpha", ALPHAS, "cbf")
-        check_fields(self, "cbf", nullable=("filter_alpha_coef", "updates_per_iter", "nominal_updates_per_iter"),
+        check_fields(self, "cbf", nullable=("filter_alpha_coef", "updates_per_iter", "nominal_updates_per_iter", "batch_size"),
                      widths=("hidden", "policy_hidden", "nominal_hidden"),
                      positive=("gamma_s", "gamma_u", "gamma_exp", "alpha_coef", "d", "unsafe_max", "sigma",
                                "filter_alpha_coef"),

@@ -155,7 +155,7 @@ def update(key: jax.Array, state: SafetyState, data: SafetyData, *, nets: Safety
 
     def nominal_body(carry, k):
         params, opt = carry
-        tr, w = weighted_sample(data.transitions, k, cfg.batch_size)
+        tr, w = weighted_sample(data.transitions, k, cfg.minibatch)
         batch = NominalBatch(tr.pose, tr.action, tr.next_pose, w)
         params, opt, loss = nominal_update(nets.nominal, params, opt, batch, dt, tn)
         return (params, opt), loss
@@ -166,8 +166,8 @@ def update(key: jax.Array, state: SafetyState, data: SafetyData, *, nets: Safety
 
     def joint_body(st, k):
         k1, k2, k3 = jax.random.split(k, 3)
-        tr, w = weighted_sample(data.p_exp, k1, cfg.batch_size)
-        xu, wu = weighted_sample(data.unsafe, k2, cfg.batch_size)
+        tr, w = weighted_sample(data.p_exp, k1, cfg.minibatch)
+        xu, wu = weighted_sample(data.unsafe, k2, cfg.minibatch)
         batch = te_batch(tr, w, None if u_rl_fn is None else u_rl_fn(tr.obs))
         synthetic = synthetic_batch(k3, pretrain, cfg, batch.u_rl.shape[-1]) if replay else None
         return joint_step(st, batch, xu, wu, nets=nets, cfg=cfg, features_fn=features_fn, dt=dt, synthetic=synthetic)
@@ -192,7 +192,7 @@ def cautious_start(key: jax.Array, state: SafetyState, data: PretrainData, *, ne
     k_prior, k_train = jax.random.split(key)
     if prior is not None and cfg.prior_steps > 0:
         nominal, _ = fit_nominal_prior(k_prior, nets.nominal, state.nominal, prior, steps=cfg.prior_steps,
-                                       batch_size=cfg.batch_size, lr=cfg.nominal_lr, action_dim=action_dim)
+                                       batch_size=cfg.minibatch, lr=cfg.nominal_lr, action_dim=action_dim)
         state = state.replace(nominal=nominal)
 
     def body(st, k):
@@ -210,8 +210,8 @@ def synthetic_batch(key: jax.Array, data: PretrainData, cfg: CBFConfig, action_d
     exp_w = (jnp.min(data.x, axis=-1) >= p_exp_threshold(cfg)).astype(jnp.float32)
     unsafe_w = data.unsafe_valid.astype(jnp.float32)
     k1, k2, k3 = jax.random.split(key, 3)
-    i = jax.random.choice(k1, n, (cfg.batch_size,), p=(exp_w + 1e-9) / jnp.sum(exp_w + 1e-9))
-    j = jax.random.choice(k2, n, (cfg.batch_size,), p=(unsafe_w + 1e-9) / jnp.sum(unsafe_w + 1e-9))
-    u_rl = jax.random.uniform(k3, (cfg.batch_size, action_dim), minval=-1.0, maxval=1.0)
+    i = jax.random.choice(k1, n, (cfg.minibatch,), p=(exp_w + 1e-9) / jnp.sum(exp_w + 1e-9))
+    j = jax.random.choice(k2, n, (cfg.minibatch,), p=(unsafe_w + 1e-9) / jnp.sum(unsafe_w + 1e-9))
+    u_rl = jax.random.uniform(k3, (cfg.minibatch, action_dim), minval=-1.0, maxval=1.0)
     ctx = jax.tree_util.tree_map(lambda c: c[i], data.context)
     return TeBatch(data.pose[i], None, ctx, u_rl, exp_w[i]), data.x_unsafe[j], unsafe_w[j]
