@@ -55,7 +55,7 @@ def test_train_reads_the_file_and_flags_override_it(tmp_path):
     assert cfg.env.v_gain == 0.7  # the flag wins over the file
     assert cli.parse(["train"]).config().env.v_max is None  # no file: the preset's
     # UPDATE(Ω, Θ)'s steps: a patrol's halved only for the default robot; a file's robot takes 10
-    # unless a flag says otherwise (config.TrainConfig._resolve_update_steps)
+    # unless a flag says otherwise (config.TrainConfig._resolve_cbf_fields)
     steps = lambda c: (c.cbf.nominal_updates_per_iter, c.cbf.updates_per_iter)  # noqa: E731
     assert steps(cli.parse(["train", "--task", "patrol2"]).config()) == (5, 5)
     assert steps(cli.parse(["train", "--task", "patrol2", "--dynamics", str(path)]).config()) == (10, 10)

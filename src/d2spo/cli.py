@@ -28,7 +28,7 @@ from d2spo.cli_env import ENV_SUBCOMMANDS, EnvCmd
 from d2spo.cli_export import ExportCmd
 from d2spo.cli_ltl import LtlCmd
 from d2spo.cli_reproduce import CompareCmd, ReportCmd, ReproduceCmd
-from d2spo.config import TrainConfig, config_file
+from d2spo.config import CBF_FILLED_FIELDS, TrainConfig, config_file
 from d2spo.config_diff import flags_given, other_learners_flag
 from d2spo.config_flags import algo_named, config_file_named, flags_for, plain
 from d2spo.console import (
@@ -111,9 +111,9 @@ class TrainCmd:
 
         env = dataclasses.replace(cfg.env, **{k: v for k, v in values.items() if unset("env", k)})
         # UPDATE(Ω, Θ)'s step counts and minibatch the flags left unset follow the file's robot, not the preset's
-        steps = set(getattr(cfg, "filled_update_steps", ()))
+        steps = set(getattr(cfg, "filled_cbf_fields", ()))
         if base is not None:
-            steps |= {k for k in ("updates_per_iter", "nominal_updates_per_iter", "batch_size") if unset("cbf", k)}
+            steps |= {k for k in CBF_FILLED_FIELDS if unset("cbf", k)}
         cbf = dataclasses.replace(cfg.cbf, **dict.fromkeys(sorted(steps)))
         return dataclasses.replace(cfg, env=env, cbf=cbf)
 
@@ -141,7 +141,7 @@ def without_fast(cfg: TrainConfig, path: Path, typed: tuple[str, ...]) -> TrainC
     def free(field: str) -> bool:
         return not flag_typed(field, typed)
 
-    steps = {k: None for k in ("updates_per_iter", "nominal_updates_per_iter", "batch_size") if free(f"cbf.{k}")}
+    steps = {k: None for k in CBF_FILLED_FIELDS if free(f"cbf.{k}")}
     new = dataclasses.replace(cfg, num_envs=None if free("num_envs") else cfg.num_envs,
                               td3=dataclasses.replace(cfg.td3, hidden=None) if free("td3.hidden") else cfg.td3,
                               cbf=dataclasses.replace(cfg.cbf, **steps))

@@ -57,6 +57,10 @@ DEFAULT_SETTINGS: dict[str, Any] = {"num_envs": 16, "td3.hidden": DEFAULT_WIDTHS
 GENERALIST_SETTINGS: dict[str, Any] = {"num_envs": 16, "td3.hidden": (256, 256)}
 """The same for the generalist (``--generalist``): wider TD3 networks, for its zero-shot patrols at
 about 1.5x the training time; docs/config.md gives the measurements."""
+CBF_FILLED_FIELDS = ("updates_per_iter", "nominal_updates_per_iter", "batch_size")
+"""The ``cbf`` fields ``TrainConfig`` fills where unset from the task, the robot, --fast and
+--generalist (``_resolve_cbf_fields``): UPDATE(Ω, Θ)'s two step counts and its minibatch. A
+--dynamics file (another robot) and --no-fast fill them again (``cli``)."""
 WANDB_FORBIDDEN = "/\\#?%:"
 """Characters a W&B project name may not hold (``--wandb-project``)."""
 VALIDATION_SEED = 50_000
@@ -211,7 +215,7 @@ class TrainConfig:
                               f"{self.generalist_world}:{VALIDATION_SEED} on are the validation set")
         if self.d2spo.actor_through_safety is None:  # on for one layout, off for the generalist
             object.__setattr__(self, "d2spo", dataclasses.replace(self.d2spo, actor_through_safety=not self.generalist))
-        self._resolve_update_steps()
+        self._resolve_cbf_fields()
         if self.td3.forward_only is None:  # on for the generalist, off for one layout
             td3 = copy.copy(self.td3)  # checked when it was made: only the None is filled in
             object.__setattr__(td3, "forward_only", self.generalist)
@@ -219,7 +223,7 @@ class TrainConfig:
         if not isinstance(self.task, str) or not self.task.strip():
             raise ConfigError("task", f"expected a task name or an LTL formula, got {self.task!r}")
 
-    def _resolve_update_steps(self) -> None:
+    def _resolve_cbf_fields(self) -> None:
         """Fill the unset step counts of UPDATE(Ω, Θ) (``cbf.updates_per_iter``, ``cbf.nominal_updates_per_iter``):
         ``RECURRENCE_UPDATE_STEPS`` for a recurrence (a patrol) on one layout with the default robot
         (preset "default", none of its fields set: no --dynamics file, no --v-gain, ...) without
@@ -228,23 +232,23 @@ class TrainConfig:
         vmapped seeds 0-5 then completed 98.70-99.95% of their last 2000 episodes, four under
         Table II's 99.5%, against 99.80-100% with 10 and 10 (bench/RESULTS.md,
         "2026-12-04, late morning"); --fast's ϕ1 seed 0 85.20% against 99.70% (2026-12-01).
-        config.json records them; the names filled here are kept in ``filled_update_steps`` (not a
+        config.json records them; the names filled here are kept in ``filled_cbf_fields`` (not a
         field), so that a --dynamics file applied after the flags decides them again
         (``cli.TrainCmd.config``). The minibatch (``cbf.batch_size``) likewise, where unset:
         ``ONE_LAYOUT_BATCH_SIZE`` for a task that is not a recurrence, on one layout, with the default
         robot, without --fast; ``BATCH_SIZE`` elsewhere. Since 2026-12-04 (afternoon), for ϕ1 in 3
-        minutes with the tables held (bench/RESULTS.md); ``filled_update_steps`` names it too."""
+        minutes with the tables held (bench/RESULTS.md); ``filled_cbf_fields`` names it too."""
         default_robot = self.env.preset == "default" and all(
             getattr(self.env, f.name) is None for f in dataclasses.fields(Preset))
         ours = not (self.generalist or self.fast) and default_robot
         recurrence = task_is_recurrence(self.task)
         steps = RECURRENCE_UPDATE_STEPS if ours and recurrence is True else UPDATE_STEPS
         batch = ONE_LAYOUT_BATCH_SIZE if ours and recurrence is False else BATCH_SIZE
-        unset = {name: value for name, value in (("updates_per_iter", steps), ("nominal_updates_per_iter", steps),
-                                                  ("batch_size", batch)) if getattr(self.cbf, name) is None}
+        unset = {name: value for name, value in zip(CBF_FILLED_FIELDS, (steps, steps, batch))
+                 if getattr(self.cbf, name) is None}
         if unset:
             object.__setattr__(self, "cbf", dataclasses.replace(self.cbf, **unset))
-        object.__setattr__(self, "filled_update_steps", tuple(unset))
+        object.__setattr__(self, "filled_cbf_fields", tuple(unset))
 
     def _resolve_speed_settings(self) -> None:
         """Fill ``num_envs`` and ``td3.hidden`` where None: ``FAST_SETTINGS`` with ``fast`` (D²SPO and SL

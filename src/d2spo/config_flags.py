@@ -49,7 +49,7 @@ def config_file_named(args: list[str]) -> TrainConfig | None:
 
 def plain(cfg: TrainConfig) -> TrainConfig:
     """A ``TrainConfig`` with the values of ``cfg`` (an instance of a ``flags_for`` class), and the
-    names of the step counts and minibatch ``cfg`` filled itself (``filled_update_steps``)."""
+    names of the step counts and minibatch ``cfg`` filled itself (``filled_cbf_fields``)."""
     out = TrainConfig(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(TrainConfig)})
-    object.__setattr__(out, "filled_update_steps", getattr(cfg, "filled_update_steps", ()))
+    object.__setattr__(out, "filled_cbf_fields", getattr(cfg, "filled_cbf_fields", ()))
     return out
