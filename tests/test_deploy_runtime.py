@@ -6,6 +6,8 @@ command, the example and the refused exports."""
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -62,11 +64,15 @@ def _edited(policy, ranges, pose, part: str, k: int, value: float):
 def test_every_runtime_call_refuses_malformed_input_in_one_value_error(tiny, call, match):
     """A robot's driver may hand the runtime a NaN pose, a scan of the wrong size or a float state:
     each is one ValueError naming the argument, never a NaN action (the first case returned
-    [nan, nan] before) nor numpy's own message."""
+    [nan, nan] before) nor numpy's own message or warning (a path entry of 3e38 overflowed float32's
+    norm with a RuntimeWarning before it was refused)."""
     policy = Policy.load(tiny[1])
     pose = (0.6, 0.6, 0.0)
-    with pytest.raises(ValueError, match=match):
-        call(policy, policy.scan(pose), pose)
+    scan = policy.scan(pose)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ValueError, match=match):
+            call(policy, scan, pose)
 
 
 def test_a_policy_without_a_filter_says_so_when_asked_to_filter(tiny):

@@ -258,14 +258,14 @@ class Policy:
         lidar = obs[self.parts["lidar"]]
         if (lidar < -tol).any() or (lidar > 1 + tol).any():
             refuse("lidar", f"holds values outside [0, 1] ({lidar.min():g} .. {lidar.max():g})")
-        p = obs[self.parts["pose"]]
+        p = obs[self.parts["pose"]].astype(np.float64)  # float64: a huge entry is refused, not overflowed
         if abs(float(p[2] * p[2] + p[3] * p[3]) - 1.0) > 1e-2:
             refuse("pose", f"has (cos θ, sin θ) = ({p[2]:g}, {p[3]:g}), not a unit vector")
         self.pose(self.pose_of_observation(obs))  # in the arena: the pose check's own error
         z = obs[self.parts["automaton"]]
         if not (np.isin(z, (0.0, 1.0)).all() and z.sum() == 1):
             refuse("automaton", "is not one-hot")
-        if "path" in self.parts and float(np.linalg.norm(obs[self.parts["path"]])) > 1 + 1e-2:
+        if "path" in self.parts and float(np.linalg.norm(obs[self.parts["path"]].astype(np.float64))) > 1 + 1e-2:
             refuse("path", "is longer than a unit vector")
         return obs
 
