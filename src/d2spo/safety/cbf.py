@@ -107,9 +107,11 @@ class CBFConfig:
     batch_size: int | None = None
     """Minibatch from each of P_exp, X_L and T; None: 128 on one layout (default robot; not a patrol, not --fast), else 256."""
     updates_per_iter: int | None = None
-    """Gradient steps on Eq. (9) per UPDATE(Ω, Θ); None: 10, or 5 for a patrol on one layout with the default robot."""
+    """Gradient steps on Eq. (9) per UPDATE(Ω, Θ); None: 10, or 5 for a patrol on one layout with the default robot
+    without --fast."""
     nominal_updates_per_iter: int | None = None
-    """Gradient steps on the nominal model per UPDATE; None: 10, or 5 for a patrol on one layout with the default robot."""
+    """Gradient steps on the nominal model per UPDATE; None: 10, or 5 for a patrol on one layout with the default
+    robot without --fast."""
     pretrain_samples: int = 16_384
     """Synthetic poses drawn for the cautious start."""
     pretrain_steps: int = 2_000
