@@ -36,8 +36,8 @@ def long_running_options() -> dict | None:
     None (XLA's flags as they are) unless ``$D2SPO_XLA_LONG_RUNNING_LEVEL`` names a level. The test
     suite compiles at level 0 to compile fast (tests/conftest.py), and sets this to 2 so that its
     inits still run fast: phi1's init compiled in 8.6 s and ran in 16.3 s at level 0, and in 12.8 s
-    and 3.0 s at level 3, XLA's default (2-core AMD); level 2 balanced the two best there. The commands leave it unset: they
-    compile everything at XLA's default level already.
+    and 3.0 s at level 3, XLA's default (2-core AMD); level 2 balanced the two best there. The
+    commands leave it unset: they compile everything at XLA's default level already.
     """
     return _level_options(LONG_RUNNING_LEVEL)
 

@@ -111,10 +111,10 @@ class TrainCmd:
 
         env = dataclasses.replace(cfg.env, **{k: v for k, v in values.items() if unset("env", k)})
         # UPDATE(Ω, Θ)'s step counts and minibatch the flags left unset follow the file's robot, not the preset's
-        steps = set(getattr(cfg, "filled_cbf_fields", ()))
+        filled = set(getattr(cfg, "filled_cbf_fields", ()))
         if base is not None:
-            steps |= {k for k in CBF_FILLED_FIELDS if unset("cbf", k)}
-        cbf = dataclasses.replace(cfg.cbf, **dict.fromkeys(sorted(steps)))
+            filled |= {k for k in CBF_FILLED_FIELDS if unset("cbf", k)}
+        cbf = dataclasses.replace(cfg.cbf, **dict.fromkeys(sorted(filled)))
         return dataclasses.replace(cfg, env=env, cbf=cbf)
 
     def run(self) -> int:
@@ -141,13 +141,13 @@ def without_fast(cfg: TrainConfig, path: Path, typed: tuple[str, ...]) -> TrainC
     def free(field: str) -> bool:
         return not flag_typed(field, typed)
 
-    steps = {k: None for k in CBF_FILLED_FIELDS if free(f"cbf.{k}")}
+    filled = {k: None for k in CBF_FILLED_FIELDS if free(f"cbf.{k}")}
     new = dataclasses.replace(cfg, num_envs=None if free("num_envs") else cfg.num_envs,
                               td3=dataclasses.replace(cfg.td3, hidden=None) if free("td3.hidden") else cfg.td3,
-                              cbf=dataclasses.replace(cfg.cbf, **steps))
+                              cbf=dataclasses.replace(cfg.cbf, **filled))
     changed = [f"{name} {was} -> {now}" for name, was, now in (
         ("num_envs", cfg.num_envs, new.num_envs), ("td3.hidden", list(cfg.td3.hidden), list(new.td3.hidden)),
-        *((f"cbf.{k}", getattr(cfg.cbf, k), getattr(new.cbf, k)) for k in steps if "cbf" in config_sections(new.algo)))
+        *((f"cbf.{k}", getattr(cfg.cbf, k), getattr(new.cbf, k)) for k in filled if "cbf" in config_sections(new.algo)))
                if was != now]
     if changed:
         warnings.warn(f"{path} is a --fast run's config; without --fast, the values --fast gave it follow "

@@ -17,8 +17,8 @@ to the nearest target area's disk (the last step is the straight distance to the
 * a step costs its length times the mean of its two nodes' multipliers: 1 in the open,
   ``CLEARANCE_COST`` (2) where the node is closer than ``clearance`` (0.3 m, the reward's
   shaping clearance) to an obstacle or wall, and ``COLLIDE_COST`` (100) where it is closer than
-  the robot's radius (0.15 m) or outside the arena. The clearance tier is 2 (nav's too since 2026-11-25; it was 10): a
-  0.6-0.8 m opening lies wholly in it, and at 10x the path length jumped by metres for a step
+  the robot's radius (0.15 m) or outside the arena. The clearance tier is 2 (nav's too since
+  2026-11-25; it was 10): a 0.6-0.8 m opening lies wholly in it, and at 10x the path length jumped by metres for a step
   sideways across the opening's mouth (6 m for 0.2 m on ``random:2``); the first generalist
   trained with 10x stopped in front of such openings. The third tier is not in ``envs.geodesic``:
   without it a thin wall costs the same as the opening beside it, and the field would cross a

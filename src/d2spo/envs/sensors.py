@@ -78,9 +78,7 @@ def lidar_cs(
 
     # Boxes, slab method: the ray is inside the x-slab for t in [tx1, tx2] (in some order), likewise
     # y; it meets the box iff the two intervals overlap at some t >= 0.
-    lo = geom.box_lo - xy  # [M, 2], corners relative to the robot
-    hi = geom.box_hi - xy
-    m = lo.shape[0]
+    m = geom.box_lo.shape[0]
     box_mask = sensed_mask if geom.disk_center is None else sensed_mask[:m]
     if for_grad:
         t = jnp.minimum(t_wall, H)
@@ -92,6 +90,8 @@ def lidar_cs(
                 lambda c, r, vis: _disk_range(c[..., 0] - xy[0], c[..., 1] - xy[1], r, dx, dy, vis, H),
                 geom.disk_center, geom.disk_radius, sensed_mask[m:]))
         return jnp.clip(t, 0.0, H)
+    lo = geom.box_lo - xy  # [M, 2], corners relative to the robot
+    hi = geom.box_hi - xy
     if m == 0 or (m <= UNROLL_MAX if unroll is None else unroll):  # one [K]-chain per obstacle (vectorises under vmap)
         t = jnp.minimum(t_wall, H)
         for i in range(m):
